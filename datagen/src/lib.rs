@@ -1,0 +1,14 @@
+//! `datagen`: turns videos plus their 3D reconstructions into self-supervised CogNVS training
+//! pairs (DESIGN §1, §4): sampled novel camera paths, exact co-visibility masks from depth-mesh
+//! BVH occlusion tests, novel-view renders, and sharded Parquet output (`schemas`).
+//!
+//! Modules are named after the method's components; the `datagen` binary is a thin layer over them.
+
+pub mod contact_sheet;
+pub mod depth_exr;
+pub mod error;
+pub mod npy;
+pub mod synth;
+pub mod video;
+
+pub use error::{Error, Result};

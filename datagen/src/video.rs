@@ -1,0 +1,200 @@
+//! Video decoding and encoding with FFmpeg (ffmpeg-next): any container/codec FFmpeg reads in,
+//! H.264 (libx264, yuv420p, MP4) out, frames as RGB u8 in memory (DESIGN §2).
+
+use std::path::Path;
+use std::sync::Once;
+
+use ffmpeg::format::Pixel;
+use ffmpeg::software::scaling::{context::Context as Scaler, flag::Flags};
+use ffmpeg::util::frame::video::Video as VideoFrame;
+use ffmpeg_next as ffmpeg;
+use image::RgbImage;
+
+use crate::error::{Error, Result};
+
+/// libx264 constant-rate factor for written videos: visually lossless, so pairs generated from an
+/// encoded video match those generated from its frames closely.
+const X264_CRF: &str = "17";
+/// libx264 speed preset: a balance of encode time and size for short clips.
+const X264_PRESET: &str = "medium";
+
+/// A decoded video: frames in display order and the stream's frame rate.
+#[derive(Debug, Clone)]
+pub struct Video {
+    /// Frames per second (average frame rate of the stream; 0 if the container does not say).
+    pub fps: f64,
+    /// RGB frames, all of the same size.
+    pub frames: Vec<RgbImage>,
+}
+
+fn init() {
+    static INIT: Once = Once::new();
+    INIT.call_once(|| {
+        // Initialisation only registers codecs; failure would surface at the first open anyway.
+        let _ = ffmpeg::init();
+        ffmpeg::util::log::set_level(ffmpeg::util::log::Level::Error);
+    });
+}
+
+fn video_error(path: &Path, what: &str, error: impl std::fmt::Display) -> Error {
+    Error::Video { path: path.to_owned(), reason: format!("{what}: {error}") }
+}
+
+/// Decodes every frame of the best video stream of `path` to RGB.
+pub fn decode_video(path: &Path) -> Result<Video> {
+    init();
+    if !path.is_file() {
+        return Err(Error::io(path, std::io::Error::new(std::io::ErrorKind::NotFound, "video file not found")));
+    }
+    let mut input = ffmpeg::format::input(path).map_err(|e| video_error(path, "cannot open container", e))?;
+    let stream = input
+        .streams()
+        .best(ffmpeg::media::Type::Video)
+        .ok_or_else(|| video_error(path, "no video stream", "the file holds no video"))?;
+    let stream_index = stream.index();
+    let rate = stream.avg_frame_rate();
+    let fps = if rate.denominator() != 0 { f64::from(rate) } else { 0.0 };
+    let mut context = ffmpeg::codec::context::Context::from_parameters(stream.parameters())
+        .map_err(|e| video_error(path, "unsupported codec parameters", e))?;
+    context.set_threading(ffmpeg::threading::Config {
+        kind: ffmpeg::threading::Type::Frame,
+        count: 0,
+        ..Default::default()
+    });
+    let mut decoder = context.decoder().video().map_err(|e| video_error(path, "cannot open decoder", e))?;
+
+    let mut frames = Vec::new();
+    let mut scaler: Option<Scaler> = None;
+    let mut receive = |decoder: &mut ffmpeg::decoder::Video, frames: &mut Vec<RgbImage>| -> Result<()> {
+        let mut decoded = VideoFrame::empty();
+        while decoder.receive_frame(&mut decoded).is_ok() {
+            let (width, height) = (decoded.width(), decoded.height());
+            if width == 0 || height == 0 {
+                return Err(video_error(path, "decoded frame", "zero-size frame"));
+            }
+            if scaler.is_none() {
+                let created =
+                    Scaler::get(decoded.format(), width, height, Pixel::RGB24, width, height, Flags::BILINEAR)
+                        .map_err(|e| video_error(path, "cannot convert to RGB", e))?;
+                scaler = Some(created);
+            }
+            let mut rgb = VideoFrame::empty();
+            scaler
+                .as_mut()
+                .expect("scaler created above")
+                .run(&decoded, &mut rgb)
+                .map_err(|e| video_error(path, "RGB conversion", e))?;
+            frames.push(frame_to_image(&rgb));
+        }
+        Ok(())
+    };
+    for (stream, packet) in input.packets() {
+        if stream.index() == stream_index {
+            decoder
+                .send_packet(&packet)
+                .map_err(|e| video_error(path, &format!("decoding frame {}", frames.len()), e))?;
+            receive(&mut decoder, &mut frames)?;
+        }
+    }
+    decoder.send_eof().map_err(|e| video_error(path, "flushing decoder", e))?;
+    receive(&mut decoder, &mut frames)?;
+    if frames.is_empty() {
+        return Err(video_error(path, "no frames", "the video stream decoded to zero frames"));
+    }
+    Ok(Video { fps, frames })
+}
+
+fn frame_to_image(frame: &VideoFrame) -> RgbImage {
+    let (width, height) = (frame.width() as usize, frame.height() as usize);
+    let stride = frame.stride(0);
+    let data = frame.data(0);
+    let mut pixels = Vec::with_capacity(width * height * 3);
+    for row in 0..height {
+        pixels.extend_from_slice(&data[row * stride..row * stride + width * 3]);
+    }
+    RgbImage::from_raw(width as u32, height as u32, pixels).expect("buffer sized to the frame")
+}
+
+/// Encodes `frames` as H.264 (yuv420p) at `fps` into `path` (container from the extension,
+/// normally `.mp4`). Frame sizes must be equal and even (4:2:0 chroma needs even sizes).
+pub fn encode_video(path: &Path, frames: &[RgbImage], fps: f64) -> Result<()> {
+    init();
+    let first = frames.first().ok_or_else(|| Error::parameter("frames", "cannot encode a video of zero frames"))?;
+    let (width, height) = first.dimensions();
+    if !width.is_multiple_of(2) || !height.is_multiple_of(2) || width == 0 || height == 0 {
+        return Err(Error::parameter(
+            "size",
+            format!("H.264 4:2:0 needs even, non-zero frame sizes, got {width}x{height}"),
+        ));
+    }
+    if let Some(i) = frames.iter().position(|f| f.dimensions() != (width, height)) {
+        return Err(Error::parameter(
+            "frames",
+            format!("frame {i} is {:?}, frame 0 is {width}x{height}", frames[i].dimensions()),
+        ));
+    }
+    if !(fps.is_finite() && fps > 0.0) {
+        return Err(Error::parameter("fps", format!("must be a positive number, got {fps}")));
+    }
+    let rate = ffmpeg::Rational::from(fps);
+    let time_base = rate.invert();
+
+    let mut output = ffmpeg::format::output(path).map_err(|e| video_error(path, "cannot create container", e))?;
+    let global_header = output.format().flags().contains(ffmpeg::format::Flags::GLOBAL_HEADER);
+    let codec = ffmpeg::encoder::find_by_name("libx264")
+        .or_else(|| ffmpeg::encoder::find(ffmpeg::codec::Id::H264))
+        .ok_or_else(|| video_error(path, "no H.264 encoder", "FFmpeg was built without libx264"))?;
+    let mut stream = output.add_stream(codec).map_err(|e| video_error(path, "cannot add stream", e))?;
+    let stream_index = stream.index();
+    let mut encoder = ffmpeg::codec::context::Context::new_with_codec(codec)
+        .encoder()
+        .video()
+        .map_err(|e| video_error(path, "cannot create encoder", e))?;
+    encoder.set_width(width);
+    encoder.set_height(height);
+    encoder.set_format(Pixel::YUV420P);
+    encoder.set_frame_rate(Some(rate));
+    encoder.set_time_base(time_base);
+    if global_header {
+        encoder.set_flags(ffmpeg::codec::Flags::GLOBAL_HEADER);
+    }
+    let mut options = ffmpeg::Dictionary::new();
+    options.set("crf", X264_CRF);
+    options.set("preset", X264_PRESET);
+    let mut encoder = encoder.open_with(options).map_err(|e| video_error(path, "cannot open H.264 encoder", e))?;
+    stream.set_parameters(&encoder);
+    stream.set_time_base(time_base);
+    stream.set_rate(rate);
+    stream.set_avg_frame_rate(rate);
+    output.write_header().map_err(|e| video_error(path, "writing header", e))?;
+    let stream_time_base = output.stream(stream_index).expect("stream added above").time_base();
+
+    let mut scaler = Scaler::get(Pixel::RGB24, width, height, Pixel::YUV420P, width, height, Flags::BILINEAR)
+        .map_err(|e| video_error(path, "cannot convert from RGB", e))?;
+    let drain = |encoder: &mut ffmpeg::encoder::Video, output: &mut ffmpeg::format::context::Output| -> Result<()> {
+        let mut packet = ffmpeg::Packet::empty();
+        while encoder.receive_packet(&mut packet).is_ok() {
+            packet.set_stream(stream_index);
+            packet.rescale_ts(time_base, stream_time_base);
+            packet.write_interleaved(output).map_err(|e| video_error(path, "writing packet", e))?;
+        }
+        Ok(())
+    };
+    for (index, image) in frames.iter().enumerate() {
+        let mut rgb = VideoFrame::new(Pixel::RGB24, width, height);
+        let stride = rgb.stride(0);
+        let row_bytes = width as usize * 3;
+        for (row, pixels) in image.as_raw().chunks_exact(row_bytes).enumerate() {
+            rgb.data_mut(0)[row * stride..row * stride + row_bytes].copy_from_slice(pixels);
+        }
+        let mut yuv = VideoFrame::empty();
+        scaler.run(&rgb, &mut yuv).map_err(|e| video_error(path, "RGB to YUV conversion", e))?;
+        yuv.set_pts(Some(index as i64));
+        encoder.send_frame(&yuv).map_err(|e| video_error(path, &format!("encoding frame {index}"), e))?;
+        drain(&mut encoder, &mut output)?;
+    }
+    encoder.send_eof().map_err(|e| video_error(path, "flushing encoder", e))?;
+    drain(&mut encoder, &mut output)?;
+    output.write_trailer().map_err(|e| video_error(path, "writing trailer", e))?;
+    Ok(())
+}

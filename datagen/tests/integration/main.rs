@@ -1,0 +1,3 @@
+//! The `datagen` integration tests: one binary, a module per feature.
+
+mod synth;

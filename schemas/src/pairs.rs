@@ -1,0 +1,260 @@
+//! The training-pair shard schema (DESIGN §5): one Parquet row per source clip, holding the clip's
+//! frames, depth and cameras once, and a list of trajectories, each with its novel cameras,
+//! sampling parameters and lossless co-visibility masks.
+//!
+//! Every field carries its documentation in the Arrow field metadata (key [`DOC_KEY`]), so the
+//! reference in `schemas/SCHEMA.md` is generated from this file and readers in Python see the same
+//! text in `pyarrow` (`schema.field(name).metadata`).
+
+use std::collections::HashMap;
+use std::sync::Arc;
+
+use arrow::datatypes::{DataType, Field, Fields, Schema};
+
+/// Parquet key-value metadata key naming which schema a file follows.
+pub const SCHEMA_NAME_KEY: &str = "cognvs.schema";
+/// Value of [`SCHEMA_NAME_KEY`] for training-pair shards.
+pub const SCHEMA_NAME: &str = "cognvs.pairs";
+/// Parquet key-value metadata key holding the schema version (a decimal integer).
+pub const SCHEMA_VERSION_KEY: &str = "cognvs.schema_version";
+/// The version this code writes and reads. Bump on any change a reader could notice.
+pub const SCHEMA_VERSION: u32 = 1;
+/// Arrow field metadata key holding a field's documentation.
+pub const DOC_KEY: &str = "doc";
+
+/// Where a trajectory came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TrajectoryKind {
+    /// Sampled by the generator from spherical offsets (DESIGN §4).
+    Sampled,
+    /// Given by the user as per-frame cameras or a `trajs/*.txt` file.
+    Explicit,
+}
+
+impl TrajectoryKind {
+    /// The string stored in the `kind` column.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Sampled => "sampled",
+            Self::Explicit => "explicit",
+        }
+    }
+
+    /// Parses the `kind` column's value.
+    pub fn parse(value: &str) -> Option<Self> {
+        match value {
+            "sampled" => Some(Self::Sampled),
+            "explicit" => Some(Self::Explicit),
+            _ => None,
+        }
+    }
+}
+
+/// One novel camera path for a clip, with its co-visibility masks.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TrajectoryRecord {
+    /// Position of this trajectory within the clip (0-based, stable: it seeds the sampling).
+    pub index: u32,
+    /// Sampled or user-given.
+    pub kind: TrajectoryKind,
+    /// Orbit pivot distance R along each source camera's optical axis, in depth units.
+    pub pivot_distance: f64,
+    /// Azimuth control values in degrees (4 for sampled trajectories; per-frame values for a
+    /// `trajs/*.txt` input; empty for explicit camera lists).
+    pub azimuth_deg: Vec<f64>,
+    /// Elevation control values in degrees, like `azimuth_deg`.
+    pub elevation_deg: Vec<f64>,
+    /// Radial offset control values as fractions of R, like `azimuth_deg`.
+    pub radius_frac: Vec<f64>,
+    /// How many sampled candidates were rejected (camera path crossing the surface) before this one.
+    pub rejected_samples: u32,
+    /// Per-frame novel camera pose, `world_from_camera`, row-major 4×4.
+    pub world_from_camera: Vec<[f64; 16]>,
+    /// Per-frame co-visibility mask as 8-bit greyscale PNG: 255 co-visible, 0 hidden.
+    pub covisible_mask: Vec<Vec<u8>>,
+    /// Per-frame conditioning frames as RGB PNG when they differ from `frames × mask` (depth
+    /// noise); `None` means the conditioning is exactly the clip's frames with hidden pixels black.
+    pub condition: Option<Vec<Vec<u8>>>,
+    /// Fraction of the clip's valid pixels that are co-visible, over all frames.
+    pub covisible_fraction: f64,
+}
+
+/// One clip of a source video with everything needed to train on it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ClipRecord {
+    /// Unique id of the clip within a corpus: `{dataset}/{source_id}/{clip_start}`.
+    pub clip_id: String,
+    /// Id of the source video within its dataset.
+    pub source_id: String,
+    /// Dataset name (`sav`, `tao`, `ytvos`, `davis`, `synth`, `sequence`, ...).
+    pub dataset: String,
+    /// Path of the input sequence as the generator saw it.
+    pub source_path: String,
+    /// Index of the clip's first frame in the source video.
+    pub clip_start: u32,
+    /// Frame rate of the source video (frames per second; 0 if unknown).
+    pub fps: f64,
+    /// Frame width in pixels.
+    pub width: u32,
+    /// Frame height in pixels.
+    pub height: u32,
+    /// The generator's seed (combined with ids to derive every random choice).
+    pub seed: u64,
+    /// Name and version of the tool that wrote the record, e.g. `datagen 0.1.0`.
+    pub tool_version: String,
+    /// Per-frame RGB frames as PNG: the training target.
+    pub frames: Vec<Vec<u8>>,
+    /// Per-frame z-depth as single-channel (`Z`) f32 OpenEXR, at frame resolution.
+    pub depth: Vec<Vec<u8>>,
+    /// Per-frame intrinsics K in pixels, row-major 3×3, pixel centres at integer coordinates.
+    pub intrinsics: Vec<[f64; 9]>,
+    /// Per-frame source camera pose, `world_from_camera`, row-major 4×4, OpenCV axes.
+    pub world_from_camera: Vec<[f64; 16]>,
+    /// Per-frame dynamic-object masks as 8-bit greyscale PNG (0 static, >0 object id, 255 void).
+    pub dynamic_mask: Option<Vec<Vec<u8>>>,
+    /// The clip's trajectories.
+    pub trajectories: Vec<TrajectoryRecord>,
+}
+
+impl ClipRecord {
+    /// Number of frames of the clip.
+    pub fn num_frames(&self) -> usize {
+        self.frames.len()
+    }
+}
+
+fn doc(field: Field, text: &str) -> Field {
+    field.with_metadata(HashMap::from([(DOC_KEY.to_owned(), text.to_owned())]))
+}
+
+/// `list<item>` with a non-null item of the given type.
+fn list_of(item: DataType) -> DataType {
+    DataType::List(Arc::new(Field::new("item", item, false)))
+}
+
+/// `list<fixed_size_list<float64, n>>`: one small matrix per frame.
+pub(crate) fn per_frame_matrix(n: i32) -> DataType {
+    list_of(DataType::FixedSizeList(Arc::new(Field::new("item", DataType::Float64, false)), n))
+}
+
+/// `list<large_binary>`: one encoded image per frame.
+pub(crate) fn per_frame_bytes() -> DataType {
+    list_of(DataType::LargeBinary)
+}
+
+/// The fields of one element of the `trajectories` column.
+pub fn trajectory_fields() -> Fields {
+    Fields::from(vec![
+        doc(
+            Field::new("index", DataType::UInt32, false),
+            "Position of the trajectory within the clip (0-based); part of its seed.",
+        ),
+        doc(
+            Field::new("kind", DataType::Utf8, false),
+            "`sampled` (spherical offsets drawn by the generator) or `explicit` (given by the user).",
+        ),
+        doc(
+            Field::new("pivot_distance", DataType::Float64, false),
+            "Orbit pivot distance R along each source camera's optical axis, in the reconstruction's depth units.",
+        ),
+        doc(
+            Field::new("azimuth_deg", list_of(DataType::Float64), false),
+            "Azimuth control values in degrees: 4 for sampled trajectories, per-frame for `trajs/*.txt` input, empty for explicit camera lists.",
+        ),
+        doc(
+            Field::new("elevation_deg", list_of(DataType::Float64), false),
+            "Elevation control values in degrees, laid out like `azimuth_deg`.",
+        ),
+        doc(
+            Field::new("radius_frac", list_of(DataType::Float64), false),
+            "Radial offset control values as fractions of R, laid out like `azimuth_deg`.",
+        ),
+        doc(
+            Field::new("rejected_samples", DataType::UInt32, false),
+            "Sampled candidates rejected (camera path crossing the reconstructed surface) before this one.",
+        ),
+        doc(
+            Field::new("world_from_camera", per_frame_matrix(16), false),
+            "Per-frame novel camera pose `world_from_camera`, row-major 4×4, OpenCV axes (x right, y down, z forward).",
+        ),
+        doc(
+            Field::new("covisible_mask", per_frame_bytes(), false),
+            "Per-frame co-visibility mask, 8-bit greyscale PNG: 255 where the source pixel's surface point is visible from the novel camera, 0 elsewhere.",
+        ),
+        doc(
+            Field::new("condition", per_frame_bytes(), true),
+            "Per-frame conditioning frames (RGB PNG) when they differ from `frames` × mask (depth noise); null means exactly `frames` with hidden pixels black.",
+        ),
+        doc(
+            Field::new("covisible_fraction", DataType::Float64, false),
+            "Fraction of the clip's pixels that are co-visible, over all frames.",
+        ),
+    ])
+}
+
+/// The Arrow schema of a training-pair shard, with the schema name and version in its metadata.
+pub fn pair_schema() -> Schema {
+    let fields = vec![
+        doc(
+            Field::new("clip_id", DataType::Utf8, false),
+            "Unique id of the clip within a corpus: `{dataset}/{source_id}/{clip_start}`.",
+        ),
+        doc(Field::new("source_id", DataType::Utf8, false), "Id of the source video within its dataset."),
+        doc(
+            Field::new("dataset", DataType::Utf8, false),
+            "Dataset name: `sav`, `tao`, `ytvos`, `davis`, `synth`, `sequence`, ...",
+        ),
+        doc(Field::new("source_path", DataType::Utf8, false), "Path of the input sequence as the generator saw it."),
+        doc(
+            Field::new("clip_start", DataType::UInt32, false),
+            "Index of the clip's first frame in the source video (frames numbered from 0).",
+        ),
+        doc(
+            Field::new("num_frames", DataType::UInt32, false),
+            "Number of frames of the clip; every per-frame list has this length.",
+        ),
+        doc(
+            Field::new("fps", DataType::Float64, false),
+            "Frame rate of the source video in frames per second (0 if unknown).",
+        ),
+        doc(Field::new("width", DataType::UInt32, false), "Frame width in pixels."),
+        doc(Field::new("height", DataType::UInt32, false), "Frame height in pixels."),
+        doc(
+            Field::new("seed", DataType::UInt64, false),
+            "Generator seed; every random choice derives from it plus stable ids (source id, clip start, trajectory index).",
+        ),
+        doc(
+            Field::new("tool_version", DataType::Utf8, false),
+            "Name and version of the tool that wrote the row, e.g. `datagen 0.1.0`.",
+        ),
+        doc(
+            Field::new("frames", per_frame_bytes(), false),
+            "Per-frame RGB frames as PNG (8 bits per channel): the training target, stored once per clip.",
+        ),
+        doc(
+            Field::new("depth", per_frame_bytes(), false),
+            "Per-frame z-depth along the optical axis as single-channel (`Z`) 32-bit float OpenEXR at frame resolution; invalid depth is ≤ 0, NaN or inf.",
+        ),
+        doc(
+            Field::new("intrinsics", per_frame_matrix(9), false),
+            "Per-frame intrinsics K in pixels, row-major 3×3; pixel centres at integer coordinates (centred principal point: cx = W/2 − 0.5).",
+        ),
+        doc(
+            Field::new("world_from_camera", per_frame_matrix(16), false),
+            "Per-frame source camera pose `world_from_camera`, row-major 4×4, OpenCV axes (x right, y down, z forward).",
+        ),
+        doc(
+            Field::new("dynamic_mask", per_frame_bytes(), true),
+            "Per-frame dynamic-object masks, 8-bit greyscale PNG: 0 static, >0 object id, 255 void; null when the input has none.",
+        ),
+        doc(
+            Field::new("trajectories", list_of(DataType::Struct(trajectory_fields())), false),
+            "The clip's novel camera paths; each element is one training pair (conditioning → `frames`).",
+        ),
+    ];
+    Schema::new(fields).with_metadata(HashMap::from([
+        (SCHEMA_NAME_KEY.to_owned(), SCHEMA_NAME.to_owned()),
+        (SCHEMA_VERSION_KEY.to_owned(), SCHEMA_VERSION.to_string()),
+    ]))
+}

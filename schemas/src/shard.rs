@@ -1,0 +1,304 @@
+//! Writing and reading shard files (DESIGN §5): a shard is one self-contained Parquet file of the
+//! [`pair_schema`], written under a temporary name and renamed into place; it counts as finished
+//! only once its stats marker (`<shard>.stats.json`), written last, exists.
+
+use std::fs::File;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use parquet::arrow::ArrowWriter;
+use parquet::arrow::arrow_reader::{ParquetRecordBatchReader, ParquetRecordBatchReaderBuilder};
+use parquet::basic::{Compression, ZstdLevel};
+use parquet::file::metadata::KeyValue;
+use parquet::file::properties::{EnabledStatistics, WriterProperties};
+
+use crate::arrow_convert::{batch_to_records, records_to_batch};
+use crate::error::{Error, Result};
+use crate::pairs::{ClipRecord, SCHEMA_NAME, SCHEMA_NAME_KEY, SCHEMA_VERSION, SCHEMA_VERSION_KEY, pair_schema};
+
+/// Suffix of a shard's stats marker file, appended to the shard's file name.
+pub const STATS_SUFFIX: &str = ".stats.json";
+/// Marker in temporary file names; readers and listings skip such files.
+pub const TEMP_MARKER: &str = ".tmp-";
+/// Default row-group size target in bytes (uncompressed, as buffered by the writer). Large enough
+/// for efficient scans, small enough that a reader holds one row group comfortably in memory.
+pub const DEFAULT_ROW_GROUP_BYTES: usize = 64 << 20;
+/// Zstandard level for the Parquet pages. Frames are PNG already, so a fast level suffices.
+const ZSTD_LEVEL: i32 = 1;
+/// Rows decoded per Arrow batch when reading: one clip can be tens of megabytes.
+const READ_BATCH_ROWS: usize = 4;
+
+/// How a shard is written.
+#[derive(Debug, Clone)]
+pub struct ShardWriterOptions {
+    /// Flush a row group once the buffered data reaches this many bytes.
+    pub row_group_bytes: usize,
+}
+
+impl Default for ShardWriterOptions {
+    fn default() -> Self {
+        Self { row_group_bytes: DEFAULT_ROW_GROUP_BYTES }
+    }
+}
+
+/// Content hash of one input that went into a shard, for provenance and resume checks.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct InputDigest {
+    /// The input as the user named it (a sequence folder or a file).
+    pub source_path: String,
+    /// BLAKE3 hex digest of the input's files, in a stable order.
+    pub content_hash: String,
+}
+
+/// The stats marker written beside a finished shard.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ShardStats {
+    /// Schema name, [`SCHEMA_NAME`].
+    pub schema: String,
+    /// Schema version, [`SCHEMA_VERSION`].
+    pub schema_version: u32,
+    /// File name of the shard (no folder).
+    pub shard: String,
+    /// Number of clips (rows).
+    pub clips: u64,
+    /// Number of training pairs (trajectories over all clips).
+    pub pairs: u64,
+    /// Number of frames over all clips.
+    pub frames: u64,
+    /// Size of the shard file in bytes.
+    pub bytes: u64,
+    /// Number of Parquet row groups.
+    pub row_groups: u64,
+    /// Wall time from opening the writer to the rename, in seconds.
+    pub write_seconds: f64,
+    /// Inputs that went into the shard.
+    pub inputs: Vec<InputDigest>,
+}
+
+/// Path of the stats marker of `shard`.
+pub fn stats_path(shard: &Path) -> PathBuf {
+    let mut name = shard.file_name().unwrap_or_default().to_os_string();
+    name.push(STATS_SUFFIX);
+    shard.with_file_name(name)
+}
+
+/// Whether `shard` is finished: the file and its stats marker both exist.
+pub fn is_finished(shard: &Path) -> bool {
+    shard.is_file() && stats_path(shard).is_file()
+}
+
+/// Reads the stats marker of a finished shard.
+pub fn read_stats(shard: &Path) -> Result<ShardStats> {
+    let path = stats_path(shard);
+    let text = std::fs::read_to_string(&path).map_err(|e| Error::io(&path, e))?;
+    serde_json::from_str(&text).map_err(|source| Error::Json { path, source })
+}
+
+/// Writes one shard atomically. Dropping the writer without [`ShardWriter::finish`] removes the
+/// temporary file, so no partial shard is ever visible under the final name.
+pub struct ShardWriter {
+    final_path: PathBuf,
+    temp_path: PathBuf,
+    writer: Option<ArrowWriter<File>>,
+    options: ShardWriterOptions,
+    clips: u64,
+    pairs: u64,
+    frames: u64,
+    inputs: Vec<InputDigest>,
+    started: Instant,
+}
+
+impl ShardWriter {
+    /// Opens a writer whose output will appear at `final_path` when finished. The parent folder
+    /// must exist.
+    pub fn create(final_path: &Path, options: ShardWriterOptions) -> Result<Self> {
+        let file_name = final_path.file_name().ok_or_else(|| {
+            Error::io(final_path, std::io::Error::new(std::io::ErrorKind::InvalidInput, "shard path has no file name"))
+        })?;
+        let temp_name = format!(".{}{TEMP_MARKER}{}", file_name.to_string_lossy(), std::process::id());
+        let temp_path = final_path.with_file_name(temp_name);
+        let file = File::create(&temp_path).map_err(|e| Error::io(&temp_path, e))?;
+        let properties = WriterProperties::builder()
+            .set_compression(Compression::ZSTD(ZstdLevel::try_new(ZSTD_LEVEL).expect("valid zstd level")))
+            .set_dictionary_enabled(false)
+            .set_statistics_enabled(EnabledStatistics::Chunk)
+            .set_max_row_group_row_count(Some(usize::MAX))
+            .set_key_value_metadata(Some(vec![
+                KeyValue::new(SCHEMA_NAME_KEY.to_owned(), SCHEMA_NAME.to_owned()),
+                KeyValue::new(SCHEMA_VERSION_KEY.to_owned(), SCHEMA_VERSION.to_string()),
+            ]))
+            .build();
+        let writer = ArrowWriter::try_new(file, pair_schema().into(), Some(properties))
+            .map_err(|source| Error::Parquet { path: temp_path.clone(), source })?;
+        Ok(Self {
+            final_path: final_path.to_owned(),
+            temp_path,
+            writer: Some(writer),
+            options,
+            clips: 0,
+            pairs: 0,
+            frames: 0,
+            inputs: Vec::new(),
+            started: Instant::now(),
+        })
+    }
+
+    /// Appends one clip; flushes a row group when the buffered bytes reach the target.
+    pub fn write(&mut self, record: &ClipRecord) -> Result<()> {
+        let batch = records_to_batch(std::slice::from_ref(record))?;
+        let writer = self.writer.as_mut().expect("writer open until finish");
+        let parquet = |source| Error::Parquet { path: self.temp_path.clone(), source };
+        writer.write(&batch).map_err(parquet)?;
+        if writer.in_progress_size() >= self.options.row_group_bytes {
+            writer.flush().map_err(parquet)?;
+        }
+        self.clips += 1;
+        self.pairs += record.trajectories.len() as u64;
+        self.frames += record.num_frames() as u64;
+        Ok(())
+    }
+
+    /// Records an input's content hash in the stats marker.
+    pub fn add_input(&mut self, input: InputDigest) {
+        self.inputs.push(input);
+    }
+
+    /// Closes the file, syncs it, renames it into place and writes the stats marker last.
+    pub fn finish(mut self) -> Result<ShardStats> {
+        let writer = self.writer.take().expect("writer open until finish");
+        let parquet = |source| Error::Parquet { path: self.temp_path.clone(), source };
+        let metadata = writer.close().map_err(parquet)?;
+        let file = File::open(&self.temp_path).map_err(|e| Error::io(&self.temp_path, e))?;
+        file.sync_all().map_err(|e| Error::io(&self.temp_path, e))?;
+        let bytes = file.metadata().map_err(|e| Error::io(&self.temp_path, e))?.len();
+        std::fs::rename(&self.temp_path, &self.final_path).map_err(|e| Error::io(&self.final_path, e))?;
+        let stats = ShardStats {
+            schema: SCHEMA_NAME.to_owned(),
+            schema_version: SCHEMA_VERSION,
+            shard: self.final_path.file_name().unwrap_or_default().to_string_lossy().into_owned(),
+            clips: self.clips,
+            pairs: self.pairs,
+            frames: self.frames,
+            bytes,
+            row_groups: metadata.num_row_groups() as u64,
+            write_seconds: self.started.elapsed().as_secs_f64(),
+            inputs: std::mem::take(&mut self.inputs),
+        };
+        write_atomic(&stats_path(&self.final_path), &serde_json::to_vec_pretty(&stats).expect("stats serialise"))?;
+        Ok(stats)
+    }
+}
+
+impl Drop for ShardWriter {
+    fn drop(&mut self) {
+        if self.writer.is_some() {
+            // Unfinished: never leave the partial file behind. Nothing more can be done on error.
+            let _ = std::fs::remove_file(&self.temp_path);
+        }
+    }
+}
+
+/// Writes `bytes` to `path` through a temporary file in the same folder and a rename.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    let temp = path.with_file_name(format!(
+        ".{}{TEMP_MARKER}{}",
+        path.file_name().unwrap_or_default().to_string_lossy(),
+        std::process::id()
+    ));
+    let result = (|| {
+        let mut file = File::create(&temp)?;
+        file.write_all(bytes)?;
+        file.sync_all()?;
+        std::fs::rename(&temp, path)
+    })();
+    result.map_err(|e| {
+        let _ = std::fs::remove_file(&temp);
+        Error::io(path, e)
+    })
+}
+
+/// Streams the clips of a shard, a few rows at a time.
+pub struct ShardReader {
+    path: PathBuf,
+    batches: ParquetRecordBatchReader,
+    pending: std::vec::IntoIter<ClipRecord>,
+    num_rows: usize,
+}
+
+impl ShardReader {
+    /// Opens `path`, checking that it is a pairs shard of the version this code reads.
+    pub fn open(path: &Path) -> Result<Self> {
+        let file = File::open(path).map_err(|e| Error::io(path, e))?;
+        let parquet = |source| Error::Parquet { path: path.to_owned(), source };
+        let builder = ParquetRecordBatchReaderBuilder::try_new(file).map_err(parquet)?;
+        let key_values = builder.metadata().file_metadata().key_value_metadata().cloned().unwrap_or_default();
+        let lookup = |key: &str| key_values.iter().find(|kv| kv.key == key).and_then(|kv| kv.value.clone());
+        match lookup(SCHEMA_NAME_KEY) {
+            Some(name) if name == SCHEMA_NAME => {}
+            Some(name) => {
+                return Err(Error::mismatch(
+                    path,
+                    SCHEMA_NAME_KEY,
+                    format!("expected `{SCHEMA_NAME}`, found `{name}`"),
+                ));
+            }
+            None => return Err(Error::mismatch(path, SCHEMA_NAME_KEY, "missing: not a cognvs training-pair shard")),
+        }
+        let version = lookup(SCHEMA_VERSION_KEY).unwrap_or_default();
+        if version != SCHEMA_VERSION.to_string() {
+            return Err(Error::mismatch(
+                path,
+                SCHEMA_VERSION_KEY,
+                format!("shard has version `{version}`, this reader reads version {SCHEMA_VERSION}"),
+            ));
+        }
+        let expected = pair_schema();
+        for field in expected.fields() {
+            let found = builder
+                .schema()
+                .field_with_name(field.name())
+                .map_err(|_| Error::mismatch(path, field.name(), "column missing"))?;
+            if !found.data_type().equals_datatype(field.data_type()) {
+                return Err(Error::mismatch(
+                    path,
+                    field.name(),
+                    format!("expected type {}, found {}", field.data_type(), found.data_type()),
+                ));
+            }
+        }
+        let num_rows = builder.metadata().file_metadata().num_rows() as usize;
+        let batches = builder.with_batch_size(READ_BATCH_ROWS).build().map_err(parquet)?;
+        Ok(Self { path: path.to_owned(), batches, pending: Vec::new().into_iter(), num_rows })
+    }
+
+    /// Number of clips in the shard, from its footer.
+    pub fn num_rows(&self) -> usize {
+        self.num_rows
+    }
+}
+
+impl Iterator for ShardReader {
+    type Item = Result<ClipRecord>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        loop {
+            if let Some(record) = self.pending.next() {
+                return Some(Ok(record));
+            }
+            let batch = match self.batches.next()? {
+                Ok(batch) => batch,
+                Err(source) => return Some(Err(Error::Arrow { path: self.path.clone(), source })),
+            };
+            match batch_to_records(&batch, &self.path) {
+                Ok(records) => self.pending = records.into_iter(),
+                Err(error) => return Some(Err(error)),
+            }
+        }
+    }
+}
+
+/// Reads every clip of a shard.
+pub fn read_shard(path: &Path) -> Result<Vec<ClipRecord>> {
+    ShardReader::open(path)?.collect()
+}

@@ -1,0 +1,86 @@
+#!/usr/bin/env bash
+# One-step, idempotent set-up of a fresh Debian machine for this workspace:
+#   1. Debian packages: FFmpeg development libraries and CLI, clang/libclang, pkg-config;
+#   2. a project-local Python venv (.venv, git-ignored) with torch==2.13.0 (the libtorch that
+#      tch 0.26 links against) and the Python packages the tests use for interoperability checks;
+#   3. the `.venv/libtorch` link that `.cargo/config.toml` points LIBTORCH at.
+# Safe to re-run: every step checks before it acts, and a set-up machine is left unchanged.
+set -euo pipefail
+
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$root"
+
+step() { printf '\n==> %s\n' "$*"; }
+fail() { printf '\nsetup.sh: FAILED at step: %s\n' "$*" >&2; exit 1; }
+
+TORCH_VERSION="2.13.0"
+APT_PACKAGES=(
+  pkg-config clang libclang-dev ffmpeg
+  libavcodec-dev libavformat-dev libavutil-dev libavfilter-dev libavdevice-dev
+  libswscale-dev libswresample-dev
+)
+# torch: libtorch for tch; diffusers + safetensors: numerical reference for the model port;
+# numpy, pyarrow, duckdb, datasets, pillow: interoperability checks of the shards.
+PY_PACKAGES=(
+  "torch==${TORCH_VERSION}" "diffusers>=0.35" "safetensors>=0.4"
+  "numpy>=1.26" "pyarrow>=17" "duckdb>=1.1" "datasets>=3" "pillow>=10"
+)
+
+step "Debian packages: ${APT_PACKAGES[*]}"
+missing=()
+for p in "${APT_PACKAGES[@]}"; do
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q 'install ok installed' || missing+=("$p")
+done
+if ((${#missing[@]})); then
+  echo "installing: ${missing[*]}"
+  sudo_cmd=()
+  [[ $(id -u) -ne 0 ]] && sudo_cmd=(sudo)
+  "${sudo_cmd[@]}" apt-get update -qq || fail "apt-get update"
+  DEBIAN_FRONTEND=noninteractive "${sudo_cmd[@]}" apt-get install -y -qq "${missing[@]}" \
+    || fail "apt-get install ${missing[*]}"
+else
+  echo "all present"
+fi
+
+step "Rust toolchain"
+command -v cargo >/dev/null || fail "cargo not found: install Rust with rustup first"
+cargo --version
+
+step "Python venv at .venv with ${PY_PACKAGES[*]}"
+if [[ ! -x .venv/bin/python ]]; then
+  python3 -m venv .venv || fail "python3 -m venv .venv"
+fi
+if .venv/bin/python - "${PY_PACKAGES[@]}" <<'PY' 2>/dev/null
+import sys
+from importlib.metadata import version, PackageNotFoundError
+try:
+    from packaging.requirements import Requirement
+except ImportError:
+    from pip._vendor.packaging.requirements import Requirement
+for spec in sys.argv[1:]:
+    req = Requirement(spec)
+    try:
+        if not req.specifier.contains(version(req.name), prereleases=True):
+            sys.exit(1)
+    except PackageNotFoundError:
+        sys.exit(1)
+PY
+then
+  echo "all present"
+else
+  .venv/bin/python -m pip install -q --upgrade pip || fail "pip upgrade"
+  .venv/bin/python -m pip install -q "${PY_PACKAGES[@]}" || fail "pip install ${PY_PACKAGES[*]}"
+fi
+
+step "libtorch link .venv/libtorch"
+torch_dir="$(.venv/bin/python -c 'import os, torch; print(os.path.dirname(torch.__file__))')" \
+  || fail "import torch from .venv"
+[[ -f "$torch_dir/lib/libtorch_cpu.so" ]] || fail "libtorch_cpu.so missing under $torch_dir/lib"
+if [[ "$(readlink .venv/libtorch 2>/dev/null)" != "$torch_dir" ]]; then
+  ln -sfn "$torch_dir" .venv/libtorch
+  echo "linked .venv/libtorch -> $torch_dir"
+else
+  echo "present: .venv/libtorch -> $torch_dir"
+fi
+
+step "done: plain cargo build/test/run now work in this checkout"

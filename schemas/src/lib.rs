@@ -8,6 +8,7 @@ mod arrow_convert;
 pub mod error;
 pub mod pairs;
 pub mod shard;
+pub mod status;
 
 pub use arrow_convert::{batch_to_records, records_to_batch};
 pub use error::{Error, Result};
@@ -19,6 +20,7 @@ pub use shard::{
     InputDigest, ShardReader, ShardStats, ShardWriter, ShardWriterOptions, is_finished, read_shard, read_stats,
     stats_path, write_atomic,
 };
+pub use status::{InputStatus, StatusRecord, read_status_table, status_schema, write_status_table};
 
 use arrow::datatypes::{DataType, Field};
 

@@ -165,3 +165,33 @@ mod versions {
         assert!(error.contains("shard.parquet"), "{error}");
     }
 }
+
+mod status_table {
+    //! The per-input status table round-trips and is written atomically.
+    use schemas::{InputStatus, StatusRecord};
+
+    #[test]
+    fn status_table_round_trips() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("status-w000.parquet");
+        let records: Vec<StatusRecord> = [InputStatus::Ok, InputStatus::Skipped, InputStatus::Failed]
+            .into_iter()
+            .enumerate()
+            .map(|(i, status)| StatusRecord {
+                input_key: format!("sav/sav_{i:06}"),
+                status,
+                reason: if status == InputStatus::Ok { String::new() } else { format!("reason {i}") },
+                clips: i as u32,
+                pairs: 2 * i as u32,
+                shard: if status == InputStatus::Ok { "shard-w000-000000.parquet".into() } else { String::new() },
+                content_hash: format!("{i:064x}"),
+                seconds: 0.5 * i as f64,
+                worker_index: 1,
+                worker_count: 2,
+            })
+            .collect();
+        schemas::write_status_table(&path, &records).unwrap();
+        assert_eq!(schemas::read_status_table(&path).unwrap(), records);
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1, "no temporary file left");
+    }
+}

@@ -1,3 +1,4 @@
 //! The `datagen` integration tests: one binary, a module per feature.
 
+mod corpus;
 mod synth;

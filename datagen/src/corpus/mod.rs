@@ -1,0 +1,7 @@
+//! Corpus building (DESIGN §3, §5): crawling dataset trees, turning their annotations into
+//! dynamic-object masks, and splitting the inputs across workers.
+
+pub mod annotations;
+pub mod crawl;
+pub mod partition;
+pub mod rle;

@@ -2,6 +2,7 @@
 //! dynamic-object masks, and splitting the inputs across workers.
 
 pub mod annotations;
+pub mod build;
 pub mod crawl;
 pub mod partition;
 pub mod rle;

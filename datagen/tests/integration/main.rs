@@ -1,4 +1,5 @@
 //! The `datagen` integration tests: one binary, a module per feature.
 
+mod build;
 mod corpus;
 mod synth;

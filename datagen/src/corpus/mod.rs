@@ -6,3 +6,4 @@ pub mod build;
 pub mod crawl;
 pub mod partition;
 pub mod rle;
+pub mod validate;

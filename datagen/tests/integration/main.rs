@@ -3,3 +3,4 @@
 mod build;
 mod corpus;
 mod synth;
+mod validate;

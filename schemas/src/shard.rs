@@ -167,12 +167,19 @@ impl ShardWriter {
     /// Closes the file, syncs it, renames it into place and writes the stats marker last.
     pub fn finish(mut self) -> Result<ShardStats> {
         let writer = self.writer.take().expect("writer open until finish");
-        let parquet = |source| Error::Parquet { path: self.temp_path.clone(), source };
-        let metadata = writer.close().map_err(parquet)?;
-        let file = File::open(&self.temp_path).map_err(|e| Error::io(&self.temp_path, e))?;
-        file.sync_all().map_err(|e| Error::io(&self.temp_path, e))?;
-        let bytes = file.metadata().map_err(|e| Error::io(&self.temp_path, e))?.len();
-        std::fs::rename(&self.temp_path, &self.final_path).map_err(|e| Error::io(&self.final_path, e))?;
+        let close = || -> Result<_> {
+            let parquet = |source| Error::Parquet { path: self.temp_path.clone(), source };
+            let metadata = writer.close().map_err(parquet)?;
+            let file = File::open(&self.temp_path).map_err(|e| Error::io(&self.temp_path, e))?;
+            file.sync_all().map_err(|e| Error::io(&self.temp_path, e))?;
+            let bytes = file.metadata().map_err(|e| Error::io(&self.temp_path, e))?.len();
+            std::fs::rename(&self.temp_path, &self.final_path).map_err(|e| Error::io(&self.final_path, e))?;
+            Ok((metadata, bytes))
+        };
+        let (metadata, bytes) = close().inspect_err(|_| {
+            // Disk full or similar while closing: never leave the partial file behind.
+            let _ = std::fs::remove_file(&self.temp_path);
+        })?;
         let stats = ShardStats {
             schema: SCHEMA_NAME.to_owned(),
             schema_version: SCHEMA_VERSION,
@@ -185,7 +192,13 @@ impl ShardWriter {
             write_seconds: self.started.elapsed().as_secs_f64(),
             inputs: std::mem::take(&mut self.inputs),
         };
-        write_atomic(&stats_path(&self.final_path), &serde_json::to_vec_pretty(&stats).expect("stats serialise"))?;
+        let marker =
+            write_atomic(&stats_path(&self.final_path), &serde_json::to_vec_pretty(&stats).expect("stats serialise"));
+        if let Err(error) = marker {
+            // Without its marker the shard is unfinished: do not leave it looking like one.
+            let _ = std::fs::remove_file(&self.final_path);
+            return Err(error);
+        }
         Ok(stats)
     }
 }

@@ -34,7 +34,7 @@ impl InputProcessor for KeyProcessor {
             height: 2,
             seed: 0,
             tool_version: "test".into(),
-            frames: vec![vec![seed; 4000]; 2],
+            frames: (0..2).map(|f| noise(&entry.key(), f, 4000)).collect(),
             depth: vec![vec![seed ^ 1; 10]; 2],
             intrinsics: vec![[1.0; 9]; 2],
             world_from_camera: vec![[0.0; 16]; 2],
@@ -55,6 +55,13 @@ impl InputProcessor for KeyProcessor {
         };
         Ok(Outcome::Clips(vec![clip(0), clip(2)]))
     }
+}
+
+/// Incompressible bytes derived from `key` (so shard sizes are real, not zstd-collapsed).
+fn noise(key: &str, stream: u8, len: usize) -> Vec<u8> {
+    let mut bytes = vec![0u8; len];
+    blake3::Hasher::new().update(key.as_bytes()).update(&[stream]).finalize_xof().fill(&mut bytes);
+    bytes
 }
 
 fn corpus(root: &Path, names: &[&str]) -> Vec<SourceConfig> {
@@ -161,4 +168,46 @@ fn two_workers_together_equal_one() {
     assert_eq!(a.inputs_owned + b.inputs_owned, 12);
     assert!(a.inputs_owned > 0 && b.inputs_owned > 0);
     assert_eq!(clips_in(&shared.dir), clips_in(&single.dir));
+}
+
+/// Mounts a tmpfs of `size` at `dir` (root only); `None` where mounting is not permitted.
+fn mount_tmpfs(dir: &Path, size: &str) -> Option<()> {
+    std::fs::create_dir_all(dir).unwrap();
+    let status = std::process::Command::new("mount")
+        .args(["-t", "tmpfs", "-o", &format!("size={size}"), "tmpfs"])
+        .arg(dir)
+        .status()
+        .ok()?;
+    status.success().then_some(())
+}
+
+#[test]
+fn disk_full_is_a_clean_error_leaves_no_corrupt_shard_and_resumes() {
+    let dir = tempfile::tempdir().unwrap();
+    let names: Vec<String> = (0..8).map(|i| format!("video{i:02}")).collect();
+    let names: Vec<&str> = names.iter().map(String::as_str).collect();
+    let sources = corpus(&dir.path().join("in"), &names);
+    let reference = output(&dir.path().join("reference"));
+    let processor = KeyProcessor { calls: AtomicUsize::new(0) };
+    build(&sources, &reference, Worker::SOLE, &processor, |_| {}).unwrap();
+
+    let small = dir.path().join("small");
+    if mount_tmpfs(&small, "48k").is_none() {
+        eprintln!("skipped: mounting a tmpfs needs root (CI runs as root)");
+        return;
+    }
+    let out = output(&small);
+    let error = build(&sources, &out, Worker::SOLE, &processor, |_| {}).unwrap_err().to_string();
+    let finished: Vec<_> =
+        std::fs::read_dir(&small).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+    let remount = std::process::Command::new("mount").args(["-o", "remount,size=16m"]).arg(&small).status().unwrap();
+    assert!(remount.success());
+    let resumed = build(&sources, &out, Worker::SOLE, &processor, |_| {});
+    let clips = clips_in(&small);
+    let _ = std::process::Command::new("umount").arg(&small).status();
+    assert!(error.contains("No space left on device"), "{error}");
+    assert!(error.contains(&small.display().to_string()), "error names the file: {error}");
+    assert!(finished.iter().all(|n| !n.contains(".tmp-")), "no temporary file after the failure: {finished:?}");
+    resumed.unwrap();
+    assert_eq!(clips, clips_in(&reference.dir), "resumed corpus equals the uninterrupted one");
 }

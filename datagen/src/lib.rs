@@ -4,6 +4,7 @@
 //!
 //! Modules are named after the method's components; the `datagen` binary is a thin layer over them.
 
+pub mod camera;
 pub mod contact_sheet;
 pub mod corpus;
 pub mod depth_exr;

@@ -10,6 +10,7 @@ pub mod corpus;
 pub mod depth_exr;
 pub mod error;
 pub mod npy;
+pub mod sequence;
 pub mod synth;
 pub mod video;
 

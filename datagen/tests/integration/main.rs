@@ -2,5 +2,6 @@
 
 mod build;
 mod corpus;
+mod sequence;
 mod synth;
 mod validate;

@@ -9,6 +9,7 @@ pub mod contact_sheet;
 pub mod corpus;
 pub mod depth_exr;
 pub mod error;
+pub mod inspect;
 pub mod npy;
 pub mod sequence;
 pub mod synth;

@@ -133,9 +133,45 @@ pub fn read_sequence(dir: &Path) -> Result<Sequence> {
 
 type Parts = (f64, Vec<RgbImage>, Vec<DepthMap>, Vec<PinholeCamera>);
 
+/// The reconstruction part of a sequence: depth (N,H,W), optional K and poses, with their files.
+struct Reconstruction {
+    depth_path: PathBuf,
+    depth: NdArray<f64>,
+    intrinsics: Option<(PathBuf, NdArray<f64>)>,
+    poses: Option<(PathBuf, NdArray<f64>)>,
+}
+
 fn read_cog_nvs(dir: &Path) -> Result<Parts> {
     let video_path = dir.join("gt_rgb.mp4");
     let video = crate::video::decode_video(&video_path)?;
+    assemble(video.fps, video.frames, &video_path, cog_nvs_reconstruction(dir)?)
+}
+
+/// Reads the reconstruction at `reconstruction` (a cog-nvs folder with `cam_info/`, a MegaSAM
+/// `*_sgd_cvd_hr.npz` or a folder holding one, or a generic folder with `depth/` and
+/// `cameras.json`) for frames decoded elsewhere (a dataset's video or JPEG folder).
+pub fn read_with_frames(
+    source_id: &str,
+    reconstruction: &Path,
+    fps: f64,
+    frames: Vec<RgbImage>,
+    frames_path: &Path,
+) -> Result<Sequence> {
+    let parts = if reconstruction.is_file() {
+        megasam_reconstruction(reconstruction)?.1
+    } else {
+        match detect_layout(reconstruction)? {
+            Layout::CogNvs => cog_nvs_reconstruction(reconstruction)?,
+            Layout::MegaSam(npz) => megasam_reconstruction(&npz)?.1,
+            Layout::Generic => generic_reconstruction(reconstruction)?,
+        }
+    };
+    let (fps, frames, depth, cameras) = assemble(fps, frames, frames_path, parts)?;
+    let path = reconstruction.to_owned();
+    Ok(Sequence { source_id: source_id.to_owned(), path, fps, frames, depth, cameras, dynamic_masks: None })
+}
+
+fn cog_nvs_reconstruction(dir: &Path) -> Result<Reconstruction> {
     let cam = dir.join("cam_info");
     let depth_path = cam.join("megasam_depth.npy");
     let depth = read_npy_f64(&depth_path)?;
@@ -144,20 +180,13 @@ fn read_cog_nvs(dir: &Path) -> Result<Parts> {
     let intrinsics = if intrinsics_path.is_file() {
         let k = read_npy_f64(&intrinsics_path)?;
         k.expect_shape(&intrinsics_path, "megasam_intrinsics", &[Some(3), Some(3)])?;
-        Some(k)
+        Some((intrinsics_path, k))
     } else {
         None
     };
     let poses_path = cam.join("megasam_c2ws.npy");
-    let poses = if poses_path.is_file() { Some(read_npy_f64(&poses_path)?) } else { None };
-    assemble(
-        video.fps,
-        video.frames,
-        &video_path,
-        (&depth_path, depth),
-        intrinsics.map(|k| (intrinsics_path, k)),
-        poses.map(|p| (poses_path, p)),
-    )
+    let poses = if poses_path.is_file() { Some((poses_path.clone(), read_npy_f64(&poses_path)?)) } else { None };
+    Ok(Reconstruction { depth_path, depth, intrinsics, poses })
 }
 
 fn read_npz_member(
@@ -171,15 +200,7 @@ fn read_npz_member(
 }
 
 fn read_megasam(path: &Path) -> Result<Parts> {
-    let mut archive = npyz::npz::NpzArchive::open(path)
-        .map_err(|e| Error::invalid(path, "archive", format!("not a readable .npz: {e}")))?;
-    let missing = |name: &str| Error::invalid(path, name, "array missing from the archive");
-    let images = read_npz_member(&mut archive, path, "images")?.ok_or_else(|| missing("images"))?;
-    images.expect_shape(path, "images", &[None, None, None, Some(3)])?;
-    let depth = read_npz_member(&mut archive, path, "depths")?.ok_or_else(|| missing("depths"))?;
-    let intrinsic = read_npz_member(&mut archive, path, "intrinsic")?.ok_or_else(|| missing("intrinsic"))?;
-    intrinsic.expect_shape(path, "intrinsic", &[Some(3), Some(3)])?;
-    let poses = read_npz_member(&mut archive, path, "cam_c2w")?.ok_or_else(|| missing("cam_c2w"))?;
+    let (images, reconstruction) = megasam_reconstruction(path)?;
     let (n, h, w) = (images.shape[0], images.shape[1], images.shape[2]);
     if n == 0 || h == 0 || w == 0 {
         return Err(Error::invalid(path, "images", format!("zero-size frames: shape {:?}", images.shape)));
@@ -193,7 +214,27 @@ fn read_megasam(path: &Path) -> Result<Parts> {
         })
         .collect();
     // The MegaSAM depth is at the image resolution; `assemble` resamples if it is not.
-    assemble(0.0, frames, path, (path, depth), Some((path.to_owned(), intrinsic)), Some((path.to_owned(), poses)))
+    assemble(0.0, frames, path, reconstruction)
+}
+
+/// The arrays of a MegaSAM archive: the images, and the reconstruction.
+fn megasam_reconstruction(path: &Path) -> Result<(NdArray<f64>, Reconstruction)> {
+    let mut archive = npyz::npz::NpzArchive::open(path)
+        .map_err(|e| Error::invalid(path, "archive", format!("not a readable .npz: {e}")))?;
+    let missing = |name: &str| Error::invalid(path, name, "array missing from the archive");
+    let images = read_npz_member(&mut archive, path, "images")?.ok_or_else(|| missing("images"))?;
+    images.expect_shape(path, "images", &[None, None, None, Some(3)])?;
+    let depth = read_npz_member(&mut archive, path, "depths")?.ok_or_else(|| missing("depths"))?;
+    let intrinsic = read_npz_member(&mut archive, path, "intrinsic")?.ok_or_else(|| missing("intrinsic"))?;
+    intrinsic.expect_shape(path, "intrinsic", &[Some(3), Some(3)])?;
+    let poses = read_npz_member(&mut archive, path, "cam_c2w")?.ok_or_else(|| missing("cam_c2w"))?;
+    let reconstruction = Reconstruction {
+        depth_path: path.to_owned(),
+        depth,
+        intrinsics: Some((path.to_owned(), intrinsic)),
+        poses: Some((path.to_owned(), poses)),
+    };
+    Ok((images, reconstruction))
 }
 
 #[derive(serde::Deserialize)]
@@ -246,6 +287,10 @@ fn read_generic(dir: &Path) -> Result<Parts> {
         let decoded = crate::video::decode_video(&video)?;
         (decoded.fps, decoded.frames, video)
     };
+    assemble(fps, frames, &frames_source, generic_reconstruction(dir)?)
+}
+
+fn generic_reconstruction(dir: &Path) -> Result<Reconstruction> {
     let depth_dir = dir.join("depth");
     let depth_files = with_extension(&depth_dir, &["exr"])?;
     let depth_maps = depth_files
@@ -295,25 +340,14 @@ fn read_generic(dir: &Path) -> Result<Parts> {
             ));
         }
     }
-    assemble(
-        fps,
-        frames,
-        &frames_source,
-        (&depth_dir, depth),
-        Some((cameras_path.clone(), intrinsics)),
-        Some((cameras_path, poses)),
-    )
+    let intrinsics = Some((cameras_path.clone(), intrinsics));
+    Ok(Reconstruction { depth_path: depth_dir, depth, intrinsics, poses: Some((cameras_path, poses)) })
 }
 
 /// Checks counts and values across the parts and builds frame-resolution depth and cameras.
-fn assemble(
-    fps: f64,
-    frames: Vec<RgbImage>,
-    frames_path: &Path,
-    (depth_path, depth): (&Path, NdArray<f64>),
-    intrinsics: Option<(PathBuf, NdArray<f64>)>,
-    poses: Option<(PathBuf, NdArray<f64>)>,
-) -> Result<Parts> {
+fn assemble(fps: f64, frames: Vec<RgbImage>, frames_path: &Path, reconstruction: Reconstruction) -> Result<Parts> {
+    let Reconstruction { depth_path, depth, intrinsics, poses } = reconstruction;
+    let depth_path = depth_path.as_path();
     let n = frames.len();
     let (width, height) = frames.first().map(RgbImage::dimensions).unwrap_or((0, 0));
     if n == 0 || width == 0 || height == 0 {

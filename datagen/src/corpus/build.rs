@@ -194,31 +194,43 @@ fn recover(out: &Path, worker: Worker) -> Result<ExistingState> {
 /// BLAKE3 over an input's files (frames or video, annotations, reconstruction), in a stable order.
 pub fn content_hash(entry: &VideoEntry) -> Result<String> {
     let mut files: Vec<PathBuf> = Vec::new();
-    let add_tree = |root: &Path, files: &mut Vec<PathBuf>| -> Result<()> {
-        let mut pending = vec![root.to_owned()];
-        while let Some(path) = pending.pop() {
-            if path.is_dir() {
-                let entries = std::fs::read_dir(&path).map_err(|e| Error::io(&path, e))?;
-                pending.extend(entries.filter_map(|e| e.ok().map(|e| e.path())));
-            } else {
-                files.push(path);
-            }
-        }
-        Ok(())
-    };
     match &entry.frames {
         FrameSource::Video(path) => files.push(path.clone()),
         FrameSource::Images(paths) => files.extend(paths.iter().cloned()),
-        FrameSource::Sequence(dir) => add_tree(dir, &mut files)?,
+        FrameSource::Sequence(dir) => files_under(dir, &mut files)?,
     }
     match &entry.masks {
         MaskSource::Sav(path) => files.push(path.clone()),
-        MaskSource::IdPngs(dir) => add_tree(dir, &mut files)?,
+        MaskSource::IdPngs(dir) => files_under(dir, &mut files)?,
         MaskSource::None | MaskSource::Boxes { .. } => {}
     }
     if let Some(reconstruction) = &entry.reconstruction {
-        add_tree(reconstruction, &mut files)?;
+        files_under(reconstruction, &mut files)?;
     }
+    hash_files(files)
+}
+
+/// BLAKE3 over every file under `root` (or the file `root`), in a stable order.
+pub fn hash_tree(root: &Path) -> Result<String> {
+    let mut files = Vec::new();
+    files_under(root, &mut files)?;
+    hash_files(files)
+}
+
+fn files_under(root: &Path, files: &mut Vec<PathBuf>) -> Result<()> {
+    let mut pending = vec![root.to_owned()];
+    while let Some(path) = pending.pop() {
+        if path.is_dir() {
+            let entries = std::fs::read_dir(&path).map_err(|e| Error::io(&path, e))?;
+            pending.extend(entries.filter_map(|e| e.ok().map(|e| e.path())));
+        } else {
+            files.push(path);
+        }
+    }
+    Ok(())
+}
+
+fn hash_files(mut files: Vec<PathBuf>) -> Result<String> {
     files.sort();
     files.dedup();
     let mut hasher = blake3::Hasher::new();

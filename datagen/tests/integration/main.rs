@@ -2,6 +2,7 @@
 
 mod build;
 mod corpus;
+mod inspect;
 mod sequence;
 mod synth;
 mod validate;

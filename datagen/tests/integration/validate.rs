@@ -15,7 +15,7 @@ where
     bytes.into_inner()
 }
 
-fn record(id: &str) -> ClipRecord {
+pub fn record(id: &str) -> ClipRecord {
     let (w, h) = (6, 4);
     ClipRecord {
         clip_id: id.into(),

@@ -1,0 +1,90 @@
+//! The one error type of the `trainer` library. Messages name the file, config field or tensor at
+//! fault with what was expected and what was found, so a bad checkpoint or input is fixable
+//! without a debugger (and never surfaces as a panic deep inside libtorch).
+
+use std::path::PathBuf;
+
+/// Everything that can go wrong in the model, weights, data or training code.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// A file could not be read or written.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file involved.
+        path: PathBuf,
+        /// The operating-system error.
+        source: std::io::Error,
+    },
+    /// A configuration (diffusers `config.json`, scheduler config, training TOML) is invalid.
+    #[error("{source_name}: field `{field}`: {reason}")]
+    InvalidConfig {
+        /// The config file or preset name.
+        source_name: String,
+        /// The offending field, spelled as in the file.
+        field: String,
+        /// What is wrong.
+        reason: String,
+    },
+    /// A tensor has the wrong shape.
+    #[error("tensor `{tensor}`: expected shape {expected}, got {actual:?}")]
+    Shape {
+        /// The tensor's name (argument or checkpoint key).
+        tensor: String,
+        /// The expected shape, in words or as a list.
+        expected: String,
+        /// The actual shape.
+        actual: Vec<i64>,
+    },
+    /// A tensor has the wrong dtype or sits on the wrong device.
+    #[error("tensor `{tensor}`: expected {expected}, got {actual}")]
+    DtypeDevice {
+        /// The tensor's name.
+        tensor: String,
+        /// The expected dtype/device.
+        expected: String,
+        /// The actual dtype/device.
+        actual: String,
+    },
+    /// A checkpoint lacks a tensor the model needs.
+    #[error("{path}: missing tensor `{tensor}` (expected shape {expected:?})")]
+    MissingTensor {
+        /// The checkpoint file or index.
+        path: PathBuf,
+        /// The checkpoint key.
+        tensor: String,
+        /// The shape the model expects.
+        expected: Vec<i64>,
+    },
+    /// A checkpoint holds tensors the model does not have (e.g. weights of another config).
+    #[error("{path}: {count} unexpected tensors, e.g. `{example}`")]
+    UnexpectedTensors {
+        /// The checkpoint file or index.
+        path: PathBuf,
+        /// How many.
+        count: usize,
+        /// One of them.
+        example: String,
+    },
+    /// A function argument is out of range or inconsistent.
+    #[error("argument `{name}`: {reason}")]
+    InvalidArgument {
+        /// The argument or flag name.
+        name: String,
+        /// What is wrong.
+        reason: String,
+    },
+    /// A safetensors file is malformed.
+    #[error("{path}: safetensors: {reason}")]
+    Safetensors {
+        /// The file.
+        path: PathBuf,
+        /// The parser's complaint.
+        reason: String,
+    },
+    /// libtorch reported an error.
+    #[error(transparent)]
+    Tch(#[from] tch::TchError),
+}
+
+/// Result with this crate's error type.
+pub type Result<T, E = Error> = std::result::Result<T, E>;

@@ -1,0 +1,533 @@
+//! CogVideoX's DDIM scheduler (diffusers' `CogVideoXDDIMScheduler`,
+//! `diffusers/schedulers/scheduling_ddim_cogvideox.py`) and what it shares with the DPM scheduler
+//! (`scheduling_cogvideox_dpm.rs`): the `scheduler_config.json` both read, the noise schedule
+//! ᾱ_t (with CogVideoX's SNR shift and the zero-terminal-SNR rescale), inference timesteps,
+//! `add_noise` and `get_velocity` (the training side: noising latents and the v-prediction target).
+//!
+//! The schedule is computed with the same tensor ops and dtypes as diffusers (float64 for
+//! `scaled_linear`), so ᾱ_t agrees to the last bit; step coefficients are float64 scalars.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+use tch::{Device, Kind, Tensor};
+
+use crate::error::{Error, Result};
+
+/// Scheduler class names a CogVideoX `scheduler_config.json` may carry (`_class_name`): the
+/// released checkpoints ship the DDIM one and pipelines build either scheduler from it.
+pub const CLASS_NAMES: [&str; 2] = ["CogVideoXDDIMScheduler", "CogVideoXDPMScheduler"];
+
+/// A CogVideoX `scheduler_config.json`, field names verbatim; missing fields take diffusers'
+/// `__init__` defaults (which are *not* the 5B values: use [`Self::cogvideox_5b`] or the file).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct CogVideoXSchedulerConfig {
+    /// Training diffusion steps (1000).
+    pub num_train_timesteps: i64,
+    /// First β of the schedule.
+    pub beta_start: f64,
+    /// Last β of the schedule.
+    pub beta_end: f64,
+    /// `linear`, `scaled_linear` (CogVideoX) or `squaredcos_cap_v2`.
+    pub beta_schedule: String,
+    /// Explicit βs, overriding the three fields above.
+    pub trained_betas: Option<Vec<f64>>,
+    /// Read but unused by both CogVideoX schedulers' `step` (as in diffusers).
+    pub clip_sample: bool,
+    /// Whether ᾱ after the last step is 1 (else ᾱ_0).
+    pub set_alpha_to_one: bool,
+    /// Added to `leading` timesteps.
+    pub steps_offset: i64,
+    /// What the model predicts: `epsilon`, `sample` or `v_prediction` (CogVideoX).
+    pub prediction_type: String,
+    /// Read but unused (as in diffusers).
+    pub clip_sample_range: f64,
+    /// Read but unused (as in diffusers).
+    pub sample_max_value: f64,
+    /// Inference timestep placement: `linspace`, `leading` or `trailing` (CogVideoX).
+    pub timestep_spacing: String,
+    /// Rescale ᾱ to zero terminal SNR (Lin et al. 2023, Algorithm 1).
+    pub rescale_betas_zero_snr: bool,
+    /// CogVideoX's SNR shift: ᾱ ← ᾱ / (s + (1 − s)·ᾱ), i.e. SNR divided by s (1.0 for 5B).
+    pub snr_shift_scale: f64,
+    /// Every other key: `_class_name`, `_diffusers_version`, … and unknown keys.
+    #[serde(flatten)]
+    pub extra: BTreeMap<String, serde_json::Value>,
+}
+
+impl Default for CogVideoXSchedulerConfig {
+    /// diffusers' `CogVideoXDDIMScheduler.__init__` defaults.
+    fn default() -> Self {
+        Self {
+            num_train_timesteps: 1000,
+            beta_start: 0.00085,
+            beta_end: 0.012,
+            beta_schedule: "scaled_linear".to_string(),
+            trained_betas: None,
+            clip_sample: true,
+            set_alpha_to_one: true,
+            steps_offset: 0,
+            prediction_type: "epsilon".to_string(),
+            clip_sample_range: 1.0,
+            sample_max_value: 1.0,
+            timestep_spacing: "leading".to_string(),
+            rescale_betas_zero_snr: false,
+            snr_shift_scale: 3.0,
+            extra: BTreeMap::new(),
+        }
+    }
+}
+
+/// What the denoiser predicts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PredictionType {
+    /// The added noise ε.
+    Epsilon,
+    /// The clean sample x₀.
+    Sample,
+    /// The velocity v = √ᾱ·ε − √(1−ᾱ)·x₀ (CogVideoX).
+    VPrediction,
+}
+
+/// How inference timesteps are spread over the training range.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TimestepSpacing {
+    /// Evenly from 0 to T−1, rounded.
+    Linspace,
+    /// Multiples of T/n from 0, plus `steps_offset`.
+    Leading,
+    /// Multiples of T/n counted down from T, minus 1 (CogVideoX).
+    Trailing,
+}
+
+impl CogVideoXSchedulerConfig {
+    /// `THUDM/CogVideoX-5b-I2V` `scheduler/scheduler_config.json` (DESIGN.md §6): scaled-linear
+    /// βs 0.00085→0.012, 1000 steps, v-prediction, zero terminal SNR, SNR shift 1.0, trailing.
+    pub fn cogvideox_5b() -> Self {
+        Self {
+            clip_sample: false,
+            prediction_type: "v_prediction".to_string(),
+            timestep_spacing: "trailing".to_string(),
+            rescale_betas_zero_snr: true,
+            snr_shift_scale: 1.0,
+            ..Self::default()
+        }
+    }
+
+    /// `THUDM/CogVideoX-2b` `scheduler/scheduler_config.json`: as 5B with SNR shift 3.0.
+    pub fn cogvideox_2b() -> Self {
+        Self { snr_shift_scale: 3.0, ..Self::cogvideox_5b() }
+    }
+
+    /// Parses and validates a `scheduler_config.json`; `source_name` names it in errors.
+    pub fn from_json_str(json: &str, source_name: &str) -> Result<Self> {
+        let config: Self = serde_json::from_str(json).map_err(|e| Error::InvalidConfig {
+            source_name: source_name.to_string(),
+            field: "(json)".to_string(),
+            reason: e.to_string(),
+        })?;
+        config.validate(source_name)?;
+        Ok(config)
+    }
+
+    /// Reads a `scheduler_config.json` (or a folder holding one); unknown keys are printed to
+    /// stderr as a warning and kept in [`Self::extra`].
+    pub fn from_json_file(path: impl AsRef<Path>) -> Result<Self> {
+        let mut path = path.as_ref().to_path_buf();
+        if path.is_dir() {
+            path = path.join("scheduler_config.json");
+        }
+        let json = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), source })?;
+        let name = path.display().to_string();
+        let config = Self::from_json_str(&json, &name)?;
+        for key in config.unknown_keys() {
+            eprintln!("warning: {name}: unknown scheduler config key `{key}` (kept, not used)");
+        }
+        Ok(config)
+    }
+
+    /// Keys that are neither fields nor diffusers metadata (`_…`).
+    pub fn unknown_keys(&self) -> Vec<&str> {
+        self.extra.keys().filter(|k| !k.starts_with('_')).map(String::as_str).collect()
+    }
+
+    /// The parsed `prediction_type`.
+    pub fn prediction(&self) -> Result<PredictionType> {
+        match self.prediction_type.as_str() {
+            "epsilon" => Ok(PredictionType::Epsilon),
+            "sample" => Ok(PredictionType::Sample),
+            "v_prediction" => Ok(PredictionType::VPrediction),
+            other => {
+                Err(self.field_error("prediction_type", format!("`{other}` is not epsilon, sample or v_prediction")))
+            }
+        }
+    }
+
+    /// The parsed `timestep_spacing`.
+    pub fn spacing(&self) -> Result<TimestepSpacing> {
+        match self.timestep_spacing.as_str() {
+            "linspace" => Ok(TimestepSpacing::Linspace),
+            "leading" => Ok(TimestepSpacing::Leading),
+            "trailing" => Ok(TimestepSpacing::Trailing),
+            other => {
+                Err(self.field_error("timestep_spacing", format!("`{other}` is not linspace, leading or trailing")))
+            }
+        }
+    }
+
+    fn field_error(&self, field: &str, reason: String) -> Error {
+        Error::InvalidConfig { source_name: "scheduler config".to_string(), field: field.to_string(), reason }
+    }
+
+    /// Rejects values the schedulers cannot use, naming the field.
+    pub fn validate(&self, source_name: &str) -> Result<()> {
+        let err = |field: &str, reason: String| Error::InvalidConfig {
+            source_name: source_name.to_string(),
+            field: field.to_string(),
+            reason,
+        };
+        if let Some(class) = self.extra.get("_class_name").and_then(|v| v.as_str())
+            && !CLASS_NAMES.contains(&class)
+        {
+            return Err(err("_class_name", format!("is `{class}`, expected one of {CLASS_NAMES:?}")));
+        }
+        if self.num_train_timesteps <= 0 {
+            return Err(err("num_train_timesteps", format!("must be positive, got {}", self.num_train_timesteps)));
+        }
+        match (&self.trained_betas, self.beta_schedule.as_str()) {
+            (Some(b), _) if b.len() as i64 != self.num_train_timesteps => {
+                return Err(err(
+                    "trained_betas",
+                    format!("has {} values, num_train_timesteps is {}", b.len(), self.num_train_timesteps),
+                ));
+            }
+            (Some(_), _) | (None, "linear" | "scaled_linear" | "squaredcos_cap_v2") => {}
+            (None, other) => {
+                return Err(err(
+                    "beta_schedule",
+                    format!("`{other}` is not linear, scaled_linear or squaredcos_cap_v2"),
+                ));
+            }
+        }
+        if self.snr_shift_scale.is_nan() || self.snr_shift_scale <= 0.0 {
+            return Err(err("snr_shift_scale", format!("must be positive, got {}", self.snr_shift_scale)));
+        }
+        self.prediction().map_err(|_| {
+            err("prediction_type", format!("`{}` is not epsilon, sample or v_prediction", self.prediction_type))
+        })?;
+        self.spacing().map_err(|_| {
+            err("timestep_spacing", format!("`{}` is not linspace, leading or trailing", self.timestep_spacing))
+        })?;
+        Ok(())
+    }
+}
+
+/// diffusers' `betas_for_alpha_bar` with the cosine transform (`squaredcos_cap_v2`), float32.
+fn cosine_betas(n: i64) -> Tensor {
+    const MAX_BETA: f64 = 0.999; // diffusers' default `max_beta`
+    let alpha_bar = |t: f64| ((t + 0.008) / 1.008 * std::f64::consts::PI / 2.0).cos().powi(2);
+    let betas: Vec<f64> = (0..n)
+        .map(|i| {
+            let (t1, t2) = (i as f64 / n as f64, (i + 1) as f64 / n as f64);
+            (1.0 - alpha_bar(t2) / alpha_bar(t1)).min(MAX_BETA)
+        })
+        .collect();
+    Tensor::from_slice(&betas).to_kind(Kind::Float)
+}
+
+/// The noise schedule ᾱ_t of a CogVideoX scheduler and the training-side operations on it.
+#[derive(Debug)]
+pub struct NoiseSchedule {
+    config: CogVideoXSchedulerConfig,
+    prediction: PredictionType,
+    spacing: TimestepSpacing,
+    /// ᾱ_t in the dtype diffusers keeps it in (float64 for scaled_linear), on the CPU.
+    alphas_cumprod_tensor: Tensor,
+    alphas_cumprod: Vec<f64>,
+    final_alpha_cumprod: f64,
+}
+
+impl NoiseSchedule {
+    /// Builds ᾱ_t as diffusers' scheduler `__init__` does.
+    pub fn new(config: &CogVideoXSchedulerConfig) -> Result<Self> {
+        config.validate("NoiseSchedule::new")?;
+        let n = config.num_train_timesteps;
+        let cpu = Device::Cpu;
+        let betas = match (&config.trained_betas, config.beta_schedule.as_str()) {
+            (Some(b), _) => Tensor::from_slice(b).to_kind(Kind::Float),
+            (None, "linear") => Tensor::linspace(config.beta_start, config.beta_end, n, (Kind::Float, cpu)),
+            (None, "scaled_linear") => {
+                Tensor::linspace(config.beta_start.sqrt(), config.beta_end.sqrt(), n, (Kind::Double, cpu))
+                    .pow_tensor_scalar(2)
+            }
+            (None, _) => cosine_betas(n),
+        };
+        let alphas = betas.neg() + 1.0;
+        let mut ac = alphas.cumprod(0, None::<Kind>);
+        let s = config.snr_shift_scale;
+        ac = &ac / ((&ac * (1.0 - s)) + s);
+        if config.rescale_betas_zero_snr {
+            let sqrt = ac.sqrt();
+            let first = sqrt.get(0);
+            let last = sqrt.get(n - 1);
+            let shifted = &sqrt - &last;
+            let rescaled = shifted * (&first / (&first - &last));
+            ac = rescaled.pow_tensor_scalar(2);
+        }
+        let alphas_cumprod: Vec<f64> = Vec::<f64>::try_from(ac.to_kind(Kind::Double).contiguous())?;
+        let final_alpha_cumprod = if config.set_alpha_to_one { 1.0 } else { alphas_cumprod[0] };
+        Ok(Self {
+            config: config.clone(),
+            prediction: config.prediction()?,
+            spacing: config.spacing()?,
+            alphas_cumprod_tensor: ac,
+            alphas_cumprod,
+            final_alpha_cumprod,
+        })
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &CogVideoXSchedulerConfig {
+        &self.config
+    }
+
+    /// The parsed prediction type.
+    pub fn prediction(&self) -> PredictionType {
+        self.prediction
+    }
+
+    /// ᾱ_t for t = 0..num_train_timesteps (as float64).
+    pub fn alphas_cumprod(&self) -> &[f64] {
+        &self.alphas_cumprod
+    }
+
+    /// ᾱ at `timestep`, or the final ᾱ (1 with `set_alpha_to_one`) for a negative one.
+    pub fn alpha_cumprod_at(&self, timestep: i64) -> Result<f64> {
+        if timestep < 0 {
+            return Ok(self.final_alpha_cumprod);
+        }
+        self.alphas_cumprod.get(timestep as usize).copied().ok_or_else(|| Error::InvalidArgument {
+            name: "timestep".to_string(),
+            reason: format!("{timestep} is outside 0..{}", self.config.num_train_timesteps),
+        })
+    }
+
+    /// Inference timesteps for `num_inference_steps` (diffusers' `set_timesteps`), descending.
+    pub fn timesteps(&self, num_inference_steps: usize) -> Result<Vec<i64>> {
+        let t = self.config.num_train_timesteps;
+        let n = num_inference_steps as i64;
+        if n == 0 || n > t {
+            return Err(Error::InvalidArgument {
+                name: "num_inference_steps".to_string(),
+                reason: format!("{n} must be in 1..={t} (num_train_timesteps)"),
+            });
+        }
+        Ok(match self.spacing {
+            TimestepSpacing::Linspace => {
+                // np.linspace(0, T-1, n).round(), reversed; numpy rounds half to even and puts
+                // the endpoint exactly (a single step gives [0]).
+                let step = if n > 1 { (t - 1) as f64 / (n - 1) as f64 } else { 0.0 };
+                (0..n)
+                    .rev()
+                    .map(|i| {
+                        if n > 1 && i == n - 1 { (t - 1) as f64 } else { i as f64 * step }.round_ties_even() as i64
+                    })
+                    .collect()
+            }
+            TimestepSpacing::Leading => {
+                let ratio = t / n;
+                (0..n).rev().map(|i| i * ratio + self.config.steps_offset).collect()
+            }
+            TimestepSpacing::Trailing => {
+                // np.round(np.arange(T, 0, -T/n)) - 1; numpy's arange has ceil(T / (T/n)) values.
+                let ratio = t as f64 / n as f64;
+                let len = (t as f64 / ratio).ceil() as i64;
+                (0..len).map(|k| (t as f64 - k as f64 * ratio).round_ties_even() as i64 - 1).collect()
+            }
+        })
+    }
+
+    /// √ᾱ_t and √(1 − ᾱ_t) for each timestep, in `like`'s dtype (diffusers casts ᾱ first), shaped
+    /// to broadcast over `like`'s trailing dimensions.
+    fn coefficients(&self, like: &Tensor, timesteps: &Tensor, name: &str) -> Result<(Tensor, Tensor)> {
+        let batch = like.size().first().copied().unwrap_or(1);
+        let count = timesteps.numel() as i64;
+        if !(count == batch || count == 1) || timesteps.kind() != Kind::Int64 && timesteps.kind() != Kind::Int {
+            return Err(Error::Shape {
+                tensor: format!("{name}.timesteps"),
+                expected: format!("[{batch}] integer timesteps (one per sample)"),
+                actual: timesteps.size(),
+            });
+        }
+        let t = timesteps.f_to_kind(Kind::Int64)?.f_flatten(0, -1)?.f_to_device(Device::Cpu)?;
+        let (lo, hi) = (t.f_min()?.int64_value(&[]), t.f_max()?.int64_value(&[]));
+        if lo < 0 || hi >= self.config.num_train_timesteps {
+            return Err(Error::InvalidArgument {
+                name: format!("{name}.timesteps"),
+                reason: format!("values {lo}..={hi} outside 0..{}", self.config.num_train_timesteps),
+            });
+        }
+        let ac = self.alphas_cumprod_tensor.f_to_kind(like.kind())?.f_index_select(0, &t)?;
+        let mut shape = vec![count];
+        shape.extend(std::iter::repeat_n(1, like.dim().saturating_sub(1)));
+        let sqrt_alpha = ac.f_sqrt()?.f_reshape(&shape)?.f_to_device(like.device())?;
+        let sqrt_one_minus = ac.f_neg()?.f_add_scalar(1.0)?.f_sqrt()?.f_reshape(&shape)?.f_to_device(like.device())?;
+        Ok((sqrt_alpha, sqrt_one_minus))
+    }
+
+    /// Forward diffusion `√ᾱ_t·x₀ + √(1−ᾱ_t)·ε` (diffusers' `add_noise`); `timesteps` `[B]`.
+    pub fn add_noise(&self, original_samples: &Tensor, noise: &Tensor, timesteps: &Tensor) -> Result<Tensor> {
+        same_shape(original_samples, noise, "add_noise.noise")?;
+        let (a, b) = self.coefficients(original_samples, timesteps, "add_noise")?;
+        Ok(a.f_mul(original_samples)?.f_add(&b.f_mul(noise)?)?)
+    }
+
+    /// The v-prediction target `√ᾱ_t·ε − √(1−ᾱ_t)·x₀` (diffusers' `get_velocity`).
+    pub fn get_velocity(&self, sample: &Tensor, noise: &Tensor, timesteps: &Tensor) -> Result<Tensor> {
+        same_shape(sample, noise, "get_velocity.noise")?;
+        let (a, b) = self.coefficients(sample, timesteps, "get_velocity")?;
+        Ok(a.f_mul(noise)?.f_sub(&b.f_mul(sample)?)?)
+    }
+
+    /// x̂₀ from the model output at `timestep` (ᾱ = `alpha_prod_t`), per the prediction type.
+    pub(crate) fn pred_original_sample(
+        &self,
+        model_output: &Tensor,
+        sample: &Tensor,
+        alpha_prod_t: f64,
+    ) -> Result<Tensor> {
+        let beta_prod_t = 1.0 - alpha_prod_t;
+        Ok(match self.prediction {
+            PredictionType::Epsilon => {
+                sample.f_sub(&model_output.f_mul_scalar(beta_prod_t.sqrt())?)?.f_div_scalar(alpha_prod_t.sqrt())?
+            }
+            PredictionType::Sample => model_output.shallow_clone(),
+            PredictionType::VPrediction => {
+                sample.f_mul_scalar(alpha_prod_t.sqrt())?.f_sub(&model_output.f_mul_scalar(beta_prod_t.sqrt())?)?
+            }
+        })
+    }
+}
+
+pub(crate) fn same_shape(reference: &Tensor, other: &Tensor, name: &str) -> Result<()> {
+    if reference.size() != other.size() {
+        return Err(Error::Shape {
+            tensor: name.to_string(),
+            expected: format!("{:?} (the sample's shape)", reference.size()),
+            actual: other.size(),
+        });
+    }
+    Ok(())
+}
+
+/// The result of one denoising step.
+#[derive(Debug)]
+pub struct SchedulerStepOutput {
+    /// x_{t−1}, the next model input.
+    pub prev_sample: Tensor,
+    /// x̂₀ predicted at this step (the DPM scheduler needs it back on the next step).
+    pub pred_original_sample: Tensor,
+}
+
+/// diffusers' `CogVideoXDDIMScheduler` (deterministic DDIM, η = 0).
+#[derive(Debug)]
+pub struct CogVideoXDDIMScheduler {
+    schedule: NoiseSchedule,
+    num_inference_steps: Option<usize>,
+    timesteps: Vec<i64>,
+}
+
+impl CogVideoXDDIMScheduler {
+    /// A scheduler for `config` (call [`Self::set_timesteps`] before stepping).
+    pub fn new(config: &CogVideoXSchedulerConfig) -> Result<Self> {
+        let schedule = NoiseSchedule::new(config)?;
+        let timesteps = (0..config.num_train_timesteps).rev().collect();
+        Ok(Self { schedule, num_inference_steps: None, timesteps })
+    }
+
+    /// The noise schedule (ᾱ, `add_noise`, `get_velocity`).
+    pub fn schedule(&self) -> &NoiseSchedule {
+        &self.schedule
+    }
+
+    /// Chooses `num_inference_steps` timesteps per the configured spacing.
+    pub fn set_timesteps(&mut self, num_inference_steps: usize) -> Result<()> {
+        self.timesteps = self.schedule.timesteps(num_inference_steps)?;
+        self.num_inference_steps = Some(num_inference_steps);
+        Ok(())
+    }
+
+    /// The current timesteps, descending.
+    pub fn timesteps(&self) -> &[i64] {
+        &self.timesteps
+    }
+
+    /// One DDIM step from `timestep` to `timestep − T/n`.
+    pub fn step(&self, model_output: &Tensor, timestep: i64, sample: &Tensor) -> Result<SchedulerStepOutput> {
+        same_shape(sample, model_output, "model_output")?;
+        let n = self.num_inference_steps.ok_or_else(|| not_set("CogVideoXDDIMScheduler"))?;
+        let prev_timestep = timestep - self.schedule.config.num_train_timesteps / n as i64;
+        if timestep < 0 {
+            return Err(Error::InvalidArgument { name: "timestep".to_string(), reason: format!("{timestep} < 0") });
+        }
+        let alpha_t = self.schedule.alpha_cumprod_at(timestep)?;
+        let alpha_prev = self.schedule.alpha_cumprod_at(prev_timestep)?;
+        let pred = self.schedule.pred_original_sample(model_output, sample, alpha_t)?;
+        let a = ((1.0 - alpha_prev) / (1.0 - alpha_t)).sqrt();
+        let b = alpha_prev.sqrt() - alpha_t.sqrt() * a;
+        let prev_sample = sample.f_mul_scalar(a)?.f_add(&pred.f_mul_scalar(b)?)?;
+        Ok(SchedulerStepOutput { prev_sample, pred_original_sample: pred })
+    }
+
+    /// See [`NoiseSchedule::add_noise`].
+    pub fn add_noise(&self, original_samples: &Tensor, noise: &Tensor, timesteps: &Tensor) -> Result<Tensor> {
+        self.schedule.add_noise(original_samples, noise, timesteps)
+    }
+
+    /// See [`NoiseSchedule::get_velocity`].
+    pub fn get_velocity(&self, sample: &Tensor, noise: &Tensor, timesteps: &Tensor) -> Result<Tensor> {
+        self.schedule.get_velocity(sample, noise, timesteps)
+    }
+}
+
+pub(crate) fn not_set(scheduler: &str) -> Error {
+    Error::InvalidArgument {
+        name: "num_inference_steps".to_string(),
+        reason: format!("{scheduler}: call set_timesteps before step"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn trailing_timesteps_of_the_5b_sampler() {
+        let s = NoiseSchedule::new(&CogVideoXSchedulerConfig::cogvideox_5b()).unwrap();
+        let t = s.timesteps(50).unwrap();
+        assert_eq!(t.len(), 50);
+        assert_eq!((t[0], t[1], t[49]), (999, 979, 19));
+    }
+
+    #[test]
+    fn zero_terminal_snr() {
+        let s = NoiseSchedule::new(&CogVideoXSchedulerConfig::cogvideox_5b()).unwrap();
+        let ac = s.alphas_cumprod();
+        assert_eq!(ac[999], 0.0);
+        assert!(ac.windows(2).all(|w| w[1] < w[0]));
+        // The rescale keeps ᾱ_0 = 1 − β_0 = 1 − 0.00085.
+        assert!((ac[0] - (1.0 - 0.00085)).abs() < 1e-12);
+    }
+
+    #[test]
+    fn config_errors_name_the_field() {
+        let e = CogVideoXSchedulerConfig::from_json_str(r#"{"prediction_type": "x"}"#, "s.json").unwrap_err();
+        assert!(e.to_string().contains("prediction_type"), "{e}");
+        let c =
+            CogVideoXSchedulerConfig::from_json_str(r#"{"foo": 1, "_class_name": "CogVideoXDDIMScheduler"}"#, "s.json")
+                .unwrap();
+        assert_eq!(c.unknown_keys(), vec!["foo"]);
+    }
+}

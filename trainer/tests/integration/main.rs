@@ -1,0 +1,5 @@
+//! The `trainer` integration tests: one binary, a module per feature.
+
+mod libtorch;
+mod scheduler;
+mod vae;

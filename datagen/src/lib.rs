@@ -7,10 +7,13 @@
 pub mod camera;
 pub mod contact_sheet;
 pub mod corpus;
+pub mod covisibility;
+pub mod depth_mesh;
 pub mod depth_exr;
 pub mod error;
 pub mod inspect;
 pub mod npy;
+pub mod render;
 pub mod sequence;
 pub mod synth;
 pub mod video;

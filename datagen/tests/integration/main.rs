@@ -2,6 +2,7 @@
 
 mod build;
 mod corpus;
+mod geometry;
 mod inspect;
 mod sequence;
 mod synth;

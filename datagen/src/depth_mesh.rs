@@ -47,6 +47,9 @@ impl Default for MeshConfig {
 /// IoU (0.985 → 0.987); thicker skirts lower false-keep further but cost more IoU than they gain.
 pub const DEFAULT_OCCLUDER_THICKNESS: f64 = 0.05;
 
+/// A triangle with the pixel indices of its vertices.
+type Corners = (Triangle, [u32; 3]);
+
 fn valid(depth: f32) -> bool {
     depth.is_finite() && depth > 0.0
 }
@@ -73,7 +76,7 @@ impl DepthMesh {
             (0..width * height).map(|i| camera.pixel_ray((i % width) as f64, (i / width) as f64)).collect();
         let points: Vec<Option<DVec3>> =
             depth.values.iter().zip(&rays).map(|(&d, ray)| valid(d).then(|| center + f64::from(d) * *ray)).collect();
-        let quads: Vec<(Vec<(Triangle, [u32; 3])>, Vec<(Triangle, [u32; 3])>)> = (0..height.saturating_sub(1))
+        let quads: Vec<(Vec<Corners>, Vec<Corners>)> = (0..height.saturating_sub(1))
             .into_par_iter()
             .map(|v| {
                 let (mut surface, mut skirts) = (Vec::new(), Vec::new());

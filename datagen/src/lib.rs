@@ -8,14 +8,16 @@ pub mod camera;
 pub mod contact_sheet;
 pub mod corpus;
 pub mod covisibility;
-pub mod depth_mesh;
 pub mod depth_exr;
+pub mod depth_mesh;
 pub mod error;
 pub mod inspect;
 pub mod npy;
+pub mod pairs;
 pub mod render;
 pub mod sequence;
 pub mod synth;
+pub mod trajectory;
 pub mod video;
 
 pub use error::{Error, Result};

@@ -5,7 +5,11 @@ use std::process::ExitCode;
 
 use anyhow::Context;
 use clap::{Args, Parser, Subcommand};
+use datagen::corpus::build::{BuildConfig, Progress};
+use datagen::corpus::partition::Worker;
+use datagen::pairs::PairsConfig;
 use datagen::synth::{SynthConfig, write_sequence};
+use schemas::InputStatus;
 
 /// Self-supervised CogNVS training pairs from videos and their 3D reconstructions.
 #[derive(Debug, Parser)]
@@ -20,6 +24,228 @@ enum Command {
     /// Generate a synthetic dynamic scene (ray traced, exact ground truth) as a sequence folder in
     /// the cog-nvs layout: gt_rgb.mp4, cam_info/megasam_*.npy, masks/, plus a contact sheet.
     Synth(SynthArgs),
+    /// Turn one sequence folder (cog-nvs, MegaSAM npz or generic layout) into training pairs:
+    /// one finished shard holding each clip once and one entry per trajectory.
+    Pairs(PairsArgs),
+    /// Render a sequence from a novel camera path: the inference-time conditioning
+    /// (render.mp4, frames/%05d.png and holes/%05d.png, 255 = hole).
+    Render(RenderArgs),
+    /// Print statistics of a shard or corpus folder; with --export, write every pair as image
+    /// folders, meta.json and a contact sheet (target | mask | cond | novel render).
+    Inspect(InspectArgs),
+    /// Build a corpus from dataset trees (SA-V, TAO, YouTube-VOS, DAVIS, sequence folders),
+    /// resumably, on one machine or many (--num-workers/--worker-index or Slurm/Kubernetes).
+    Build(BuildArgs),
+    /// Check every shard of a folder against its stats marker and the schema.
+    Validate(ValidateArgs),
+}
+
+#[derive(Debug, Args)]
+struct PairsArgs {
+    /// The sequence folder.
+    seq_dir: PathBuf,
+    /// Output folder; the shard is written as <OUT>/<sequence name>.parquet.
+    #[arg(long)]
+    out: PathBuf,
+    /// Number of sampled trajectories per clip [default: 2, or 0 when --trajectory is given].
+    #[arg(long)]
+    trajectories: Option<u32>,
+    /// A trajectory file (.npy (N,4,4) world_from_camera, .json, or the public trajs/*.txt
+    /// format); repeatable. Used alone unless --trajectories is also given.
+    #[arg(long = "trajectory")]
+    trajectory_files: Vec<PathBuf>,
+    /// Seed of every random choice (combined with the sequence id, clip start and trajectory index).
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// TOML file with [clip], [trajectory] and [covisibility] settings.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Dataset name stored with the pairs.
+    #[arg(long, default_value = "sequence")]
+    dataset: String,
+}
+
+#[derive(Debug, Args)]
+struct RenderArgs {
+    /// The sequence folder.
+    seq_dir: PathBuf,
+    /// The novel camera path (.npy, .json or trajs/*.txt).
+    #[arg(long)]
+    trajectory: PathBuf,
+    /// Output folder.
+    #[arg(long)]
+    out: PathBuf,
+    /// TOML file with [covisibility] settings.
+    #[arg(long)]
+    config: Option<PathBuf>,
+}
+
+#[derive(Debug, Args)]
+struct InspectArgs {
+    /// A shard file or a folder of shards (a corpus).
+    path: PathBuf,
+    /// Write every pair under this folder.
+    #[arg(long)]
+    export: Option<PathBuf>,
+}
+
+#[derive(Debug, Args)]
+struct BuildArgs {
+    /// Corpus TOML: [[sources]], [output], [pairs] (see configs/corpus_example.toml).
+    #[arg(long)]
+    config: PathBuf,
+    /// Override the output folder of the config.
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Total number of workers [default: SLURM_ARRAY_TASK_COUNT, else 1].
+    #[arg(long)]
+    num_workers: Option<u32>,
+    /// This worker's index [default: SLURM_ARRAY_TASK_ID or JOB_COMPLETION_INDEX, else 0].
+    #[arg(long)]
+    worker_index: Option<u32>,
+    /// List what would be built, write nothing.
+    #[arg(long)]
+    dry_run: bool,
+}
+
+#[derive(Debug, Args)]
+struct ValidateArgs {
+    /// A shard file or a folder of shards.
+    path: PathBuf,
+    /// Also decode every PNG and EXR and check its size.
+    #[arg(long)]
+    deep: bool,
+}
+
+fn pairs(args: PairsArgs) -> anyhow::Result<()> {
+    let config = match &args.config {
+        Some(path) => PairsConfig::from_toml_file(path)?,
+        None => PairsConfig::default(),
+    };
+    let started = std::time::Instant::now();
+    let sequence = datagen::sequence::read_sequence(&args.seq_dir)?;
+    let request = datagen::pairs::trajectory_request(&sequence, &args.trajectory_files, args.trajectories)?;
+    if request.sampled == 0 && request.explicit.is_empty() {
+        anyhow::bail!("parameter `trajectories`: 0 trajectories requested and no --trajectory file given");
+    }
+    let records = datagen::pairs::generate_clips(&sequence, &args.dataset, &config, &request, args.seed)?;
+    let input = schemas::InputDigest {
+        source_path: args.seq_dir.display().to_string(),
+        content_hash: datagen::corpus::build::hash_tree(&args.seq_dir)?,
+    };
+    let (path, stats) = datagen::pairs::write_shard(&args.out, &sequence.source_id, &records, input)?;
+    println!(
+        "wrote {} ({} clips, {} pairs, {} frames, {:.1} MB) in {:.2} s",
+        path.display(),
+        stats.clips,
+        stats.pairs,
+        stats.frames,
+        stats.bytes as f64 / 1e6,
+        started.elapsed().as_secs_f64()
+    );
+    for record in &records {
+        for trajectory in &record.trajectories {
+            println!(
+                "  {} t{}: co-visible {:.1} %, {} rejected samples",
+                record.clip_id,
+                trajectory.index,
+                100.0 * trajectory.covisible_fraction,
+                trajectory.rejected_samples
+            );
+        }
+    }
+    Ok(())
+}
+
+fn render(args: RenderArgs) -> anyhow::Result<()> {
+    let config = match &args.config {
+        Some(path) => PairsConfig::from_toml_file(path)?,
+        None => PairsConfig::default(),
+    };
+    let sequence = datagen::sequence::read_sequence(&args.seq_dir)?;
+    let written = datagen::pairs::render_sequence(&sequence, &args.trajectory, &args.out, &config.covisibility)?;
+    println!("wrote {} frames to {} (render.mp4, frames/, holes/)", written, args.out.display());
+    Ok(())
+}
+
+fn inspect(args: InspectArgs) -> anyhow::Result<()> {
+    print!("{}", datagen::inspect::report(&args.path)?);
+    if let Some(export) = &args.export {
+        let covisibility = datagen::covisibility::CovisibilityConfig::default();
+        let render = |frame: &image::RgbImage,
+                      depth: &datagen::depth_exr::DepthMap,
+                      source: &datagen::camera::PinholeCamera,
+                      novel: &datagen::camera::PinholeCamera| {
+            Ok(datagen::pairs::render_novel(frame, depth, source, novel, &covisibility))
+        };
+        let folders = datagen::inspect::export(&args.path, export, Some(&render))?;
+        println!("exported {} pairs to {}", folders.len(), export.display());
+        if let Some(first) = folders.first() {
+            println!("  look at: {}", first.join("contact_sheet.png").display());
+        }
+    }
+    Ok(())
+}
+
+fn build(args: BuildArgs) -> anyhow::Result<()> {
+    let mut config = BuildConfig::from_toml_file(&args.config)?;
+    if let Some(out) = args.out {
+        config.output.dir = out;
+    }
+    let worker = Worker::from_flags_or_env(args.num_workers, args.worker_index, |name| std::env::var(name).ok())?;
+    if args.dry_run {
+        let planned = datagen::corpus::build::plan(&config.sources, &config.output.dir, worker)?;
+        for input in &planned {
+            println!("{}\t{}", input.plan, input.key);
+        }
+        println!("worker {}/{}: {} inputs", worker.index, worker.count, planned.len());
+        return Ok(());
+    }
+    let processor = datagen::corpus::input::SequenceProcessor::new(&config);
+    let bar = indicatif::ProgressBar::new(0).with_style(
+        indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} inputs {msg} [{elapsed_precise}, eta {eta}]")
+            .expect("valid template"),
+    );
+    let (mut pairs, mut failures) = (0u64, 0u64);
+    let started = std::time::Instant::now();
+    let summary =
+        datagen::corpus::build::build(&config.sources, &config.output, worker, &processor, |event| match event {
+            Progress::Start { pending } => bar.set_length(pending),
+            Progress::Input { status, pairs: n } => {
+                pairs += n;
+                failures += u64::from(status == InputStatus::Failed);
+                let rate = pairs as f64 / started.elapsed().as_secs_f64().max(1e-9);
+                bar.set_message(format!("{pairs} pairs ({rate:.1}/s), {failures} failed"));
+                bar.inc(1);
+            }
+        })?;
+    bar.finish_and_clear();
+    println!(
+        "worker {}/{}: {} ok, {} skipped, {} failed ({} already done); {} pairs in {} shards, {:.1} MB, {:.1} s",
+        worker.index,
+        worker.count,
+        summary.ok,
+        summary.skipped,
+        summary.failed,
+        summary.inputs_already_done,
+        summary.pairs,
+        summary.shards,
+        summary.bytes as f64 / 1e6,
+        summary.seconds
+    );
+    Ok(())
+}
+
+fn validate(args: ValidateArgs) -> anyhow::Result<()> {
+    let report = datagen::corpus::validate::validate(&args.path, args.deep)?;
+    for problem in &report.problems {
+        println!("{}: {}", problem.path.display(), problem.message);
+    }
+    println!("{} shards, {} clips, {} problems", report.shards, report.clips, report.problems.len());
+    if !report.problems.is_empty() {
+        anyhow::bail!("validation found {} problems", report.problems.len());
+    }
+    Ok(())
 }
 
 #[derive(Debug, Args)]
@@ -113,6 +339,11 @@ fn main() -> ExitCode {
     };
     let result = match cli.command {
         Command::Synth(args) => synth(args),
+        Command::Pairs(args) => pairs(args),
+        Command::Render(args) => render(args),
+        Command::Inspect(args) => inspect(args),
+        Command::Build(args) => build(args),
+        Command::Validate(args) => validate(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -49,6 +49,44 @@ fn default_row_group_bytes() -> u64 {
     schemas::shard::DEFAULT_ROW_GROUP_BYTES as u64
 }
 
+/// A corpus build as configured in TOML (`datagen build --config`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BuildConfig {
+    /// Dataset trees to crawl.
+    pub sources: Vec<SourceConfig>,
+    /// Output folder and packing.
+    pub output: OutputConfig,
+    /// Seed of every random choice (combined with stable ids).
+    #[serde(default)]
+    pub seed: u64,
+    /// Sampled trajectories per clip (the paper's pretraining N = 2).
+    #[serde(default = "default_trajectories")]
+    pub trajectories: u32,
+    /// Clip windows, trajectory ranges, occlusion test.
+    #[serde(default)]
+    pub pairs: crate::pairs::PairsConfig,
+}
+
+fn default_trajectories() -> u32 {
+    crate::pairs::PAPER_TRAJECTORIES
+}
+
+impl BuildConfig {
+    /// Reads a corpus TOML, naming the file and field on error.
+    pub fn from_toml_file(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let config: Self = toml::from_str(&text).map_err(|e| Error::invalid(path, "config", e.to_string()))?;
+        if config.sources.is_empty() {
+            return Err(Error::invalid(path, "sources", "at least one [[sources]] table is needed"));
+        }
+        if config.trajectories == 0 {
+            return Err(Error::invalid(path, "trajectories", "must be at least 1"));
+        }
+        Ok(config)
+    }
+}
+
 /// What happened to one input.
 #[derive(Debug)]
 pub enum Outcome {

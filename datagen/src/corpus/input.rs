@@ -1,0 +1,103 @@
+//! Turning a crawled video into training pairs: its frames (video or image folder), its
+//! reconstruction and its dynamic-object masks become a [`Sequence`], which the pair generator
+//! cuts into clips.
+//!
+//! Frame rates: frames are used as stored. SA-V videos keep their 24 fps (stored with the
+//! clips); image datasets (TAO, YouTube-VOS, DAVIS) have no rate in their files, so clips record
+//! 0 (unknown) and a clip is a window of consecutive stored frames.
+
+use image::GrayImage;
+use rayon::prelude::*;
+
+use super::annotations::{
+    box_frame_masks, fill_between_annotations, load_sav_annotation, read_id_png, sav_frame_masks,
+};
+use super::build::{BuildConfig, InputProcessor, Outcome};
+use super::crawl::{FrameSource, MaskSource, VideoEntry};
+use crate::error::{Error, Result};
+use crate::pairs::{TrajectoryRequest, generate_clips};
+use crate::sequence::{Sequence, read_sequence, read_with_frames};
+
+/// Loads everything the pair generator needs for one crawled video.
+pub fn load_entry(entry: &VideoEntry) -> Result<Sequence> {
+    let key = entry.key();
+    let reconstruction = entry
+        .reconstruction
+        .as_ref()
+        .ok_or_else(|| Error::invalid(&key, "reconstruction", "no reconstruction found for this video"))?;
+    let mut sequence = match &entry.frames {
+        FrameSource::Sequence(dir) => return read_sequence(dir),
+        FrameSource::Video(path) => {
+            let video = crate::video::decode_video(path)?;
+            read_with_frames(&entry.video_id, reconstruction, video.fps, video.frames, path)?
+        }
+        FrameSource::Images(paths) => {
+            let frames = paths
+                .par_iter()
+                .map(|p| {
+                    image::open(p)
+                        .map(|i| i.to_rgb8())
+                        .map_err(|e| Error::invalid(p, "frame", format!("unreadable image: {e}")))
+                })
+                .collect::<Result<Vec<_>>>()?;
+            let folder = paths.first().and_then(|p| p.parent()).unwrap_or(reconstruction);
+            read_with_frames(&entry.video_id, reconstruction, 0.0, frames, folder)?
+        }
+    };
+    let (width, height) = sequence.size();
+    let frame_count = sequence.len();
+    let fit = |mask: GrayImage| {
+        if mask.dimensions() == (width, height) {
+            mask
+        } else {
+            image::imageops::resize(&mask, width, height, image::imageops::FilterType::Nearest)
+        }
+    };
+    let masks = match &entry.masks {
+        MaskSource::None => None,
+        MaskSource::Sav(json) => Some(sav_frame_masks(&load_sav_annotation(json)?, frame_count, json)?),
+        MaskSource::IdPngs(dir) => {
+            // Matched to frames by file stem (YouTube-VOS annotates a subset of frames).
+            let stems: Vec<String> = match &entry.frames {
+                FrameSource::Images(paths) => {
+                    paths.iter().map(|p| p.file_stem().unwrap_or_default().to_string_lossy().into_owned()).collect()
+                }
+                _ => (0..frame_count).map(|i| format!("{i:05}")).collect(),
+            };
+            let annotated = stems
+                .par_iter()
+                .map(|stem| {
+                    let path = dir.join(format!("{stem}.png"));
+                    if path.is_file() { read_id_png(&path).map(Some) } else { Ok(None) }
+                })
+                .collect::<Result<Vec<_>>>()?;
+            fill_between_annotations(annotated)
+        }
+        MaskSource::Boxes { boxes, width: box_width, height: box_height } => {
+            Some(box_frame_masks(boxes, frame_count, *box_width, *box_height))
+        }
+    };
+    sequence.dynamic_masks = masks.map(|m| m.into_iter().map(fit).collect());
+    Ok(sequence)
+}
+
+/// The build's processor: load the video, generate its clips with the configured trajectories.
+pub struct SequenceProcessor<'a> {
+    config: &'a BuildConfig,
+}
+
+impl<'a> SequenceProcessor<'a> {
+    /// A processor for `config`.
+    pub fn new(config: &'a BuildConfig) -> Self {
+        Self { config }
+    }
+}
+
+impl InputProcessor for SequenceProcessor<'_> {
+    fn process(&self, entry: &VideoEntry) -> Result<Outcome> {
+        let sequence = load_entry(entry)?;
+        let request = TrajectoryRequest { sampled: self.config.trajectories, explicit: Vec::new() };
+        let clips = generate_clips(&sequence, entry.dataset.name(), &self.config.pairs, &request, self.config.seed)?;
+        Ok(Outcome::Clips(clips))
+    }
+}

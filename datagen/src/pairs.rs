@@ -1,0 +1,356 @@
+//! Self-supervised training pairs for one sequence (DESIGN §1, §4, §5): cut the video into clip
+//! windows, give each clip N novel trajectories (sampled deterministically, or given by the
+//! user), compute each frame's exact co-visibility mask from one depth mesh shared by all
+//! trajectories, and pack clip + trajectories into shard records.
+
+use std::path::{Path, PathBuf};
+
+use glam::DMat4;
+use image::{GrayImage, RgbImage};
+use rayon::prelude::*;
+use schemas::{ClipRecord, InputDigest, ShardStats, ShardWriter, ShardWriterOptions, TrajectoryKind, TrajectoryRecord};
+use serde::{Deserialize, Serialize};
+
+use crate::camera::{PinholeCamera, mat3_to_row_major, mat4_to_row_major};
+use crate::covisibility::CovisibilityConfig;
+use crate::depth_exr::encode_depth_exr;
+use crate::error::{Error, Result};
+use crate::sequence::Sequence;
+use crate::trajectory::TrajectoryConfig;
+
+/// Paper value: clips of 49 frames (DESIGN §1).
+pub const PAPER_CLIP_FRAMES: u32 = 49;
+/// Paper value: N = 2 trajectories per video during pretraining (DESIGN §1).
+pub const PAPER_TRAJECTORIES: u32 = 2;
+
+/// How a video is cut into clips.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ClipConfig {
+    /// Frames per clip; shorter videos are kept whole as one clip.
+    pub length: u32,
+    /// Frames between the starts of consecutive clips (equal to `length`: back to back).
+    pub stride: u32,
+    /// At most this many clips per video (0: all).
+    pub max_clips: u32,
+}
+
+impl Default for ClipConfig {
+    fn default() -> Self {
+        Self { length: PAPER_CLIP_FRAMES, stride: PAPER_CLIP_FRAMES, max_clips: 0 }
+    }
+}
+
+impl ClipConfig {
+    /// Start frames of the clips of a video of `frames` frames, and the clip length used.
+    pub fn windows(&self, frames: u32) -> Vec<(u32, u32)> {
+        if frames <= self.length {
+            return vec![(0, frames)];
+        }
+        let mut starts: Vec<(u32, u32)> =
+            (0..=frames - self.length).step_by(self.stride.max(1) as usize).map(|s| (s, self.length)).collect();
+        if self.max_clips > 0 {
+            starts.truncate(self.max_clips as usize);
+        }
+        starts
+    }
+}
+
+/// Everything `datagen pairs` can be configured with (a TOML file via `--config`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(default, deny_unknown_fields)]
+pub struct PairsConfig {
+    /// Clip windows.
+    pub clip: ClipConfig,
+    /// Trajectory sampling ranges.
+    pub trajectory: TrajectoryConfig,
+    /// Occlusion-test settings.
+    pub covisibility: CovisibilityConfig,
+}
+
+impl PairsConfig {
+    /// Reads a TOML config, naming the file and field on error.
+    pub fn from_toml_file(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+        let config: Self = toml::from_str(&text).map_err(|e| Error::invalid(path, "config", e.to_string()))?;
+        config.validate(path)?;
+        Ok(config)
+    }
+
+    fn validate(&self, path: &Path) -> Result<()> {
+        if self.clip.length == 0 {
+            return Err(Error::invalid(path, "clip.length", "must be at least 1"));
+        }
+        if self.clip.stride == 0 {
+            return Err(Error::invalid(path, "clip.stride", "must be at least 1"));
+        }
+        Ok(())
+    }
+}
+
+/// The trajectories a run uses: sampled ones and/or user-given per-frame poses for the whole
+/// sequence (cut to each clip's window).
+#[derive(Debug, Clone, Default)]
+pub struct TrajectoryRequest {
+    /// Number of sampled trajectories per clip.
+    pub sampled: u32,
+    /// User-given trajectories: (file, `world_from_camera` for every frame of the sequence).
+    pub explicit: Vec<(PathBuf, Vec<DMat4>)>,
+}
+
+/// Which trajectories `datagen pairs` uses given its flags: explicit files alone unless
+/// `--trajectories N` is also given; otherwise N (default 2) sampled ones.
+pub fn trajectory_request(sequence: &Sequence, files: &[PathBuf], count: Option<u32>) -> Result<TrajectoryRequest> {
+    let explicit = files
+        .iter()
+        .map(|path| {
+            let poses =
+                crate::trajectory::read_trajectory_file(path, sequence.len(), &sequence.cameras, &sequence.depth[0])?;
+            Ok((path.clone(), poses))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let sampled = match (count, explicit.is_empty()) {
+        (Some(n), _) => n,
+        (None, true) => PAPER_TRAJECTORIES,
+        (None, false) => 0,
+    };
+    Ok(TrajectoryRequest { sampled, explicit })
+}
+
+fn png<P: image::PixelWithColorType>(image: &image::ImageBuffer<P, Vec<P::Subpixel>>) -> Vec<u8>
+where
+    [P::Subpixel]: image::EncodableLayout,
+{
+    let mut bytes = std::io::Cursor::new(Vec::new());
+    image.write_to(&mut bytes, image::ImageFormat::Png).expect("PNG encoding to memory");
+    bytes.into_inner()
+}
+
+fn mask_png(mask: &[bool], width: u32, height: u32) -> Vec<u8> {
+    let pixels = mask.iter().map(|&m| if m { 255 } else { 0 }).collect();
+    png(&GrayImage::from_raw(width, height, pixels).expect("mask sized to the frame"))
+}
+
+/// One frame of a clip, encoded: (frame PNG, depth EXR, dynamic-mask PNG, per trajectory its
+/// mask PNG and co-visible pixel count).
+type EncodedFrame = (Vec<u8>, Vec<u8>, Option<Vec<u8>>, Vec<(Vec<u8>, usize)>);
+
+/// One novel path for one clip, before masks.
+struct PlannedTrajectory {
+    index: u32,
+    kind: TrajectoryKind,
+    pivot_distance: f64,
+    controls: [Vec<f64>; 3],
+    rejected: u32,
+    poses: Vec<DMat4>,
+}
+
+/// Generates the records of every clip of `sequence`.
+pub fn generate_clips(
+    sequence: &Sequence,
+    dataset: &str,
+    config: &PairsConfig,
+    request: &TrajectoryRequest,
+    seed: u64,
+) -> Result<Vec<ClipRecord>> {
+    let frames = sequence.len() as u32;
+    config
+        .clip
+        .windows(frames)
+        .into_iter()
+        .map(|(start, length)| generate_clip(sequence, dataset, config, request, seed, start, length))
+        .collect()
+}
+
+fn generate_clip(
+    sequence: &Sequence,
+    dataset: &str,
+    config: &PairsConfig,
+    request: &TrajectoryRequest,
+    seed: u64,
+    start: u32,
+    length: u32,
+) -> Result<ClipRecord> {
+    let range = start as usize..(start + length) as usize;
+    let cameras = &sequence.cameras[range.clone()];
+    let (width, height) = sequence.size();
+
+    // Meshes first: they also reject sampled paths that would cross the surface.
+    let meshes: Vec<crate::depth_mesh::DepthMesh> = range
+        .clone()
+        .into_par_iter()
+        .map(|i| crate::depth_mesh::DepthMesh::new(&sequence.depth[i], &sequence.cameras[i], &config.covisibility.mesh))
+        .collect();
+    let crossing = |i: usize, a: glam::DVec3, b: glam::DVec3| meshes[i].occluded(a, b);
+
+    let mut planned = Vec::new();
+    for index in 0..request.sampled {
+        let sampled = crate::trajectory::sample_trajectory(
+            cameras,
+            &sequence.depth[start as usize],
+            &config.trajectory,
+            seed,
+            &sequence.source_id,
+            start,
+            index,
+            Some(&crossing),
+        );
+        planned.push(PlannedTrajectory {
+            index,
+            kind: TrajectoryKind::Sampled,
+            pivot_distance: sampled.pivot_distance,
+            controls: [sampled.azimuth_deg.to_vec(), sampled.elevation_deg.to_vec(), sampled.radius_frac.to_vec()],
+            rejected: sampled.rejected_samples,
+            poses: sampled.world_from_camera,
+        });
+    }
+    for (offset, (_, poses)) in request.explicit.iter().enumerate() {
+        planned.push(PlannedTrajectory {
+            index: request.sampled + offset as u32,
+            kind: TrajectoryKind::Explicit,
+            pivot_distance: 0.0,
+            controls: [Vec::new(), Vec::new(), Vec::new()],
+            rejected: 0,
+            poses: poses[range.clone()].to_vec(),
+        });
+    }
+
+    // Per frame: encode the clip's data once, then one mask per trajectory from the shared mesh.
+    let per_frame: Vec<EncodedFrame> = range
+        .clone()
+        .into_par_iter()
+        .zip(meshes.par_iter())
+        .map(|(i, mesh)| -> Result<_> {
+            let source = &sequence.cameras[i];
+            let masks = planned
+                .iter()
+                .map(|t| {
+                    let novel = PinholeCamera { world_from_camera: t.poses[i - start as usize], ..*source };
+                    let mask = crate::covisibility::covisibility_mask(mesh, source, &novel, &config.covisibility);
+                    let kept = mask.iter().filter(|&&m| m).count();
+                    (mask_png(&mask, width, height), kept)
+                })
+                .collect();
+            let frame = png::<image::Rgb<u8>>(&sequence.frames[i]);
+            let depth = encode_depth_exr(&sequence.depth[i])?;
+            let dynamic = sequence.dynamic_masks.as_ref().map(|m| png(&m[i]));
+            Ok((frame, depth, dynamic, masks))
+        })
+        .collect::<Result<_>>()?;
+
+    let pixels = (width as usize * height as usize * length as usize).max(1) as f64;
+    let trajectories = planned
+        .iter()
+        .enumerate()
+        .map(|(t, plan)| TrajectoryRecord {
+            index: plan.index,
+            kind: plan.kind,
+            pivot_distance: plan.pivot_distance,
+            azimuth_deg: plan.controls[0].clone(),
+            elevation_deg: plan.controls[1].clone(),
+            radius_frac: plan.controls[2].clone(),
+            rejected_samples: plan.rejected,
+            world_from_camera: plan.poses.iter().map(mat4_to_row_major).collect(),
+            covisible_mask: per_frame.iter().map(|f| f.3[t].0.clone()).collect(),
+            condition: None,
+            covisible_fraction: per_frame.iter().map(|f| f.3[t].1).sum::<usize>() as f64 / pixels,
+        })
+        .collect();
+    let clip_id = format!("{dataset}/{}/{start}", sequence.source_id);
+    Ok(ClipRecord {
+        clip_id,
+        source_id: sequence.source_id.clone(),
+        dataset: dataset.to_owned(),
+        source_path: sequence.path.display().to_string(),
+        clip_start: start,
+        fps: sequence.fps,
+        width,
+        height,
+        seed,
+        tool_version: format!("datagen {}", env!("CARGO_PKG_VERSION")),
+        intrinsics: cameras.iter().map(|c| mat3_to_row_major(&c.intrinsics)).collect(),
+        world_from_camera: cameras.iter().map(|c| mat4_to_row_major(&c.world_from_camera)).collect(),
+        frames: per_frame.iter().map(|f| f.0.clone()).collect(),
+        depth: per_frame.iter().map(|f| f.1.clone()).collect(),
+        dynamic_mask: sequence
+            .dynamic_masks
+            .as_ref()
+            .map(|_| per_frame.iter().map(|f| f.2.clone().expect("masks present")).collect()),
+        trajectories,
+    })
+}
+
+/// Writes `records` as one finished shard `out/{name}.parquet` (temp name, rename, stats marker).
+pub fn write_shard(
+    out: &Path,
+    name: &str,
+    records: &[ClipRecord],
+    input: InputDigest,
+) -> Result<(PathBuf, ShardStats)> {
+    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
+    let path = out.join(format!("{name}.parquet"));
+    let mut writer = ShardWriter::create(&path, ShardWriterOptions::default())?;
+    for record in records {
+        writer.write(record)?;
+    }
+    writer.add_input(input);
+    let stats = writer.finish()?;
+    Ok((path, stats))
+}
+
+/// The novel-view render used by exports and `datagen render`: source frame + depth seen from
+/// the novel camera, holes black.
+pub fn render_novel(
+    frame: &RgbImage,
+    depth: &crate::depth_exr::DepthMap,
+    source: &PinholeCamera,
+    novel: &PinholeCamera,
+    config: &CovisibilityConfig,
+) -> RgbImage {
+    let mesh = crate::depth_mesh::DepthMesh::new(depth, source, &config.mesh);
+    crate::render::render_novel_view(&mesh, frame, source, novel).0
+}
+
+/// `datagen render`: renders every frame of `sequence` from the trajectory in `trajectory_file`
+/// into `out/frames/%05d.png`, `out/holes/%05d.png` (255 = hole) and `out/render.mp4`.
+/// Returns the number of frames.
+pub fn render_sequence(
+    sequence: &Sequence,
+    trajectory_file: &Path,
+    out: &Path,
+    config: &CovisibilityConfig,
+) -> Result<usize> {
+    let poses = crate::trajectory::read_trajectory_file(
+        trajectory_file,
+        sequence.len(),
+        &sequence.cameras,
+        &sequence.depth[0],
+    )?;
+    for sub in ["frames", "holes"] {
+        std::fs::create_dir_all(out.join(sub)).map_err(|e| Error::io(out.join(sub), e))?;
+    }
+    let rendered: Vec<RgbImage> = (0..sequence.len())
+        .into_par_iter()
+        .map(|i| -> Result<RgbImage> {
+            let source = &sequence.cameras[i];
+            let mesh = crate::depth_mesh::DepthMesh::new(&sequence.depth[i], source, &config.mesh);
+            let novel = PinholeCamera { world_from_camera: poses[i], ..*source };
+            let (image, holes) = crate::render::render_novel_view(&mesh, &sequence.frames[i], source, &novel);
+            let save = |image: &dyn Fn(&Path) -> image::ImageResult<()>, path: PathBuf| {
+                image(&path).map_err(|e| Error::Image { context: path.display().to_string(), reason: e.to_string() })
+            };
+            save(&|p| holes.save(p), out.join(format!("holes/{i:05}.png")))?;
+            save(&|p| image.save(p), out.join(format!("frames/{i:05}.png")))?;
+            Ok(image)
+        })
+        .collect::<Result<_>>()?;
+    let (width, height) = sequence.size();
+    if width % 2 == 0 && height % 2 == 0 {
+        let fps = if sequence.fps > 0.0 { sequence.fps } else { DEFAULT_RENDER_FPS };
+        crate::video::encode_video(&out.join("render.mp4"), &rendered, fps)?;
+    }
+    Ok(rendered.len())
+}
+
+/// Frame rate of `render.mp4` when the input's is unknown (image-folder inputs).
+const DEFAULT_RENDER_FPS: f64 = 24.0;

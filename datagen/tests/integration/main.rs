@@ -4,6 +4,7 @@ mod build;
 mod corpus;
 mod geometry;
 mod inspect;
+mod pairs;
 mod sequence;
 mod synth;
 mod validate;

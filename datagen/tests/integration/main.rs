@@ -2,6 +2,7 @@
 
 mod build;
 mod corpus;
+mod corpus_build;
 mod geometry;
 mod inspect;
 mod pairs;

@@ -380,4 +380,37 @@ mod tests {
         let center = source.inverse().transform_point3(orbit(&source, 4.0, 0.0, 10.0, 0.0).w_axis.truncate());
         assert!(center.y < 0.0);
     }
+
+    #[test]
+    fn crossing_candidates_are_rejected_and_redrawn_deterministically() {
+        let camera = PinholeCamera {
+            width: 8,
+            height: 6,
+            intrinsics: DMat3::from_cols(
+                DVec3::new(10.0, 0.0, 0.0),
+                DVec3::new(0.0, 10.0, 0.0),
+                DVec3::new(3.5, 2.5, 1.0),
+            ),
+            world_from_camera: DMat4::IDENTITY,
+        };
+        let cameras = vec![camera; 5];
+        let depth = DepthMap { width: 8, height: 6, values: vec![4.0; 48] };
+        // A "floor" just below the cameras (y down): any novel camera below it crosses it.
+        let floor = |_: usize, a: DVec3, b: DVec3| a.y.max(b.y) > 0.05;
+        let config = TrajectoryConfig::paper();
+        let sample = |index| sample_trajectory(&cameras, &depth, &config, 9, "clip", 0, index, Some(&floor));
+        let mut rejected = 0;
+        for index in 0..20 {
+            let trajectory = sample(index);
+            rejected += trajectory.rejected_samples;
+            assert_eq!(trajectory, sample(index), "deterministic");
+            if trajectory.rejected_samples + 1 < config.max_attempts {
+                assert!(
+                    trajectory.world_from_camera.iter().all(|pose| pose.w_axis.y <= 0.05),
+                    "accepted paths stay above the floor"
+                );
+            }
+        }
+        assert!(rejected > 0, "negative elevations go below the floor and must be redrawn");
+    }
 }

@@ -119,6 +119,18 @@ fn with_extension(dir: &Path, extensions: &[&str]) -> Result<Vec<PathBuf>> {
         .collect())
 }
 
+/// Decodes image files (PNG, JPEG) as RGB frames, in parallel, in the given order.
+pub fn read_frames(paths: &[PathBuf]) -> Result<Vec<RgbImage>> {
+    paths
+        .par_iter()
+        .map(|p| {
+            image::open(p)
+                .map(|i| i.to_rgb8())
+                .map_err(|e| Error::invalid(p, "frame", format!("unreadable image: {e}")))
+        })
+        .collect()
+}
+
 /// Reads the sequence folder `dir` in whichever layout it is.
 pub fn read_sequence(dir: &Path) -> Result<Sequence> {
     let (fps, frames, depth_arrays, cameras) = match detect_layout(dir)? {
@@ -270,15 +282,7 @@ fn read_generic(dir: &Path) -> Result<Parts> {
     let frames_dir = dir.join("frames");
     let (fps, frames, frames_source) = if frames_dir.is_dir() {
         let files = with_extension(&frames_dir, &["png", "jpg", "jpeg"])?;
-        let frames = files
-            .par_iter()
-            .map(|p| {
-                image::open(p)
-                    .map(|i| i.to_rgb8())
-                    .map_err(|e| Error::invalid(p, "frame", format!("unreadable image: {e}")))
-            })
-            .collect::<Result<Vec<_>>>()?;
-        (0.0, frames, frames_dir.clone())
+        (0.0, read_frames(&files)?, frames_dir.clone())
     } else {
         let video = with_extension(dir, &["mp4", "mov", "mkv", "avi", "webm"])?
             .into_iter()

@@ -16,7 +16,7 @@ use super::build::{BuildConfig, InputProcessor, Outcome};
 use super::crawl::{FrameSource, MaskSource, VideoEntry};
 use crate::error::{Error, Result};
 use crate::pairs::{TrajectoryRequest, generate_clips};
-use crate::sequence::{Sequence, read_sequence, read_with_frames};
+use crate::sequence::{Sequence, read_frames, read_sequence, read_with_frames};
 
 /// Loads everything the pair generator needs for one crawled video.
 pub fn load_entry(entry: &VideoEntry) -> Result<Sequence> {
@@ -32,14 +32,7 @@ pub fn load_entry(entry: &VideoEntry) -> Result<Sequence> {
             read_with_frames(&entry.video_id, reconstruction, video.fps, video.frames, path)?
         }
         FrameSource::Images(paths) => {
-            let frames = paths
-                .par_iter()
-                .map(|p| {
-                    image::open(p)
-                        .map(|i| i.to_rgb8())
-                        .map_err(|e| Error::invalid(p, "frame", format!("unreadable image: {e}")))
-                })
-                .collect::<Result<Vec<_>>>()?;
+            let frames = read_frames(paths)?;
             let folder = paths.first().and_then(|p| p.parent()).unwrap_or(reconstruction);
             read_with_frames(&entry.video_id, reconstruction, 0.0, frames, folder)?
         }

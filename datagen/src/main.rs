@@ -63,6 +63,9 @@ struct PairsArgs {
     /// Dataset name stored with the pairs.
     #[arg(long, default_value = "sequence")]
     dataset: String,
+    /// Print where the time went (decode, mesh build, rays, encode, write) to stderr.
+    #[arg(long)]
+    timings: bool,
 }
 
 #[derive(Debug, Args)]
@@ -124,16 +127,32 @@ fn pairs(args: PairsArgs) -> anyhow::Result<()> {
     };
     let started = std::time::Instant::now();
     let sequence = datagen::sequence::read_sequence(&args.seq_dir)?;
+    let read_seconds = started.elapsed().as_secs_f64();
     let request = datagen::pairs::trajectory_request(&sequence, &args.trajectory_files, args.trajectories)?;
     if request.sampled == 0 && request.explicit.is_empty() {
         anyhow::bail!("parameter `trajectories`: 0 trajectories requested and no --trajectory file given");
     }
-    let records = datagen::pairs::generate_clips(&sequence, &args.dataset, &config, &request, args.seed)?;
+    let (records, times) =
+        datagen::pairs::generate_clips_timed(&sequence, &args.dataset, &config, &request, args.seed)?;
+    let clock = std::time::Instant::now();
     let input = schemas::InputDigest {
         source_path: args.seq_dir.display().to_string(),
         content_hash: datagen::corpus::build::hash_tree(&args.seq_dir)?,
     };
+    let hash_seconds = clock.elapsed().as_secs_f64();
+    let clock = std::time::Instant::now();
     let (path, stats) = datagen::pairs::write_shard(&args.out, &sequence.source_id, &records, input)?;
+    if args.timings {
+        eprintln!(
+            "timings: read+decode {read_seconds:.3} s, mesh+BVH build {:.3} s, rays+encode {:.3} s \
+             (CPU: rays {:.3} s, encode {:.3} s), input hash {hash_seconds:.3} s, shard write {:.3} s",
+            times.mesh_build,
+            times.masks_and_encode,
+            times.ray_cpu,
+            times.encode_cpu,
+            clock.elapsed().as_secs_f64()
+        );
+    }
     println!(
         "wrote {} ({} clips, {} pairs, {} frames, {:.1} MB) in {:.2} s",
         path.display(),

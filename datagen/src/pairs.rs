@@ -4,6 +4,7 @@
 //! trajectories, and pack clip + trajectories into shard records.
 
 use std::path::{Path, PathBuf};
+use std::time::Instant;
 
 use glam::DMat4;
 use image::{GrayImage, RgbImage};
@@ -145,6 +146,28 @@ struct PlannedTrajectory {
     poses: Vec<DMat4>,
 }
 
+/// Where the time of [`generate_clips_timed`] went (for the benchmark's split).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct PhaseTimes {
+    /// Wall seconds building the depth meshes and their BVHs (trajectory sampling included).
+    pub mesh_build: f64,
+    /// Wall seconds of the per-frame phase: co-visibility rays plus PNG/EXR encoding.
+    pub masks_and_encode: f64,
+    /// CPU seconds, summed over threads, spent casting co-visibility rays.
+    pub ray_cpu: f64,
+    /// CPU seconds, summed over threads, spent encoding frames, depth and masks.
+    pub encode_cpu: f64,
+}
+
+impl PhaseTimes {
+    fn add(&mut self, other: &Self) {
+        self.mesh_build += other.mesh_build;
+        self.masks_and_encode += other.masks_and_encode;
+        self.ray_cpu += other.ray_cpu;
+        self.encode_cpu += other.encode_cpu;
+    }
+}
+
 /// Generates the records of every clip of `sequence`.
 pub fn generate_clips(
     sequence: &Sequence,
@@ -153,13 +176,26 @@ pub fn generate_clips(
     request: &TrajectoryRequest,
     seed: u64,
 ) -> Result<Vec<ClipRecord>> {
+    generate_clips_timed(sequence, dataset, config, request, seed).map(|(records, _)| records)
+}
+
+/// [`generate_clips`], also reporting where the time went.
+pub fn generate_clips_timed(
+    sequence: &Sequence,
+    dataset: &str,
+    config: &PairsConfig,
+    request: &TrajectoryRequest,
+    seed: u64,
+) -> Result<(Vec<ClipRecord>, PhaseTimes)> {
     let frames = sequence.len() as u32;
-    config
-        .clip
-        .windows(frames)
-        .into_iter()
-        .map(|(start, length)| generate_clip(sequence, dataset, config, request, seed, start, length))
-        .collect()
+    let mut times = PhaseTimes::default();
+    let mut records = Vec::new();
+    for (start, length) in config.clip.windows(frames) {
+        let (record, clip_times) = generate_clip(sequence, dataset, config, request, seed, start, length)?;
+        records.push(record);
+        times.add(&clip_times);
+    }
+    Ok((records, times))
 }
 
 fn generate_clip(
@@ -170,12 +206,14 @@ fn generate_clip(
     seed: u64,
     start: u32,
     length: u32,
-) -> Result<ClipRecord> {
+) -> Result<(ClipRecord, PhaseTimes)> {
+    let mut times = PhaseTimes::default();
     let range = start as usize..(start + length) as usize;
     let cameras = &sequence.cameras[range.clone()];
     let (width, height) = sequence.size();
 
     // Meshes first: they also reject sampled paths that would cross the surface.
+    let phase = Instant::now();
     let meshes: Vec<crate::depth_mesh::DepthMesh> = range
         .clone()
         .into_par_iter()
@@ -215,28 +253,43 @@ fn generate_clip(
         });
     }
 
+    times.mesh_build += phase.elapsed().as_secs_f64();
+
     // Per frame: encode the clip's data once, then one mask per trajectory from the shared mesh.
-    let per_frame: Vec<EncodedFrame> = range
+    let phase = Instant::now();
+    let per_frame: Vec<(EncodedFrame, f64, f64)> = range
         .clone()
         .into_par_iter()
         .zip(meshes.par_iter())
         .map(|(i, mesh)| -> Result<_> {
             let source = &sequence.cameras[i];
+            let (mut ray_seconds, mut encode_seconds) = (0.0, 0.0);
             let masks = planned
                 .iter()
                 .map(|t| {
                     let novel = PinholeCamera { world_from_camera: t.poses[i - start as usize], ..*source };
+                    let clock = Instant::now();
                     let mask = crate::covisibility::covisibility_mask(mesh, source, &novel, &config.covisibility);
+                    ray_seconds += clock.elapsed().as_secs_f64();
+                    let clock = Instant::now();
                     let kept = mask.iter().filter(|&&m| m).count();
-                    (mask_png(&mask, width, height), kept)
+                    let encoded = mask_png(&mask, width, height);
+                    encode_seconds += clock.elapsed().as_secs_f64();
+                    (encoded, kept)
                 })
                 .collect();
+            let clock = Instant::now();
             let frame = png::<image::Rgb<u8>>(&sequence.frames[i]);
             let depth = encode_depth_exr(&sequence.depth[i])?;
             let dynamic = sequence.dynamic_masks.as_ref().map(|m| png(&m[i]));
-            Ok((frame, depth, dynamic, masks))
+            encode_seconds += clock.elapsed().as_secs_f64();
+            Ok(((frame, depth, dynamic, masks), ray_seconds, encode_seconds))
         })
         .collect::<Result<_>>()?;
+    times.masks_and_encode += phase.elapsed().as_secs_f64();
+    times.ray_cpu += per_frame.iter().map(|f| f.1).sum::<f64>();
+    times.encode_cpu += per_frame.iter().map(|f| f.2).sum::<f64>();
+    let per_frame: Vec<EncodedFrame> = per_frame.into_iter().map(|f| f.0).collect();
 
     let pixels = (width as usize * height as usize * length as usize).max(1) as f64;
     let trajectories = planned
@@ -257,7 +310,7 @@ fn generate_clip(
         })
         .collect();
     let clip_id = format!("{dataset}/{}/{start}", sequence.source_id);
-    Ok(ClipRecord {
+    let record = ClipRecord {
         clip_id,
         source_id: sequence.source_id.clone(),
         dataset: dataset.to_owned(),
@@ -277,7 +330,8 @@ fn generate_clip(
             .as_ref()
             .map(|_| per_frame.iter().map(|f| f.2.clone().expect("masks present")).collect()),
         trajectories,
-    })
+    };
+    Ok((record, times))
 }
 
 /// Writes `records` as one finished shard `out/{name}.parquet` (temp name, rename, stats marker).

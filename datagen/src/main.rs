@@ -144,10 +144,10 @@ fn pairs(args: PairsArgs) -> anyhow::Result<()> {
     let (path, stats) = datagen::pairs::write_shard(&args.out, &sequence.source_id, &records, input)?;
     if args.timings {
         eprintln!(
-            "timings: read+decode {read_seconds:.3} s, mesh+BVH build {:.3} s, rays+encode {:.3} s \
-             (CPU: rays {:.3} s, encode {:.3} s), input hash {hash_seconds:.3} s, shard write {:.3} s",
-            times.mesh_build,
+            "timings: read+decode {read_seconds:.3} s, per-frame phase {:.3} s wall \
+             (CPU: mesh+BVH build {:.3} s, rays {:.3} s, encode {:.3} s), input hash {hash_seconds:.3} s, shard write {:.3} s",
             times.masks_and_encode,
+            times.mesh_build,
             times.ray_cpu,
             times.encode_cpu,
             clock.elapsed().as_secs_f64()

@@ -149,9 +149,9 @@ struct PlannedTrajectory {
 /// Where the time of [`generate_clips_timed`] went (for the benchmark's split).
 #[derive(Debug, Clone, Copy, Default)]
 pub struct PhaseTimes {
-    /// Wall seconds building the depth meshes and their BVHs (trajectory sampling included).
+    /// CPU seconds, summed over threads, building the depth meshes and their BVHs.
     pub mesh_build: f64,
-    /// Wall seconds of the per-frame phase: co-visibility rays plus PNG/EXR encoding.
+    /// Wall seconds of the per-frame phase: mesh builds, co-visibility rays, PNG/EXR encoding.
     pub masks_and_encode: f64,
     /// CPU seconds, summed over threads, spent casting co-visibility rays.
     pub ray_cpu: f64,
@@ -212,14 +212,11 @@ fn generate_clip(
     let cameras = &sequence.cameras[range.clone()];
     let (width, height) = sequence.size();
 
-    // Meshes first: they also reject sampled paths that would cross the surface.
-    let phase = Instant::now();
-    let meshes: Vec<crate::depth_mesh::DepthMesh> = range
-        .clone()
-        .into_par_iter()
-        .map(|i| crate::depth_mesh::DepthMesh::new(&sequence.depth[i], &sequence.cameras[i], &config.covisibility.mesh))
-        .collect();
-    let crossing = |i: usize, a: glam::DVec3, b: glam::DVec3| meshes[i].occluded(a, b);
+    // Paths that reach their camera position by crossing the surface are rejected with a cheap
+    // test against each frame's depth map, so no frame's mesh has to be kept for sampling.
+    let crossing = |i: usize, a: glam::DVec3, b: glam::DVec3| {
+        crate::trajectory::crosses_depth_surface(&sequence.depth[start as usize + i], &cameras[i], a, b)
+    };
 
     let mut planned = Vec::new();
     for index in 0..request.sampled {
@@ -253,16 +250,17 @@ fn generate_clip(
         });
     }
 
-    times.mesh_build += phase.elapsed().as_secs_f64();
-
-    // Per frame: encode the clip's data once, then one mask per trajectory from the shared mesh.
+    // Per frame: build its mesh, one mask per trajectory from it, encode the clip's data once,
+    // and drop the mesh (only the frames in flight hold one, which bounds memory).
     let phase = Instant::now();
-    let per_frame: Vec<(EncodedFrame, f64, f64)> = range
+    let per_frame: Vec<(EncodedFrame, f64, f64, f64)> = range
         .clone()
         .into_par_iter()
-        .zip(meshes.par_iter())
-        .map(|(i, mesh)| -> Result<_> {
+        .map(|i| -> Result<_> {
             let source = &sequence.cameras[i];
+            let clock = Instant::now();
+            let mesh = &crate::depth_mesh::DepthMesh::new(&sequence.depth[i], source, &config.covisibility.mesh);
+            let mesh_seconds = clock.elapsed().as_secs_f64();
             let (mut ray_seconds, mut encode_seconds) = (0.0, 0.0);
             let masks = planned
                 .iter()
@@ -283,12 +281,13 @@ fn generate_clip(
             let depth = encode_depth_exr(&sequence.depth[i])?;
             let dynamic = sequence.dynamic_masks.as_ref().map(|m| png(&m[i]));
             encode_seconds += clock.elapsed().as_secs_f64();
-            Ok(((frame, depth, dynamic, masks), ray_seconds, encode_seconds))
+            Ok(((frame, depth, dynamic, masks), mesh_seconds, ray_seconds, encode_seconds))
         })
         .collect::<Result<_>>()?;
     times.masks_and_encode += phase.elapsed().as_secs_f64();
-    times.ray_cpu += per_frame.iter().map(|f| f.1).sum::<f64>();
-    times.encode_cpu += per_frame.iter().map(|f| f.2).sum::<f64>();
+    times.mesh_build += per_frame.iter().map(|f| f.1).sum::<f64>();
+    times.ray_cpu += per_frame.iter().map(|f| f.2).sum::<f64>();
+    times.encode_cpu += per_frame.iter().map(|f| f.3).sum::<f64>();
     let per_frame: Vec<EncodedFrame> = per_frame.into_iter().map(|f| f.0).collect();
 
     let pixels = (width as usize * height as usize * length as usize).max(1) as f64;

@@ -179,6 +179,26 @@ pub fn poses_from_controls(
         .collect()
 }
 
+/// Points sampled along a camera path segment by [`crosses_depth_surface`].
+const CROSSING_SAMPLES: usize = 256;
+
+/// Whether the segment from `from` to `to` passes behind the surface seen in `depth` by
+/// `camera` (some point of it projects inside the image with a z-depth beyond the depth there,
+/// plus a 1 % margin): a camera that gets there has gone under the floor, into an object or into
+/// space no view observed. A cheap height-field test that needs no mesh.
+pub fn crosses_depth_surface(depth: &DepthMap, camera: &PinholeCamera, from: DVec3, to: DVec3) -> bool {
+    (1..=CROSSING_SAMPLES).any(|k| {
+        let point = from.lerp(to, k as f64 / CROSSING_SAMPLES as f64);
+        let Some((pixel, z)) = camera.project(point) else { return false };
+        if !camera.contains(pixel) {
+            return false;
+        }
+        let (u, v) = (pixel.x.round() as usize, pixel.y.round() as usize);
+        let surface = depth.values[v.min(depth.height - 1) * depth.width + u.min(depth.width - 1)];
+        surface.is_finite() && surface > 0.0 && z > f64::from(surface) * 1.01
+    })
+}
+
 /// Says whether, on frame `i`, the straight path between two camera centres crosses the surface.
 pub type Crossing<'a> = &'a (dyn Fn(usize, DVec3, DVec3) -> bool + Sync);
 

@@ -59,14 +59,9 @@ fn fixtures_through_pairs_with_ground_truth_trajectories() {
 fn trajectory_rejections_on_the_fixtures_are_reported() {
     for scene in ["scene_101", "scene_102"] {
         let sequence = datagen::sequence::read_sequence(&fixtures().join(scene)).unwrap();
-        let config = datagen::covisibility::CovisibilityConfig::default();
-        let meshes: Vec<_> = sequence
-            .depth
-            .iter()
-            .zip(&sequence.cameras)
-            .map(|(depth, camera)| datagen::depth_mesh::DepthMesh::new(depth, camera, &config.mesh))
-            .collect();
-        let crossing = |i: usize, a: glam::DVec3, b: glam::DVec3| meshes[i].occluded(a, b);
+        let crossing = |i: usize, a: glam::DVec3, b: glam::DVec3| {
+            datagen::trajectory::crosses_depth_surface(&sequence.depth[i], &sequence.cameras[i], a, b)
+        };
         let trajectory_config = datagen::trajectory::TrajectoryConfig::paper();
         let (mut rejected, samples) = (0, 40);
         for index in 0..samples {
@@ -82,9 +77,9 @@ fn trajectory_rejections_on_the_fixtures_are_reported() {
             );
             rejected += sampled.rejected_samples;
             let last = sampled.world_from_camera.len() - 1;
+            let final_camera = sampled.world_from_camera[last].w_axis.truncate();
             assert!(
-                !meshes[last]
-                    .occluded(sequence.cameras[last].center(), sampled.world_from_camera[last].w_axis.truncate())
+                !crossing(last, sequence.cameras[last].center(), final_camera)
                     || sampled.rejected_samples + 1 >= trajectory_config.max_attempts
             );
         }

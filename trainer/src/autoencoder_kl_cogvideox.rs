@@ -26,6 +26,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor, nn};
 
+use crate::diffusers_config::DiffusersConfig;
 use crate::error::{Error, Result};
 
 /// The class name diffusers writes into the VAE's `config.json` (`_class_name`).
@@ -145,6 +146,19 @@ impl Default for AutoencoderKLCogVideoXConfig {
     }
 }
 
+impl DiffusersConfig for AutoencoderKLCogVideoXConfig {
+    const KIND: &'static str = "VAE";
+    const FILE_NAME: &'static str = "config.json";
+
+    fn validate(&self, source_name: &str) -> Result<()> {
+        AutoencoderKLCogVideoXConfig::validate(self, source_name)
+    }
+
+    fn extra(&self) -> &BTreeMap<String, serde_json::Value> {
+        &self.extra
+    }
+}
+
 impl AutoencoderKLCogVideoXConfig {
     /// The VAE of CogVideoX-5B / 5B-I2V (and so of CogNVS): `THUDM/CogVideoX-5b-I2V`
     /// `vae/config.json` — the 2B architecture with `scaling_factor` 0.7.
@@ -185,36 +199,20 @@ impl AutoencoderKLCogVideoXConfig {
         }
     }
 
-    /// Parses and validates a diffusers VAE `config.json`; `source_name` names it in errors.
+    /// Parses and validates a diffusers VAE config; `source_name` names it in errors.
     pub fn from_json_str(json: &str, source_name: &str) -> Result<Self> {
-        let config: Self = serde_json::from_str(json).map_err(|e| Error::InvalidConfig {
-            source_name: source_name.to_string(),
-            field: "(json)".to_string(),
-            reason: e.to_string(),
-        })?;
-        config.validate(source_name)?;
-        Ok(config)
+        crate::diffusers_config::parse(json, source_name)
     }
 
-    /// Reads a diffusers VAE `config.json` (or a folder holding one); unknown keys are printed to
-    /// stderr as a warning and kept in [`Self::extra`].
+    /// Reads a `config.json` (or a folder holding one); unknown keys are printed to stderr as a
+    /// warning and kept in [`Self::extra`].
     pub fn from_json_file(path: impl AsRef<Path>) -> Result<Self> {
-        let mut path = path.as_ref().to_path_buf();
-        if path.is_dir() {
-            path = path.join("config.json");
-        }
-        let json = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), source })?;
-        let name = path.display().to_string();
-        let config = Self::from_json_str(&json, &name)?;
-        for key in config.unknown_keys() {
-            eprintln!("warning: {name}: unknown VAE config key `{key}` (kept, not used)");
-        }
-        Ok(config)
+        crate::diffusers_config::read(path.as_ref())
     }
 
     /// Keys that are neither fields nor diffusers metadata (`_…`).
     pub fn unknown_keys(&self) -> Vec<&str> {
-        self.extra.keys().filter(|k| !k.starts_with('_')).map(String::as_str).collect()
+        DiffusersConfig::unknown_keys(self)
     }
 
     /// Spatial down-scaling factor, `2^(levels − 1)` (8).

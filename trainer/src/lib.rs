@@ -4,6 +4,7 @@
 //! Modules are named after the diffusers files they mirror.
 
 pub mod autoencoder_kl_cogvideox;
+pub mod diffusers_config;
 pub mod error;
 pub mod scheduling_cogvideox_dpm;
 pub mod scheduling_ddim;

@@ -13,6 +13,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor};
 
+use crate::diffusers_config::DiffusersConfig;
 use crate::error::{Error, Result};
 
 /// Scheduler class names a CogVideoX `scheduler_config.json` may carry (`_class_name`): the
@@ -102,6 +103,19 @@ pub enum TimestepSpacing {
     Trailing,
 }
 
+impl DiffusersConfig for CogVideoXSchedulerConfig {
+    const KIND: &'static str = "scheduler";
+    const FILE_NAME: &'static str = "scheduler_config.json";
+
+    fn validate(&self, source_name: &str) -> Result<()> {
+        CogVideoXSchedulerConfig::validate(self, source_name)
+    }
+
+    fn extra(&self) -> &BTreeMap<String, serde_json::Value> {
+        &self.extra
+    }
+}
+
 impl CogVideoXSchedulerConfig {
     /// `THUDM/CogVideoX-5b-I2V` `scheduler/scheduler_config.json` (DESIGN.md §6): scaled-linear
     /// βs 0.00085→0.012, 1000 steps, v-prediction, zero terminal SNR, SNR shift 1.0, trailing.
@@ -121,36 +135,20 @@ impl CogVideoXSchedulerConfig {
         Self { snr_shift_scale: 3.0, ..Self::cogvideox_5b() }
     }
 
-    /// Parses and validates a `scheduler_config.json`; `source_name` names it in errors.
+    /// Parses and validates a diffusers scheduler config; `source_name` names it in errors.
     pub fn from_json_str(json: &str, source_name: &str) -> Result<Self> {
-        let config: Self = serde_json::from_str(json).map_err(|e| Error::InvalidConfig {
-            source_name: source_name.to_string(),
-            field: "(json)".to_string(),
-            reason: e.to_string(),
-        })?;
-        config.validate(source_name)?;
-        Ok(config)
+        crate::diffusers_config::parse(json, source_name)
     }
 
-    /// Reads a `scheduler_config.json` (or a folder holding one); unknown keys are printed to
-    /// stderr as a warning and kept in [`Self::extra`].
+    /// Reads a `scheduler_config.json` (or a folder holding one); unknown keys are printed to stderr as a
+    /// warning and kept in [`Self::extra`].
     pub fn from_json_file(path: impl AsRef<Path>) -> Result<Self> {
-        let mut path = path.as_ref().to_path_buf();
-        if path.is_dir() {
-            path = path.join("scheduler_config.json");
-        }
-        let json = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), source })?;
-        let name = path.display().to_string();
-        let config = Self::from_json_str(&json, &name)?;
-        for key in config.unknown_keys() {
-            eprintln!("warning: {name}: unknown scheduler config key `{key}` (kept, not used)");
-        }
-        Ok(config)
+        crate::diffusers_config::read(path.as_ref())
     }
 
     /// Keys that are neither fields nor diffusers metadata (`_…`).
     pub fn unknown_keys(&self) -> Vec<&str> {
-        self.extra.keys().filter(|k| !k.starts_with('_')).map(String::as_str).collect()
+        DiffusersConfig::unknown_keys(self)
     }
 
     /// The parsed `prediction_type`.

@@ -81,6 +81,9 @@ pub enum Error {
         /// The parser's complaint.
         reason: String,
     },
+    /// A training shard or other `schemas` file could not be read or written.
+    #[error(transparent)]
+    Schemas(#[from] schemas::Error),
     /// libtorch reported an error.
     #[error(transparent)]
     Tch(#[from] tch::TchError),

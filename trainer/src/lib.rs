@@ -3,11 +3,16 @@
 //!
 //! Modules are named after the diffusers files they mirror.
 
+pub mod attention;
 pub mod autoencoder_kl_cogvideox;
+pub mod cogvideox_transformer_3d;
 pub mod diffusers_config;
+pub mod embeddings;
 pub mod error;
+pub mod normalization;
 pub mod scheduling_cogvideox_dpm;
 pub mod scheduling_ddim;
+pub mod weights;
 
 pub use error::{Error, Result};
 pub use tch;

@@ -1,5 +1,7 @@
 //! The `trainer` integration tests: one binary, a module per feature.
 
 mod libtorch;
+mod parity;
 mod scheduler;
+mod transformer;
 mod vae;

@@ -7,7 +7,8 @@ use trainer::scheduling_cogvideox_dpm::CogVideoXDPMScheduler;
 use trainer::scheduling_ddim::{CogVideoXDDIMScheduler, CogVideoXSchedulerConfig};
 use trainer::tch::Tensor;
 
-use super::vae::{assert_close, goldens, read_tensors};
+use super::parity::{assert_close, read_tensors};
+use super::vae::goldens;
 
 fn config() -> CogVideoXSchedulerConfig {
     let config = CogVideoXSchedulerConfig::from_json_file(goldens().join("scheduler")).unwrap();
@@ -66,7 +67,7 @@ fn dpm_loop_matches_diffusers() {
                 &io[&format!("dpm.{i}.noise")],
             )
             .unwrap();
-        let (_, rel) = super::vae::errors(&out.prev_sample, &io[&format!("dpm.{i}.prev_sample")]);
+        let (_, rel) = super::parity::errors(&out.prev_sample, &io[&format!("dpm.{i}.prev_sample")]);
         worst = worst.max(rel);
         assert_close(
             &format!("dpm step {i} (t={t}) x0"),

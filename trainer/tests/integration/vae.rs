@@ -2,11 +2,10 @@
 //! temporally batched (streaming) encoding against a single pass.
 //!
 //! Reference values come from `scripts/goldens_vae_scheduler.py` (diffusers'
-//! `AutoencoderKLCogVideoX` with a fixed seed), run into a temporary folder once per test binary
-//! with the project venv's Python (`.venv/bin/python`, or `$TRAINER_PYTHON`).
+//! `AutoencoderKLCogVideoX` with a fixed seed), run into a temporary folder once per test binary.
 
 use std::collections::{BTreeMap, BTreeSet};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::OnceLock;
 
 use trainer::autoencoder_kl_cogvideox::{
@@ -14,45 +13,12 @@ use trainer::autoencoder_kl_cogvideox::{
 };
 use trainer::tch::{self, Device, Kind, Tensor, nn};
 
-/// The folder the golden script wrote into (generated once, kept for the whole test binary).
+use super::parity::{assert_close, errors, read_tensors, run_script};
+
+/// Output of `scripts/goldens_vae_scheduler.py`, generated once per test binary.
 pub fn goldens() -> &'static Path {
     static DIR: OnceLock<tempfile::TempDir> = OnceLock::new();
-    DIR.get_or_init(|| {
-        let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-        let python =
-            std::env::var_os("TRAINER_PYTHON").map(PathBuf::from).unwrap_or_else(|| root.join(".venv/bin/python"));
-        let dir = tempfile::tempdir().expect("temp dir");
-        let status = std::process::Command::new(&python)
-            .arg(root.join("scripts/goldens_vae_scheduler.py"))
-            .arg(dir.path())
-            .status()
-            .unwrap_or_else(|e| panic!("cannot run {}: {e} (run scripts/setup.sh)", python.display()));
-        assert!(status.success(), "scripts/goldens_vae_scheduler.py failed: {status}");
-        dir
-    })
-    .path()
-}
-
-/// Named tensors of a safetensors file.
-pub fn read_tensors(path: &Path) -> BTreeMap<String, Tensor> {
-    Tensor::read_safetensors(path).unwrap_or_else(|e| panic!("{}: {e}", path.display())).into_iter().collect()
-}
-
-/// Max absolute error and max error relative to the reference's largest magnitude.
-pub fn errors(actual: &Tensor, expected: &Tensor) -> (f64, f64) {
-    assert_eq!(actual.size(), expected.size(), "shape");
-    let a = actual.to_kind(Kind::Double).to_device(Device::Cpu);
-    let e = expected.to_kind(Kind::Double);
-    let abs = (&a - &e).abs().max().double_value(&[]);
-    let scale = e.abs().max().double_value(&[]).max(1e-12);
-    (abs, abs / scale)
-}
-
-/// Asserts relative error ≤ `tol` and prints the figures (reported in the parity table).
-pub fn assert_close(name: &str, actual: &Tensor, expected: &Tensor, tol: f64) {
-    let (abs, rel) = errors(actual, expected);
-    println!("parity {name}: max abs {abs:.3e}, rel {rel:.3e}");
-    assert!(rel <= tol, "{name}: max abs error {abs:.3e}, relative {rel:.3e} > {tol:.0e}");
+    DIR.get_or_init(|| run_script("goldens_vae_scheduler.py")).path()
 }
 
 /// The tiny VAE with diffusers' weights loaded (names and shapes checked both ways).

@@ -1,0 +1,732 @@
+//! The CogVideoX diffusion transformer: diffusers' `CogVideoXTransformer3DModel`
+//! (`diffusers/models/transformers/cogvideox_transformer_3d.py`), weight-compatible with it and
+//! with the released CogNVS checkpoint (DESIGN.md §6: 42 blocks of 48 heads × 64, 32 input
+//! channels = 16 noisy + 16 condition latents, learned + 3D rotary positions).
+//!
+//! Latent video `[B, F, C, H, W]` is cut into `patch_size²` patches, joined behind the projected
+//! text tokens and run through `num_layers` [`CogVideoXBlock`]s, each modulated by the timestep
+//! embedding; the final modulated norm and `proj_out` map video tokens back to
+//! `[B, F, out_channels, H, W]`. Variables live at diffusers' state-dict paths, so a diffusers
+//! checkpoint loads unchanged ([`crate::weights::load`]) and [`crate::weights::save`] writes one
+//! diffusers' `from_pretrained` reads.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+use tch::{Device, Kind, Tensor, nn};
+
+use crate::attention::{Activation, Attention, FeedForward};
+use crate::diffusers_config::DiffusersConfig;
+use crate::embeddings::{
+    CogVideoXPatchEmbed, PatchEmbedConfig, PositionalEmbedding, RotaryEmbedding, TimestepEmbedding, timestep_embedding,
+};
+use crate::error::{Error, Result};
+use crate::normalization::{AdaLayerNorm, CogVideoXLayerNormZero};
+use crate::weights::{LayerNorm, Linear, Vars};
+
+/// The class name diffusers writes into the transformer's `config.json` (`_class_name`).
+pub const CLASS_NAME: &str = "CogVideoXTransformer3DModel";
+/// Feed-forward width as a multiple of the token width (diffusers' `FeedForward` `mult=4`).
+const FF_MULT: i64 = 4;
+
+// ------------------------------------------------------------------------------------------------
+// Configuration
+// ------------------------------------------------------------------------------------------------
+
+/// The transformer's `config.json` as diffusers writes it, field names verbatim. Missing fields
+/// take diffusers' `__init__` defaults (the CogVideoX-2B transformer); keys starting with `_` are
+/// diffusers metadata; any other key is kept in `extra` and reported, not dropped.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct CogVideoXTransformer3DModelConfig {
+    /// Attention heads per block.
+    pub num_attention_heads: i64,
+    /// Channels per head; tokens are `heads × head_dim` wide.
+    pub attention_head_dim: i64,
+    /// Latent channels in (CogNVS: 16 noisy + 16 condition = 32).
+    pub in_channels: i64,
+    /// Latent channels out (defaults to `in_channels` when null).
+    pub out_channels: Option<i64>,
+    /// Timestep features ordered cos then sin.
+    pub flip_sin_to_cos: bool,
+    /// `downscale_freq_shift` of the timestep features.
+    pub freq_shift: i64,
+    /// Width of the timestep embedding that modulates every norm.
+    pub time_embed_dim: i64,
+    /// Width of the CogVideoX 1.5 I2V "ofs" embedding; null for none.
+    pub ofs_embed_dim: Option<i64>,
+    /// Width of the text encoder's tokens (T5-XXL: 4096).
+    pub text_embed_dim: i64,
+    /// Transformer blocks.
+    pub num_layers: i64,
+    /// Dropout of embeddings, attention output and feed-forward (training only).
+    pub dropout: f64,
+    /// Bias in the q/k/v projections.
+    pub attention_bias: bool,
+    /// Nominal latent width of the positional table.
+    pub sample_width: i64,
+    /// Nominal latent height of the positional table.
+    pub sample_height: i64,
+    /// Nominal pixel frames of the positional table (49 → 13 latent frames).
+    pub sample_frames: i64,
+    /// Spatial patch size.
+    pub patch_size: i64,
+    /// Temporal patch size (CogVideoX 1.5); null patches frames one by one.
+    pub patch_size_t: Option<i64>,
+    /// Pixel frames per latent frame.
+    pub temporal_compression_ratio: i64,
+    /// Text tokens in front of the video tokens.
+    pub max_text_seq_length: i64,
+    /// Feed-forward activation (`gelu-approximate`).
+    pub activation_fn: String,
+    /// Activation inside the timestep MLP (`silu`).
+    pub timestep_activation_fn: String,
+    /// Learned scale and shift in every LayerNorm.
+    pub norm_elementwise_affine: bool,
+    /// LayerNorm epsilon (the QK norms use 1e-6 whatever this is, as diffusers).
+    pub norm_eps: f64,
+    /// Divisor of spatial positions in the sin-cos table.
+    pub spatial_interpolation_scale: f64,
+    /// Divisor of temporal positions in the sin-cos table.
+    pub temporal_interpolation_scale: f64,
+    /// 3D rotary embeddings on queries and keys (otherwise the sin-cos table is added).
+    pub use_rotary_positional_embeddings: bool,
+    /// A stored, learned positional table `patch_embed.pos_embedding` (needs rotary too).
+    pub use_learned_positional_embeddings: bool,
+    /// Bias in the patch projection.
+    pub patch_bias: bool,
+    /// Every other key: `_class_name`, `_diffusers_version`, … and unknown keys.
+    #[serde(flatten)]
+    pub extra: BTreeMap<String, serde_json::Value>,
+}
+
+impl Default for CogVideoXTransformer3DModelConfig {
+    /// diffusers' `CogVideoXTransformer3DModel.__init__` defaults (= `THUDM/CogVideoX-2b`
+    /// `transformer/config.json`).
+    fn default() -> Self {
+        Self {
+            num_attention_heads: 30,
+            attention_head_dim: 64,
+            in_channels: 16,
+            out_channels: Some(16),
+            flip_sin_to_cos: true,
+            freq_shift: 0,
+            time_embed_dim: 512,
+            ofs_embed_dim: None,
+            text_embed_dim: 4096,
+            num_layers: 30,
+            dropout: 0.0,
+            attention_bias: true,
+            sample_width: 90,
+            sample_height: 60,
+            sample_frames: 49,
+            patch_size: 2,
+            patch_size_t: None,
+            temporal_compression_ratio: 4,
+            max_text_seq_length: 226,
+            activation_fn: "gelu-approximate".to_string(),
+            timestep_activation_fn: "silu".to_string(),
+            norm_elementwise_affine: true,
+            norm_eps: 1e-5,
+            spatial_interpolation_scale: 1.875,
+            temporal_interpolation_scale: 1.0,
+            use_rotary_positional_embeddings: false,
+            use_learned_positional_embeddings: false,
+            patch_bias: true,
+            extra: BTreeMap::new(),
+        }
+    }
+}
+
+impl DiffusersConfig for CogVideoXTransformer3DModelConfig {
+    const KIND: &'static str = "transformer";
+    const FILE_NAME: &'static str = "config.json";
+
+    fn validate(&self, source_name: &str) -> Result<()> {
+        CogVideoXTransformer3DModelConfig::validate(self, source_name)
+    }
+
+    fn extra(&self) -> &BTreeMap<String, serde_json::Value> {
+        &self.extra
+    }
+}
+
+impl CogVideoXTransformer3DModelConfig {
+    /// The released CogNVS transformer: `../shared/reference/cognvs_transformer_config.json`
+    /// (the CogVideoX-5B-I2V architecture: 42 × 48 heads × 64, learned + rotary positions) with
+    /// 32 input channels.
+    pub fn cognvs_5b() -> Self {
+        Self {
+            num_attention_heads: 48,
+            in_channels: 32,
+            num_layers: 42,
+            use_rotary_positional_embeddings: true,
+            use_learned_positional_embeddings: true,
+            ..Self::default()
+        }
+    }
+
+    /// The CogVideoX-2B transformer (`THUDM/CogVideoX-2b`: 30 × 30 heads × 64, sin-cos positions,
+    /// = diffusers' defaults).
+    pub fn cogvideox_2b() -> Self {
+        Self::default()
+    }
+
+    /// The CogNVS structure (32 → 16 latent channels, learned + rotary positions, QK norm,
+    /// gelu-tanh) at small widths for tests and CPU runs: 2 blocks of 2 heads × 16, 8 text tokens
+    /// of width 16, and a positional table for 9 frames of 8 × 10 latents (the tiny VAE's 64 × 80
+    /// pixels). `scripts/goldens_transformer.py` builds the same model in diffusers.
+    pub fn tiny() -> Self {
+        Self {
+            num_attention_heads: 2,
+            attention_head_dim: 16,
+            in_channels: 32,
+            out_channels: Some(16),
+            time_embed_dim: 32,
+            text_embed_dim: 16,
+            num_layers: 2,
+            sample_width: 10,
+            sample_height: 8,
+            sample_frames: 9,
+            max_text_seq_length: 8,
+            use_rotary_positional_embeddings: true,
+            use_learned_positional_embeddings: true,
+            ..Self::default()
+        }
+    }
+
+    /// A preset by name: `cognvs-5b`, `cogvideox-2b`, `tiny`.
+    pub fn preset(name: &str) -> Result<Self> {
+        match name {
+            "cognvs-5b" => Ok(Self::cognvs_5b()),
+            "cogvideox-2b" => Ok(Self::cogvideox_2b()),
+            "tiny" => Ok(Self::tiny()),
+            other => Err(Error::InvalidConfig {
+                source_name: "preset".to_string(),
+                field: "name".to_string(),
+                reason: format!("unknown transformer preset `{other}`; expected cognvs-5b, cogvideox-2b or tiny"),
+            }),
+        }
+    }
+
+    /// Parses and validates a diffusers transformer config; `source_name` names it in errors.
+    pub fn from_json_str(json: &str, source_name: &str) -> Result<Self> {
+        crate::diffusers_config::parse(json, source_name)
+    }
+
+    /// Reads a `config.json` (or a folder holding one); unknown keys are printed to stderr as a
+    /// warning and kept in `extra`.
+    pub fn from_json_file(path: impl AsRef<Path>) -> Result<Self> {
+        crate::diffusers_config::read(path.as_ref())
+    }
+
+    /// Keys that are neither fields nor diffusers metadata (`_…`).
+    pub fn unknown_keys(&self) -> Vec<&str> {
+        DiffusersConfig::unknown_keys(self)
+    }
+
+    /// Token width, `heads × head_dim`.
+    pub fn inner_dim(&self) -> i64 {
+        self.num_attention_heads * self.attention_head_dim
+    }
+
+    /// Output latent channels (`out_channels`, or `in_channels` when null).
+    pub fn output_channels(&self) -> i64 {
+        self.out_channels.unwrap_or(self.in_channels)
+    }
+
+    /// Which positional embedding the patch embedding adds.
+    pub fn positional_embedding(&self) -> PositionalEmbedding {
+        match (self.use_rotary_positional_embeddings, self.use_learned_positional_embeddings) {
+            (_, true) => PositionalEmbedding::Learned,
+            (false, false) => PositionalEmbedding::SinCos,
+            (true, false) => PositionalEmbedding::None,
+        }
+    }
+
+    /// Rejects values and combinations the architecture cannot build, naming the field.
+    pub fn validate(&self, source_name: &str) -> Result<()> {
+        let err = |field: &str, reason: String| Error::InvalidConfig {
+            source_name: source_name.to_string(),
+            field: field.to_string(),
+            reason,
+        };
+        if let Some(class) = self.extra.get("_class_name").and_then(|v| v.as_str())
+            && class != CLASS_NAME
+        {
+            return Err(err("_class_name", format!("is `{class}`, expected `{CLASS_NAME}`")));
+        }
+        for (field, value) in [
+            ("num_attention_heads", self.num_attention_heads),
+            ("attention_head_dim", self.attention_head_dim),
+            ("in_channels", self.in_channels),
+            ("out_channels", self.output_channels()),
+            ("time_embed_dim", self.time_embed_dim),
+            ("text_embed_dim", self.text_embed_dim),
+            ("num_layers", self.num_layers),
+            ("sample_width", self.sample_width),
+            ("sample_height", self.sample_height),
+            ("sample_frames", self.sample_frames),
+            ("patch_size", self.patch_size),
+            ("temporal_compression_ratio", self.temporal_compression_ratio),
+            ("max_text_seq_length", self.max_text_seq_length),
+        ] {
+            if value <= 0 {
+                return Err(err(field, format!("must be positive, got {value}")));
+            }
+        }
+        if let Some(v) = self.ofs_embed_dim.filter(|&v| v <= 0) {
+            return Err(err("ofs_embed_dim", format!("must be positive or null, got {v}")));
+        }
+        if let Some(v) = self.patch_size_t.filter(|&v| v <= 0) {
+            return Err(err("patch_size_t", format!("must be positive or null, got {v}")));
+        }
+        if !(0.0..1.0).contains(&self.dropout) {
+            return Err(err("dropout", format!("must be in [0, 1), got {}", self.dropout)));
+        }
+        if Activation::from_name(&self.activation_fn).is_none() {
+            return Err(err(
+                "activation_fn",
+                format!("`{}` is not supported (gelu-approximate, gelu)", self.activation_fn),
+            ));
+        }
+        if self.timestep_activation_fn != "silu" && self.timestep_activation_fn != "swish" {
+            return Err(err(
+                "timestep_activation_fn",
+                format!("`{}` is not supported (only silu)", self.timestep_activation_fn),
+            ));
+        }
+        if !self.use_rotary_positional_embeddings && self.use_learned_positional_embeddings {
+            return Err(err(
+                "use_learned_positional_embeddings",
+                "true needs use_rotary_positional_embeddings (no CogVideoX model has learned positions alone; \
+                 diffusers rejects it too)"
+                    .to_string(),
+            ));
+        }
+        if self.positional_embedding() != PositionalEmbedding::None {
+            if self.patch_size_t.is_some() {
+                return Err(err(
+                    "patch_size_t",
+                    "temporal patching with a sin-cos or learned positional table is not supported \
+                     (CogVideoX 1.5 uses rotary positions only)"
+                        .to_string(),
+                ));
+            }
+            if self.inner_dim() % 16 != 0 {
+                return Err(err(
+                    "num_attention_heads",
+                    format!("heads × head_dim = {} must be a multiple of 16 for the sin-cos table", self.inner_dim()),
+                ));
+            }
+        }
+        if self.use_rotary_positional_embeddings && self.attention_head_dim % 8 != 0 {
+            return Err(err(
+                "attention_head_dim",
+                format!("{} must be a multiple of 8 for 3D rotary positions", self.attention_head_dim),
+            ));
+        }
+        if self.sample_height % self.patch_size != 0 || self.sample_width % self.patch_size != 0 {
+            return Err(err(
+                "patch_size",
+                format!(
+                    "sample_height × sample_width {} × {} must be multiples of patch_size {}",
+                    self.sample_height, self.sample_width, self.patch_size
+                ),
+            ));
+        }
+        if self.norm_eps <= 0.0 {
+            return Err(err("norm_eps", format!("must be positive, got {}", self.norm_eps)));
+        }
+        Ok(())
+    }
+
+    fn patch_embed_config(&self) -> PatchEmbedConfig {
+        PatchEmbedConfig {
+            patch_size: self.patch_size,
+            patch_size_t: self.patch_size_t,
+            in_channels: self.in_channels,
+            embed_dim: self.inner_dim(),
+            text_embed_dim: self.text_embed_dim,
+            sample_width: self.sample_width,
+            sample_height: self.sample_height,
+            sample_frames: self.sample_frames,
+            temporal_compression_ratio: self.temporal_compression_ratio,
+            max_text_seq_length: self.max_text_seq_length,
+            spatial_interpolation_scale: self.spatial_interpolation_scale,
+            temporal_interpolation_scale: self.temporal_interpolation_scale,
+            positional: self.positional_embedding(),
+        }
+    }
+}
+
+// ------------------------------------------------------------------------------------------------
+// Model
+// ------------------------------------------------------------------------------------------------
+
+/// diffusers' `CogVideoXBlock`: modulated joint attention then a modulated feed-forward over the
+/// joint sequence, each added back through per-stream gates.
+#[derive(Debug)]
+pub struct CogVideoXBlock {
+    norm1: CogVideoXLayerNormZero,
+    attn1: Attention,
+    norm2: CogVideoXLayerNormZero,
+    ff: FeedForward,
+}
+
+impl CogVideoXBlock {
+    /// Variables `norm1`, `attn1`, `norm2`, `ff`.
+    pub fn new(vars: &Vars, c: &CogVideoXTransformer3DModelConfig) -> Result<Self> {
+        let dim = c.inner_dim();
+        let activation = Activation::from_name(&c.activation_fn).expect("validated config");
+        let norm = |name: &str| {
+            CogVideoXLayerNormZero::new(&vars.sub(name), c.time_embed_dim, dim, c.norm_elementwise_affine, c.norm_eps)
+        };
+        Ok(Self {
+            norm1: norm("norm1")?,
+            attn1: Attention::new(
+                &vars.sub("attn1"),
+                dim,
+                c.num_attention_heads,
+                c.attention_head_dim,
+                c.attention_bias,
+                true,
+                c.dropout,
+            )?,
+            norm2: norm("norm2")?,
+            ff: FeedForward::new(&vars.sub("ff"), dim, FF_MULT * dim, activation, c.dropout)?,
+        })
+    }
+
+    /// One block: `(video, text)` → `(video, text)`.
+    pub fn forward(
+        &self,
+        hidden_states: &Tensor,
+        encoder_hidden_states: &Tensor,
+        temb: &Tensor,
+        rotary: Option<&RotaryEmbedding>,
+        train: bool,
+    ) -> Result<(Tensor, Tensor)> {
+        let text_len = encoder_hidden_states.size()[1];
+        let m = self.norm1.forward(hidden_states, encoder_hidden_states, temb)?;
+        let (attn, attn_text) = self.attn1.forward(&m.hidden_states, &m.encoder_hidden_states, rotary, train)?;
+        let hidden_states = hidden_states.f_add(&m.gate.f_mul(&attn)?)?;
+        let encoder_hidden_states = encoder_hidden_states.f_add(&m.encoder_gate.f_mul(&attn_text)?)?;
+
+        let m = self.norm2.forward(&hidden_states, &encoder_hidden_states, temb)?;
+        let joint = Tensor::f_cat(&[&m.encoder_hidden_states, &m.hidden_states], 1)?;
+        let ff = self.ff.forward(&joint, train)?;
+        let video_len = ff.size()[1] - text_len;
+        let hidden_states = hidden_states.f_add(&m.gate.f_mul(&ff.f_narrow(1, text_len, video_len)?)?)?;
+        let encoder_hidden_states =
+            encoder_hidden_states.f_add(&m.encoder_gate.f_mul(&ff.f_narrow(1, 0, text_len)?)?)?;
+        Ok((hidden_states, encoder_hidden_states))
+    }
+}
+
+/// The inputs of one transformer call, named after diffusers' `forward` arguments.
+#[derive(Debug)]
+pub struct TransformerInput<'a> {
+    /// Noisy (and, for CogNVS, condition) latents `[B, F, in_channels, H, W]`.
+    pub hidden_states: &'a Tensor,
+    /// Text tokens `[B, max_text_seq_length, text_embed_dim]`.
+    pub encoder_hidden_states: &'a Tensor,
+    /// Diffusion timestep per sample `[B]` (or one scalar for the batch).
+    pub timestep: &'a Tensor,
+    /// CogVideoX 1.5 I2V offsets `[B]`, required when `ofs_embed_dim` is set.
+    pub ofs: Option<&'a Tensor>,
+    /// A rotary table to use instead of the `grid_type="slice"` one computed from the input's
+    /// latent patch grid (e.g. a pipeline's `"linspace"` grid).
+    pub image_rotary_emb: Option<&'a RotaryEmbedding>,
+}
+
+/// diffusers' `CogVideoXTransformer3DModel`.
+#[derive(Debug)]
+pub struct CogVideoXTransformer3DModel {
+    config: CogVideoXTransformer3DModelConfig,
+    patch_embed: CogVideoXPatchEmbed,
+    time_embedding: TimestepEmbedding,
+    ofs_embedding: Option<TimestepEmbedding>,
+    transformer_blocks: Vec<CogVideoXBlock>,
+    norm_final: LayerNorm,
+    norm_out: AdaLayerNorm,
+    proj_out: Linear,
+    kind_probe: Tensor,
+}
+
+impl CogVideoXTransformer3DModel {
+    /// Creates the variables under `vars` (the checkpoint's root: `patch_embed.proj.weight`, …).
+    pub fn new(vars: &Vars, config: &CogVideoXTransformer3DModelConfig) -> Result<Self> {
+        config.validate("transformer config")?;
+        let c = config;
+        let dim = c.inner_dim();
+        let patch_embed = CogVideoXPatchEmbed::new(&vars.sub("patch_embed"), c.patch_embed_config(), c.patch_bias)?;
+        let time_embedding = TimestepEmbedding::new(&vars.sub("time_embedding"), dim, c.time_embed_dim)?;
+        let ofs_embedding = match c.ofs_embed_dim {
+            Some(d) => Some(TimestepEmbedding::new(&vars.sub("ofs_embedding"), d, d)?),
+            None => None,
+        };
+        let blocks = vars.sub("transformer_blocks");
+        let transformer_blocks =
+            (0..c.num_layers).map(|i| CogVideoXBlock::new(&blocks.sub(i), c)).collect::<Result<Vec<_>>>()?;
+        let norm_final = vars.sub("norm_final").layer_norm(dim, c.norm_eps, c.norm_elementwise_affine)?;
+        let norm_out =
+            AdaLayerNorm::new(&vars.sub("norm_out"), c.time_embed_dim, 2 * dim, c.norm_elementwise_affine, c.norm_eps)?;
+        let patch_volume = c.patch_size * c.patch_size * c.patch_size_t.unwrap_or(1);
+        let proj_out = vars.sub("proj_out").linear(dim, patch_volume * c.output_channels(), true)?;
+        let kind_probe = proj_out.weight().shallow_clone();
+        Ok(Self {
+            config: config.clone(),
+            patch_embed,
+            time_embedding,
+            ofs_embedding,
+            transformer_blocks,
+            norm_final,
+            norm_out,
+            proj_out,
+            kind_probe,
+        })
+    }
+
+    /// The configuration the model was built from.
+    pub fn config(&self) -> &CogVideoXTransformer3DModelConfig {
+        &self.config
+    }
+
+    /// The rotary table the CogNVS trainer uses for a latent input of `frames × height × width`:
+    /// `grid_type="slice"` positions over the patch grid.
+    pub fn rotary_for(&self, frames: i64, height: i64, width: i64, device: Device) -> Result<RotaryEmbedding> {
+        let c = &self.config;
+        let t = frames / c.patch_size_t.unwrap_or(1);
+        RotaryEmbedding::slice_grid(c.attention_head_dim, t, height / c.patch_size, width / c.patch_size, device)
+    }
+
+    /// The predicted latents `[B, F, out_channels, H, W]` (v-prediction for CogNVS) for noisy
+    /// latents, text tokens and timesteps; dropout applies only when `train`.
+    pub fn forward(&self, input: &TransformerInput, train: bool) -> Result<Tensor> {
+        let c = &self.config;
+        let [b, f, h, w] = self.check_input(input)?;
+        let timestep = if input.timestep.dim() == 0 {
+            input.timestep.f_expand([b], false)?
+        } else {
+            input.timestep.shallow_clone()
+        };
+        let kind = input.hidden_states.kind();
+
+        let t_emb = timestep_embedding(&timestep, c.inner_dim(), c.flip_sin_to_cos, c.freq_shift as f64)?;
+        let mut emb = self.time_embedding.forward(&t_emb.f_to_kind(kind)?)?;
+        if let Some(ofs_embedding) = &self.ofs_embedding {
+            let ofs = input.ofs.ok_or_else(|| Error::InvalidArgument {
+                name: "ofs".to_string(),
+                reason: "required by this config (ofs_embed_dim is set)".to_string(),
+            })?;
+            let ofs = if ofs.dim() == 0 { ofs.f_expand([b], false)? } else { ofs.shallow_clone() };
+            let ofs_dim = c.ofs_embed_dim.expect("ofs embedding exists");
+            let ofs_emb = timestep_embedding(&ofs, ofs_dim, c.flip_sin_to_cos, c.freq_shift as f64)?;
+            emb = emb.f_add(&ofs_embedding.forward(&ofs_emb.f_to_kind(kind)?)?)?;
+        }
+
+        let joint = self.patch_embed.forward(input.encoder_hidden_states, input.hidden_states)?;
+        let joint = joint.f_dropout(c.dropout, train)?;
+        let text_len = input.encoder_hidden_states.size()[1];
+        let mut encoder_hidden_states = joint.f_narrow(1, 0, text_len)?;
+        let mut hidden_states = joint.f_narrow(1, text_len, joint.size()[1] - text_len)?;
+
+        let computed;
+        let rotary = match (c.use_rotary_positional_embeddings, input.image_rotary_emb) {
+            (false, _) => None,
+            (true, Some(table)) => Some(table),
+            (true, None) => {
+                computed = self.rotary_for(f, h, w, input.hidden_states.device())?;
+                Some(&computed)
+            }
+        };
+        for block in &self.transformer_blocks {
+            (hidden_states, encoder_hidden_states) =
+                block.forward(&hidden_states, &encoder_hidden_states, &emb, rotary, train)?;
+        }
+        let hidden_states = self.norm_final.forward(&hidden_states)?;
+        let hidden_states = self.norm_out.forward(&hidden_states, &emb)?;
+        let hidden_states = self.proj_out.forward(&hidden_states)?;
+
+        let p = c.patch_size;
+        let out = match c.patch_size_t {
+            None => hidden_states
+                .f_reshape([b, f, h / p, w / p, -1, p, p])?
+                .f_permute([0, 1, 4, 2, 5, 3, 6])?
+                .f_flatten(5, 6)?
+                .f_flatten(3, 4)?,
+            Some(pt) => hidden_states
+                .f_reshape([b, (f + pt - 1) / pt, h / p, w / p, -1, pt, p, p])?
+                .f_permute([0, 1, 5, 4, 2, 6, 3, 7])?
+                .f_flatten(6, 7)?
+                .f_flatten(4, 5)?
+                .f_flatten(1, 2)?,
+        };
+        Ok(out)
+    }
+
+    /// Checks names, shapes, dtypes and devices of the inputs; returns `[B, F, H, W]`.
+    fn check_input(&self, input: &TransformerInput) -> Result<[i64; 4]> {
+        let c = &self.config;
+        let hidden = input.hidden_states;
+        let shape_err = |tensor: &str, expected: String, actual: Vec<i64>| Error::Shape {
+            tensor: tensor.to_string(),
+            expected,
+            actual,
+        };
+        let dims: [i64; 5] = hidden
+            .size()
+            .try_into()
+            .map_err(|size| shape_err("hidden_states", format!("[B, F, {}, H, W]", c.in_channels), size))?;
+        let [b, f, ch, h, w] = dims;
+        let pt = c.patch_size_t.unwrap_or(1);
+        if ch != c.in_channels || h % c.patch_size != 0 || w % c.patch_size != 0 || f % pt != 0 || b == 0 || f == 0 {
+            return Err(shape_err(
+                "hidden_states",
+                format!(
+                    "[B, F, {}, H, W] with H and W multiples of patch_size {}{}",
+                    c.in_channels,
+                    c.patch_size,
+                    if pt > 1 { format!(" and F a multiple of patch_size_t {pt}") } else { String::new() }
+                ),
+                hidden.size(),
+            ));
+        }
+        let text = input.encoder_hidden_states;
+        let text_ok = text.dim() == 3 && text.size()[0] == b && text.size()[2] == c.text_embed_dim;
+        let needs_len = c.positional_embedding() != PositionalEmbedding::None;
+        if !text_ok || (needs_len && text.size()[1] != c.max_text_seq_length) {
+            let len = if needs_len { c.max_text_seq_length.to_string() } else { "S".to_string() };
+            return Err(shape_err("encoder_hidden_states", format!("[{b}, {len}, {}]", c.text_embed_dim), text.size()));
+        }
+        let t = input.timestep;
+        if !(t.dim() == 0 || (t.dim() == 1 && t.size()[0] == b)) {
+            return Err(shape_err("timestep", format!("[{b}] or a scalar"), t.size()));
+        }
+        let kind = self.kind_probe.kind();
+        let device = self.kind_probe.device();
+        for (name, tensor) in [("hidden_states", hidden), ("encoder_hidden_states", text)] {
+            if tensor.kind() != kind || tensor.device() != device {
+                return Err(Error::DtypeDevice {
+                    tensor: name.to_string(),
+                    expected: format!("{kind:?} on {device:?} (the model's weights)"),
+                    actual: format!("{:?} on {:?}", tensor.kind(), tensor.device()),
+                });
+            }
+        }
+        if t.device() != device {
+            return Err(Error::DtypeDevice {
+                tensor: "timestep".to_string(),
+                expected: format!("on {device:?}"),
+                actual: format!("on {:?}", t.device()),
+            });
+        }
+        Ok([b, f, h, w])
+    }
+}
+
+/// A transformer on `device` in `kind` with its variables in a fresh VarStore (PyTorch's default
+/// initialisation; the positional table starts as the sin-cos table, as in diffusers).
+pub fn build(
+    config: &CogVideoXTransformer3DModelConfig,
+    device: Device,
+    kind: Kind,
+) -> Result<(nn::VarStore, CogVideoXTransformer3DModel)> {
+    let mut vs = nn::VarStore::new(device);
+    let model = CogVideoXTransformer3DModel::new(&Vars::new(vs.root()), config)?;
+    vs.set_kind(kind);
+    Ok((vs, model))
+}
+
+/// Name → shape of every variable of the model `config` describes, without allocating it.
+pub fn variable_shapes(config: &CogVideoXTransformer3DModelConfig) -> Result<BTreeMap<String, Vec<i64>>> {
+    let vs = nn::VarStore::new(Device::Cpu);
+    CogVideoXTransformer3DModel::new(&Vars::shapes_only(vs.root()), config)?;
+    Ok(crate::weights::variable_shapes(&vs))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn input_for(c: &CogVideoXTransformer3DModelConfig, frames: i64) -> (Tensor, Tensor, Tensor) {
+        let opts = (Kind::Float, Device::Cpu);
+        (
+            Tensor::randn([1, frames, c.in_channels, c.sample_height, c.sample_width], opts),
+            Tensor::randn([1, c.max_text_seq_length, c.text_embed_dim], opts),
+            Tensor::from_slice(&[500i64]),
+        )
+    }
+
+    #[test]
+    fn tiny_forward_has_the_output_shape() {
+        let c = CogVideoXTransformer3DModelConfig::tiny();
+        let (_vs, model) = build(&c, Device::Cpu, Kind::Float).unwrap();
+        let (x, text, t) = input_for(&c, 3);
+        let input = TransformerInput {
+            hidden_states: &x,
+            encoder_hidden_states: &text,
+            timestep: &t,
+            ofs: None,
+            image_rotary_emb: None,
+        };
+        let out = model.forward(&input, false).unwrap();
+        assert_eq!(out.size(), vec![1, 3, 16, c.sample_height, c.sample_width]);
+        assert!(out.isfinite().all().int64_value(&[]) == 1);
+    }
+
+    #[test]
+    fn bad_inputs_are_named_errors() {
+        let c = CogVideoXTransformer3DModelConfig::tiny();
+        let (_vs, model) = build(&c, Device::Cpu, Kind::Float).unwrap();
+        let (x, text, t) = input_for(&c, 3);
+        let wrong_channels = x.narrow(2, 0, 16);
+        let input = TransformerInput {
+            hidden_states: &wrong_channels,
+            encoder_hidden_states: &text,
+            timestep: &t,
+            ofs: None,
+            image_rotary_emb: None,
+        };
+        let err = model.forward(&input, false).unwrap_err().to_string();
+        assert!(err.contains("hidden_states") && err.contains("32") && err.contains("16"), "{err}");
+        let short_text = text.narrow(1, 0, 3);
+        let input = TransformerInput {
+            hidden_states: &x,
+            encoder_hidden_states: &short_text,
+            timestep: &t,
+            ofs: None,
+            image_rotary_emb: None,
+        };
+        let err = model.forward(&input, false).unwrap_err().to_string();
+        assert!(err.contains("encoder_hidden_states") && err.contains("[1, 8, 16]"), "{err}");
+        let bf16 = x.to_kind(Kind::BFloat16);
+        let input = TransformerInput {
+            hidden_states: &bf16,
+            encoder_hidden_states: &text,
+            timestep: &t,
+            ofs: None,
+            image_rotary_emb: None,
+        };
+        let err = model.forward(&input, false).unwrap_err().to_string();
+        assert!(err.contains("BFloat16") && err.contains("Float"), "{err}");
+    }
+
+    #[test]
+    fn config_rejects_learned_positions_without_rotary() {
+        let json = r#"{"use_learned_positional_embeddings": true}"#;
+        let err = CogVideoXTransformer3DModelConfig::from_json_str(json, "t.json").unwrap_err().to_string();
+        assert!(err.contains("use_learned_positional_embeddings") && err.contains("t.json"), "{err}");
+        let json = r#"{"activation_fn": "swiglu", "mystery": 3}"#;
+        let err = CogVideoXTransformer3DModelConfig::from_json_str(json, "t.json").unwrap_err().to_string();
+        assert!(err.contains("activation_fn"), "{err}");
+        let c = CogVideoXTransformer3DModelConfig::from_json_str(
+            r#"{"mystery": 3, "_class_name": "CogVideoXTransformer3DModel"}"#,
+            "t",
+        )
+        .unwrap();
+        assert_eq!(c.unknown_keys(), vec!["mystery"]);
+    }
+}

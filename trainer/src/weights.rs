@@ -1,0 +1,532 @@
+//! Model variables and diffusers checkpoints.
+//!
+//! [`Vars`] creates a module's variables at diffusers' state-dict paths
+//! (`transformer_blocks.0.attn1.to_q.weight`), either allocated and initialised like PyTorch's
+//! defaults or as shape-only placeholders (one element, broadcast), so the full 5B module tree can be
+//! listed and checked against a checkpoint without allocating its 22 GB.
+//!
+//! Checkpoints are diffusers model folders: `config.json` plus either one
+//! `diffusion_pytorch_model.safetensors` or shards named
+//! `diffusion_pytorch_model-00001-of-0000N.safetensors` listed in
+//! `diffusion_pytorch_model.safetensors.index.json` (`{"metadata": {"total_size"}, "weight_map"}`),
+//! the layout diffusers' `save_pretrained` writes and `from_pretrained` reads. [`load`] checks names
+//! and shapes from the safetensors headers before reading any data, so a mismatched config (2B
+//! config, 5B weights) fails with the tensor, its expected and its actual shape.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::io::Read;
+use std::path::{Path, PathBuf};
+
+use safetensors::{Dtype, SafeTensors};
+use serde::Serialize;
+use tch::{Device, Kind, Tensor, nn};
+
+use crate::error::{Error, Result};
+
+/// File name of a single-file checkpoint (diffusers' `SAFETENSORS_WEIGHTS_NAME`).
+pub const WEIGHTS_NAME: &str = "diffusion_pytorch_model.safetensors";
+/// File name of a sharded checkpoint's index (diffusers' `SAFE_WEIGHTS_INDEX_NAME`).
+pub const WEIGHTS_INDEX_NAME: &str = "diffusion_pytorch_model.safetensors.index.json";
+/// Shard size diffusers' `save_pretrained` uses by default (`max_shard_size="10GB"`).
+pub const DEFAULT_MAX_SHARD_BYTES: u64 = 10_000_000_000;
+/// The diffusers version written into saved configs (`_diffusers_version`): the release whose
+/// modules this crate mirrors and whose `from_pretrained` the tests load our output with.
+pub const DIFFUSERS_VERSION: &str = "0.42.1";
+
+// ------------------------------------------------------------------------------------------------
+// Creating variables
+// ------------------------------------------------------------------------------------------------
+
+/// How a parameter starts before any checkpoint is loaded.
+#[derive(Debug, Clone, Copy)]
+pub enum ParamInit {
+    /// PyTorch's `nn.Linear` / `nn.Conv2d` default: uniform in ±1/√fan_in (weights and biases).
+    FanInUniform(i64),
+    /// A constant (LayerNorm weights 1, biases 0).
+    Const(f64),
+}
+
+/// Where a module's variables go: a path in a [`nn::VarStore`] and whether to allocate them.
+#[derive(Clone)]
+pub struct Vars<'a> {
+    path: nn::Path<'a>,
+    shapes_only: bool,
+}
+
+impl<'a> Vars<'a> {
+    /// Variables allocated and initialised in `path`'s store.
+    pub fn new(path: nn::Path<'a>) -> Self {
+        Self { path, shapes_only: false }
+    }
+
+    /// Shape-only placeholders: every variable is one element broadcast to its shape, so a module
+    /// tree of any size costs a few bytes per variable. Such a module lists names and shapes
+    /// ([`nn::VarStore::variables`]) but must not be run.
+    pub fn shapes_only(path: nn::Path<'a>) -> Self {
+        Self { path, shapes_only: true }
+    }
+
+    /// The variables of a sub-module (`vars.sub("attn1")`).
+    pub fn sub<T: std::string::ToString>(&self, name: T) -> Vars<'a> {
+        Vars { path: self.path.sub(name), shapes_only: self.shapes_only }
+    }
+
+    /// The device variables live on.
+    pub fn device(&self) -> Device {
+        self.path.device()
+    }
+
+    /// A trainable parameter.
+    pub fn param(&self, name: &str, dims: &[i64], init: ParamInit) -> Result<Tensor> {
+        if self.shapes_only {
+            return Ok(self.path.add(name, Self::placeholder(dims, self.device())?, true));
+        }
+        let options = (Kind::Float, self.device());
+        let value = match init {
+            ParamInit::FanInUniform(fan_in) => {
+                let bound = 1.0 / (fan_in.max(1) as f64).sqrt();
+                Tensor::f_empty(dims, options)?.f_uniform_(-bound, bound)?
+            }
+            ParamInit::Const(c) => Tensor::f_full(dims, c, options)?,
+        };
+        Ok(self.path.add(name, value, true))
+    }
+
+    /// A non-trainable variable saved with the weights (a persistent buffer in PyTorch terms),
+    /// starting at `value()`.
+    pub fn buffer(&self, name: &str, dims: &[i64], value: impl FnOnce() -> Result<Tensor>) -> Result<Tensor> {
+        let tensor = if self.shapes_only {
+            Self::placeholder(dims, self.device())?
+        } else {
+            let t = value()?.f_to_kind(Kind::Float)?.f_to_device(self.device())?;
+            check_shape(&self.path.path(name), &t, dims)?;
+            t
+        };
+        Ok(self.path.add(name, tensor, false))
+    }
+
+    /// `nn.Linear(in_dim, out_dim, bias)`: `weight` [out, in] and `bias` [out].
+    pub fn linear(&self, in_dim: i64, out_dim: i64, bias: bool) -> Result<Linear> {
+        let weight = self.param("weight", &[out_dim, in_dim], ParamInit::FanInUniform(in_dim))?;
+        let bias = if bias { Some(self.param("bias", &[out_dim], ParamInit::FanInUniform(in_dim))?) } else { None };
+        Ok(Linear { weight, bias })
+    }
+
+    /// `nn.LayerNorm(dim, eps, elementwise_affine)`.
+    pub fn layer_norm(&self, dim: i64, eps: f64, elementwise_affine: bool) -> Result<LayerNorm> {
+        let (weight, bias) = if elementwise_affine {
+            (
+                Some(self.param("weight", &[dim], ParamInit::Const(1.0))?),
+                Some(self.param("bias", &[dim], ParamInit::Const(0.0))?),
+            )
+        } else {
+            (None, None)
+        };
+        Ok(LayerNorm { weight, bias, dim, eps })
+    }
+
+    fn placeholder(dims: &[i64], device: Device) -> Result<Tensor> {
+        Ok(Tensor::f_zeros([1], (Kind::Float, device))?.f_expand(dims, true)?)
+    }
+}
+
+/// `nn.Linear`.
+#[derive(Debug)]
+pub struct Linear {
+    weight: Tensor,
+    bias: Option<Tensor>,
+}
+
+impl Linear {
+    /// `x · Wᵀ + b` over the last dimension.
+    pub fn forward(&self, xs: &Tensor) -> Result<Tensor> {
+        Ok(xs.f_linear(&self.weight, self.bias.as_ref())?)
+    }
+
+    /// The weight, `[out, in]`.
+    pub fn weight(&self) -> &Tensor {
+        &self.weight
+    }
+
+    /// The bias, `[out]`, if any.
+    pub fn bias(&self) -> Option<&Tensor> {
+        self.bias.as_ref()
+    }
+}
+
+/// `nn.LayerNorm` over the last dimension.
+#[derive(Debug)]
+pub struct LayerNorm {
+    weight: Option<Tensor>,
+    bias: Option<Tensor>,
+    dim: i64,
+    eps: f64,
+}
+
+impl LayerNorm {
+    /// Normalises the last dimension (computed in the input's dtype, as PyTorch does).
+    pub fn forward(&self, xs: &Tensor) -> Result<Tensor> {
+        Ok(xs.f_layer_norm([self.dim], self.weight.as_ref(), self.bias.as_ref(), self.eps, true)?)
+    }
+}
+
+// ------------------------------------------------------------------------------------------------
+// Reading checkpoints
+// ------------------------------------------------------------------------------------------------
+
+/// Dtype and shape of one checkpoint tensor, from its safetensors header.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct TensorInfo {
+    /// The stored dtype (`F32`, `BF16`, …).
+    pub dtype: Dtype,
+    /// The stored shape.
+    pub shape: Vec<i64>,
+    /// The file holding it.
+    pub file: PathBuf,
+}
+
+/// The safetensors files of a checkpoint given as a model folder, a `.safetensors` file or a
+/// `.safetensors.index.json` file; the second value is the path to name in errors.
+pub fn checkpoint_files(path: &Path) -> Result<(Vec<PathBuf>, PathBuf)> {
+    let index = if path.is_dir() {
+        let single = path.join(WEIGHTS_NAME);
+        if single.is_file() {
+            return Ok((vec![single.clone()], single));
+        }
+        let index = path.join(WEIGHTS_INDEX_NAME);
+        if !index.is_file() {
+            return Err(Error::Io {
+                path: path.to_path_buf(),
+                source: std::io::Error::new(
+                    std::io::ErrorKind::NotFound,
+                    format!("no {WEIGHTS_NAME} or {WEIGHTS_INDEX_NAME} in this folder"),
+                ),
+            });
+        }
+        index
+    } else if path.to_string_lossy().ends_with(".index.json") {
+        path.to_path_buf()
+    } else {
+        return Ok((vec![path.to_path_buf()], path.to_path_buf()));
+    };
+    let text = std::fs::read_to_string(&index).map_err(|source| Error::Io { path: index.clone(), source })?;
+    let json: serde_json::Value = serde_json::from_str(&text)
+        .map_err(|e| Error::Safetensors { path: index.clone(), reason: format!("index is not JSON: {e}") })?;
+    let map = json.get("weight_map").and_then(|m| m.as_object()).ok_or_else(|| Error::Safetensors {
+        path: index.clone(),
+        reason: "index has no `weight_map` object".to_string(),
+    })?;
+    let folder = index.parent().unwrap_or(Path::new("."));
+    let mut files = BTreeSet::new();
+    for (key, file) in map {
+        let file = file.as_str().ok_or_else(|| Error::Safetensors {
+            path: index.clone(),
+            reason: format!("`weight_map.{key}` is not a file name"),
+        })?;
+        files.insert(folder.join(file));
+    }
+    Ok((files.into_iter().collect(), index))
+}
+
+/// Reads the header (names, dtypes, shapes) of one safetensors file without reading its data.
+pub fn read_header(file: &Path) -> Result<BTreeMap<String, TensorInfo>> {
+    let bad = |reason: String| Error::Safetensors { path: file.to_path_buf(), reason };
+    let io = |source| Error::Io { path: file.to_path_buf(), source };
+    let mut f = std::fs::File::open(file).map_err(io)?;
+    let mut len = [0u8; 8];
+    f.read_exact(&mut len).map_err(io)?;
+    let len = u64::from_le_bytes(len);
+    let file_len = f.metadata().map_err(io)?.len();
+    if len > file_len.saturating_sub(8) {
+        return Err(bad(format!("header length {len} exceeds the file size {file_len}")));
+    }
+    let mut header = vec![0u8; len as usize];
+    f.read_exact(&mut header).map_err(io)?;
+    let json: BTreeMap<String, serde_json::Value> =
+        serde_json::from_slice(&header).map_err(|e| bad(format!("header is not JSON: {e}")))?;
+    let mut out = BTreeMap::new();
+    for (name, entry) in json {
+        if name == "__metadata__" {
+            continue;
+        }
+        let dtype: Dtype = serde_json::from_value(entry.get("dtype").cloned().unwrap_or_default())
+            .map_err(|e| bad(format!("tensor `{name}`: bad dtype: {e}")))?;
+        let shape: Vec<i64> = serde_json::from_value(entry.get("shape").cloned().unwrap_or_default())
+            .map_err(|e| bad(format!("tensor `{name}`: bad shape: {e}")))?;
+        out.insert(name, TensorInfo { dtype, shape, file: file.to_path_buf() });
+    }
+    Ok(out)
+}
+
+/// Names, dtypes and shapes of every tensor of a checkpoint (folder, file or index).
+pub fn read_checkpoint_info(path: &Path) -> Result<BTreeMap<String, TensorInfo>> {
+    let (files, _) = checkpoint_files(path)?;
+    let mut out = BTreeMap::new();
+    for file in files {
+        out.extend(read_header(&file)?);
+    }
+    Ok(out)
+}
+
+/// Checks a checkpoint against a module's variables (name → shape): every variable present with
+/// the same shape, nothing extra. Errors name the checkpoint, the tensor and both shapes.
+pub fn check_against(
+    expected: &BTreeMap<String, Vec<i64>>,
+    found: &BTreeMap<String, TensorInfo>,
+    checkpoint: &Path,
+) -> Result<()> {
+    for (name, shape) in expected {
+        match found.get(name) {
+            None => {
+                return Err(Error::MissingTensor {
+                    path: checkpoint.to_path_buf(),
+                    tensor: name.clone(),
+                    expected: shape.clone(),
+                });
+            }
+            Some(info) if &info.shape != shape => {
+                return Err(Error::Shape {
+                    tensor: format!("{name}` in `{}", info.file.display()),
+                    expected: format!("{shape:?} (from the config)"),
+                    actual: info.shape.clone(),
+                });
+            }
+            Some(info) if kind_of(info.dtype).is_none() => {
+                return Err(Error::DtypeDevice {
+                    tensor: name.clone(),
+                    expected: "a floating-point dtype (F32, F16, BF16, F64)".to_string(),
+                    actual: format!("{:?} in {}", info.dtype, info.file.display()),
+                });
+            }
+            Some(_) => {}
+        }
+    }
+    let extra: Vec<&String> = found.keys().filter(|k| !expected.contains_key(*k)).collect();
+    if let Some(example) = extra.first() {
+        return Err(Error::UnexpectedTensors {
+            path: checkpoint.to_path_buf(),
+            count: extra.len(),
+            example: (*example).clone(),
+        });
+    }
+    Ok(())
+}
+
+/// Name → shape of every variable in a store.
+pub fn variable_shapes(vs: &nn::VarStore) -> BTreeMap<String, Vec<i64>> {
+    vs.variables().into_iter().map(|(k, v)| (k, v.size())).collect()
+}
+
+/// Loads a checkpoint (folder, file or index) into `vs`: names and shapes are checked first (see
+/// [`check_against`]), then each file is read and its tensors copied into the variables, converted
+/// to their dtype and device. Returns how many tensors were loaded.
+pub fn load(vs: &nn::VarStore, path: &Path) -> Result<usize> {
+    let (files, named) = checkpoint_files(path)?;
+    let mut found = BTreeMap::new();
+    for file in &files {
+        found.extend(read_header(file)?);
+    }
+    check_against(&variable_shapes(vs), &found, &named)?;
+    let mut variables = vs.variables();
+    let mut loaded = 0;
+    for file in &files {
+        let bytes = std::fs::read(file).map_err(|source| Error::Io { path: file.clone(), source })?;
+        let tensors = SafeTensors::deserialize(&bytes)
+            .map_err(|e| Error::Safetensors { path: file.clone(), reason: e.to_string() })?;
+        tch::no_grad(|| -> Result<()> {
+            for (name, view) in tensors.tensors() {
+                let Some(var) = variables.get_mut(&name) else { continue };
+                let kind = kind_of(view.dtype()).ok_or_else(|| Error::DtypeDevice {
+                    tensor: name.clone(),
+                    expected: "a floating-point dtype".to_string(),
+                    actual: format!("{:?}", view.dtype()),
+                })?;
+                let shape: Vec<i64> = view.shape().iter().map(|&d| d as i64).collect();
+                let src = Tensor::f_from_data_size(view.data(), &shape, kind)?;
+                var.f_copy_(&src.f_to_kind(var.kind())?.f_to_device(var.device())?)?;
+                loaded += 1;
+            }
+            Ok(())
+        })?;
+    }
+    Ok(loaded)
+}
+
+fn kind_of(dtype: Dtype) -> Option<Kind> {
+    match dtype {
+        Dtype::F32 => Some(Kind::Float),
+        Dtype::F16 => Some(Kind::Half),
+        Dtype::BF16 => Some(Kind::BFloat16),
+        Dtype::F64 => Some(Kind::Double),
+        _ => None,
+    }
+}
+
+fn dtype_of(kind: Kind) -> Result<Dtype> {
+    match kind {
+        Kind::Float => Ok(Dtype::F32),
+        Kind::Half => Ok(Dtype::F16),
+        Kind::BFloat16 => Ok(Dtype::BF16),
+        Kind::Double => Ok(Dtype::F64),
+        other => Err(Error::DtypeDevice {
+            tensor: "(variable)".to_string(),
+            expected: "a floating-point kind".to_string(),
+            actual: format!("{other:?}"),
+        }),
+    }
+}
+
+/// Checks that `tensor` has shape `expected`, naming it otherwise.
+pub fn check_shape(name: &str, tensor: &Tensor, expected: &[i64]) -> Result<()> {
+    if tensor.size() != expected {
+        return Err(Error::Shape {
+            tensor: name.to_string(),
+            expected: format!("{expected:?}"),
+            actual: tensor.size(),
+        });
+    }
+    Ok(())
+}
+
+// ------------------------------------------------------------------------------------------------
+// Writing checkpoints
+// ------------------------------------------------------------------------------------------------
+
+/// Writes `vs` as a diffusers model folder: `config.json` (the config with `_class_name` and
+/// `_diffusers_version`) and the weights, in one file or, above `max_shard_bytes`, in shards with
+/// an index. Every file goes to a temporary name first and is renamed when complete; stale weight
+/// files of an earlier save in the same folder are removed. Tensors keep the store's dtype.
+pub fn save<C: Serialize>(
+    vs: &nn::VarStore,
+    config: &C,
+    class_name: &str,
+    dir: &Path,
+    max_shard_bytes: u64,
+) -> Result<()> {
+    std::fs::create_dir_all(dir).map_err(|source| Error::Io { path: dir.to_path_buf(), source })?;
+    let mut json = serde_json::to_value(config)
+        .map_err(|e| Error::InvalidArgument { name: "config".to_string(), reason: format!("cannot serialise: {e}") })?;
+    if let Some(map) = json.as_object_mut() {
+        map.insert("_class_name".to_string(), class_name.into());
+        map.insert("_diffusers_version".to_string(), DIFFUSERS_VERSION.into());
+    }
+    let text = serde_json::to_string_pretty(&json).expect("a JSON value serialises");
+    schemas::shard::write_atomic(&dir.join("config.json"), text.as_bytes())?;
+
+    let variables: BTreeMap<String, Tensor> = vs.variables().into_iter().collect();
+    let mut shards: Vec<Vec<(String, Tensor)>> = vec![Vec::new()];
+    let mut shard_bytes = 0u64;
+    let mut total = 0u64;
+    for (name, tensor) in variables {
+        let bytes = (tensor.numel() * tensor.kind().elt_size_in_bytes()) as u64;
+        if shard_bytes > 0 && shard_bytes + bytes > max_shard_bytes {
+            shards.push(Vec::new());
+            shard_bytes = 0;
+        }
+        shard_bytes += bytes;
+        total += bytes;
+        shards.last_mut().expect("one shard").push((name, tensor));
+    }
+    for stale in [WEIGHTS_NAME.to_string(), WEIGHTS_INDEX_NAME.to_string()] {
+        let _ = std::fs::remove_file(dir.join(stale));
+    }
+    if shards.len() == 1 {
+        write_safetensors(&dir.join(WEIGHTS_NAME), &shards[0])?;
+        return Ok(());
+    }
+    let count = shards.len();
+    let mut weight_map = BTreeMap::new();
+    for (i, shard) in shards.iter().enumerate() {
+        let file = format!("diffusion_pytorch_model-{:05}-of-{count:05}.safetensors", i + 1);
+        write_safetensors(&dir.join(&file), shard)?;
+        for (name, _) in shard {
+            weight_map.insert(name.clone(), file.clone());
+        }
+    }
+    let index = serde_json::json!({ "metadata": { "total_size": total }, "weight_map": weight_map });
+    let text = serde_json::to_string_pretty(&index).expect("a JSON value serialises");
+    Ok(schemas::shard::write_atomic(&dir.join(WEIGHTS_INDEX_NAME), text.as_bytes())?)
+}
+
+fn write_safetensors(path: &Path, tensors: &[(String, Tensor)]) -> Result<()> {
+    let mut buffers = Vec::with_capacity(tensors.len());
+    for (name, tensor) in tensors {
+        let t = tensor.f_detach()?.f_to_device(Device::Cpu)?.f_contiguous()?;
+        let numel = t.numel();
+        let mut data = vec![0u8; numel * t.kind().elt_size_in_bytes()];
+        t.f_copy_data_u8(&mut data, numel)?;
+        let shape: Vec<usize> = t.size().iter().map(|&d| d as usize).collect();
+        buffers.push((name.clone(), dtype_of(t.kind())?, shape, data));
+    }
+    let views = buffers
+        .iter()
+        .map(|(name, dtype, shape, data)| {
+            safetensors::tensor::TensorView::new(*dtype, shape.clone(), data)
+                .map(|v| (name.clone(), v))
+                .map_err(|e| Error::Safetensors { path: path.to_path_buf(), reason: e.to_string() })
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let metadata = Some(std::collections::HashMap::from([("format".to_string(), "pt".to_string())]));
+    let bytes = safetensors::serialize(views, metadata)
+        .map_err(|e| Error::Safetensors { path: path.to_path_buf(), reason: e.to_string() })?;
+    Ok(schemas::shard::write_atomic(path, &bytes)?)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tiny_store(device: Device) -> nn::VarStore {
+        let vs = nn::VarStore::new(device);
+        let vars = Vars::new(vs.root());
+        vars.sub("a").linear(3, 4, true).unwrap();
+        vars.sub("b").layer_norm(4, 1e-5, true).unwrap();
+        let _ = vars.buffer("pos", &[1, 2], || Ok(Tensor::from_slice(&[1.0f32, 2.0]).view([1, 2]))).unwrap();
+        vs
+    }
+
+    #[test]
+    fn save_then_load_round_trips_single_and_sharded() {
+        let vs = tiny_store(Device::Cpu);
+        let dir = tempfile::tempdir().unwrap();
+        for (name, shard_bytes) in [("single", DEFAULT_MAX_SHARD_BYTES), ("sharded", 40)] {
+            let folder = dir.path().join(name);
+            save(&vs, &serde_json::json!({"x": 1}), "Test", &folder, shard_bytes).unwrap();
+            let sharded = folder.join(WEIGHTS_INDEX_NAME).exists();
+            assert_eq!(sharded, name == "sharded");
+            let other = tiny_store(Device::Cpu);
+            assert_eq!(load(&other, &folder).unwrap(), 5);
+            for (k, v) in vs.variables() {
+                let w = &other.variables()[&k];
+                assert!(v.equal(w), "{k} differs after {name} round trip");
+            }
+        }
+    }
+
+    #[test]
+    fn mismatches_name_the_tensor_and_both_shapes() {
+        let vs = tiny_store(Device::Cpu);
+        let dir = tempfile::tempdir().unwrap();
+        save(&vs, &serde_json::json!({}), "Test", dir.path(), DEFAULT_MAX_SHARD_BYTES).unwrap();
+        let bigger = nn::VarStore::new(Device::Cpu);
+        let vars = Vars::new(bigger.root());
+        vars.sub("a").linear(3, 5, true).unwrap();
+        vars.sub("b").layer_norm(4, 1e-5, true).unwrap();
+        let _ = vars.buffer("pos", &[1, 2], || Ok(Tensor::zeros([1, 2], (Kind::Float, Device::Cpu)))).unwrap();
+        let err = load(&bigger, dir.path()).unwrap_err().to_string();
+        assert!(err.contains("a.bias") || err.contains("a.weight"), "{err}");
+        assert!(err.contains("[5") && err.contains("[4"), "{err}");
+        let fewer = nn::VarStore::new(Device::Cpu);
+        Vars::new(fewer.root()).sub("a").linear(3, 4, true).unwrap();
+        let err = load(&fewer, dir.path()).unwrap_err().to_string();
+        assert!(err.contains("unexpected") && err.contains("b."), "{err}");
+    }
+
+    #[test]
+    fn shapes_only_allocates_nothing_per_element() {
+        let vs = nn::VarStore::new(Device::Cpu);
+        let lin = Vars::shapes_only(vs.root()).sub("big").linear(100_000, 100_000, true).unwrap();
+        assert_eq!(lin.weight().size(), vec![100_000, 100_000]);
+        assert_eq!(lin.weight().stride(), vec![0, 0]);
+    }
+}

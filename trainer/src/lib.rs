@@ -9,6 +9,7 @@ pub mod cogvideox_transformer_3d;
 pub mod diffusers_config;
 pub mod embeddings;
 pub mod error;
+pub mod forward;
 pub mod normalization;
 pub mod scheduling_cogvideox_dpm;
 pub mod scheduling_ddim;

@@ -1,5 +1,106 @@
-//! The `trainer` command line: a thin layer over the library.
+//! The `trainer` command line: a thin layer that parses arguments and calls the library.
 
-fn main() {
-    println!("trainer {}: no subcommands yet", env!("CARGO_PKG_VERSION"));
+use std::path::PathBuf;
+
+use anyhow::Context;
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use trainer::forward::{self, ForwardRequest, Module};
+
+/// CogNVS video-to-video diffusion in tch: the CogVideoX transformer, VAE and schedulers,
+/// weight-compatible with diffusers.
+#[derive(Debug, Parser)]
+#[command(name = "trainer", version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Run one component on tensors from a safetensors file and write its output: for checking
+    /// this port or a checkpoint against diffusers. Inputs and outputs use diffusers' argument
+    /// names: transformer `hidden_states` [B,F,C,H,W], `encoder_hidden_states` [B,S,D],
+    /// `timestep` [B] → `sample`; vae_encoder `sample` [B,3,F,H,W] → `latent` (posterior mean,
+    /// unscaled); vae_decoder `latent` → `sample`. Outputs are written as fp32.
+    Forward(ForwardArgs),
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum ModuleArg {
+    /// CogVideoXTransformer3DModel.
+    #[value(name = "transformer")]
+    Transformer,
+    /// The VAE encoder (posterior mean).
+    #[value(name = "vae_encoder")]
+    VaeEncoder,
+    /// The VAE decoder.
+    #[value(name = "vae_decoder")]
+    VaeDecoder,
+}
+
+#[derive(Debug, Args)]
+struct ForwardArgs {
+    /// Which component to run.
+    #[arg(long, value_enum)]
+    module: ModuleArg,
+    /// The component's diffusers config.json (or the model folder holding it).
+    #[arg(long)]
+    config: PathBuf,
+    /// Weights: a .safetensors file, a .safetensors.index.json (sharded) or a model folder.
+    #[arg(long)]
+    weights: PathBuf,
+    /// Input tensors (safetensors).
+    #[arg(long)]
+    inputs: PathBuf,
+    /// Output file (safetensors, one tensor).
+    #[arg(long)]
+    out: PathBuf,
+    /// Compute dtype: f32 or bf16.
+    #[arg(long, default_value = "f32")]
+    dtype: String,
+    /// Compute device: cpu, cuda or cuda:N.
+    #[arg(long, default_value = "cpu")]
+    device: String,
+    /// VAE only: split large frames into diffusers' default spatial tiles (bounds memory).
+    #[arg(long)]
+    tiling: bool,
+}
+
+fn main() -> anyhow::Result<()> {
+    match Cli::parse().command {
+        Command::Forward(args) => run_forward(args),
+    }
+}
+
+fn run_forward(args: ForwardArgs) -> anyhow::Result<()> {
+    let module = match args.module {
+        ModuleArg::Transformer => Module::Transformer,
+        ModuleArg::VaeEncoder => Module::VaeEncoder,
+        ModuleArg::VaeDecoder => Module::VaeDecoder,
+    };
+    let request = ForwardRequest {
+        module,
+        config: args.config,
+        weights: args.weights,
+        inputs: args.inputs,
+        out: args.out.clone(),
+        kind: forward::parse_dtype(&args.dtype)?,
+        device: forward::parse_device(&args.device)?,
+        tiling: args.tiling,
+    };
+    let report = forward::run(&request).with_context(|| {
+        format!("trainer forward --module {}", args.module.to_possible_value().expect("no skipped values").get_name())
+    })?;
+    for (name, shape) in &report.inputs {
+        println!("input  {name}: {shape:?}");
+    }
+    for name in &report.ignored_inputs {
+        println!("ignored input `{name}` (not read by this module)");
+    }
+    println!("output {}: {:?} → {}", report.output.0, report.output.1, args.out.display());
+    println!(
+        "load {:.2} s, forward {:.2} s on {} ({})",
+        report.load_seconds, report.forward_seconds, args.device, args.dtype
+    );
+    Ok(())
 }

@@ -18,7 +18,7 @@ use trainer::weights;
 use super::parity::{assert_close, read_tensors, repo_root, run_python, run_script};
 
 /// Output of `scripts/goldens_transformer.py`, generated once per test binary.
-fn goldens() -> &'static Path {
+pub fn goldens() -> &'static Path {
     static DIR: OnceLock<tempfile::TempDir> = OnceLock::new();
     DIR.get_or_init(|| run_script("goldens_transformer.py")).path()
 }

@@ -10,6 +10,7 @@ pub mod corpus;
 pub mod covisibility;
 pub mod depth_exr;
 pub mod depth_mesh;
+pub mod depth_noise;
 pub mod error;
 pub mod inspect;
 pub mod npy;

@@ -66,6 +66,14 @@ struct PairsArgs {
     /// Print where the time went (decode, mesh build, rays, encode, write) to stderr.
     #[arg(long)]
     timings: bool,
+    /// Add depth noise on dynamic objects (the config's [depth_noise] model); conditioning frames
+    /// are then stored with the pairs.
+    #[arg(long)]
+    depth_noise: bool,
+    /// A second, better depth source for measured depth noise: a folder of *.exr maps or an
+    /// (N, H, W) .npy, one map per frame (implies --depth-noise).
+    #[arg(long)]
+    second_depth: Option<PathBuf>,
 }
 
 #[derive(Debug, Args)]
@@ -121,12 +129,21 @@ struct ValidateArgs {
 }
 
 fn pairs(args: PairsArgs) -> anyhow::Result<()> {
-    let config = match &args.config {
+    let mut config = match &args.config {
         Some(path) => PairsConfig::from_toml_file(path)?,
         None => PairsConfig::default(),
     };
+    config.depth_noise.enabled |= args.depth_noise || args.second_depth.is_some();
     let started = std::time::Instant::now();
-    let sequence = datagen::sequence::read_sequence(&args.seq_dir)?;
+    let mut sequence = datagen::sequence::read_sequence(&args.seq_dir)?;
+    let second_depth =
+        args.second_depth.clone().or_else(|| config.depth_noise.second_depth_path(&args.dataset, &sequence.source_id));
+    if let Some(path) = second_depth.filter(|_| config.depth_noise.enabled) {
+        sequence.load_second_depth(&path)?;
+    }
+    if config.depth_noise.enabled && sequence.dynamic_masks.is_none() {
+        eprintln!("note: {} has no dynamic-object masks; depth noise changes nothing", args.seq_dir.display());
+    }
     let read_seconds = started.elapsed().as_secs_f64();
     let request = datagen::pairs::trajectory_request(&sequence, &args.trajectory_files, args.trajectories)?;
     if request.sampled == 0 && request.explicit.is_empty() {

@@ -15,6 +15,7 @@ use serde::{Deserialize, Serialize};
 use crate::camera::{PinholeCamera, mat3_to_row_major, mat4_to_row_major};
 use crate::covisibility::CovisibilityConfig;
 use crate::depth_exr::encode_depth_exr;
+use crate::depth_noise::{DepthNoiseConfig, NoiseKey, SourceFrame};
 use crate::error::{Error, Result};
 use crate::sequence::Sequence;
 use crate::trajectory::TrajectoryConfig;
@@ -67,6 +68,8 @@ pub struct PairsConfig {
     pub trajectory: TrajectoryConfig,
     /// Occlusion-test settings.
     pub covisibility: CovisibilityConfig,
+    /// Depth noise on dynamic objects (off by default).
+    pub depth_noise: DepthNoiseConfig,
 }
 
 impl PairsConfig {
@@ -78,12 +81,23 @@ impl PairsConfig {
         Ok(config)
     }
 
-    fn validate(&self, path: &Path) -> Result<()> {
+    pub(crate) fn validate(&self, path: &Path) -> Result<()> {
         if self.clip.length == 0 {
             return Err(Error::invalid(path, "clip.length", "must be at least 1"));
         }
         if self.clip.stride == 0 {
             return Err(Error::invalid(path, "clip.stride", "must be at least 1"));
+        }
+        let noise = &self.depth_noise;
+        for (field, value) in [
+            ("depth_noise.relative_sigma", noise.relative_sigma),
+            ("depth_noise.edge_relative_sigma", noise.edge_relative_sigma),
+            ("depth_noise.edge_width_px", noise.edge_width_px),
+            ("depth_noise.max_sigmas", noise.max_sigmas),
+        ] {
+            if !(value.is_finite() && value >= 0.0) {
+                return Err(Error::invalid(path, field, format!("must be finite and ≥ 0, got {value}")));
+            }
         }
         Ok(())
     }
@@ -127,14 +141,29 @@ where
     bytes.into_inner()
 }
 
+/// `frame` with the pixels outside `mask` black: the conditioning without depth noise.
+fn masked_frame(frame: &RgbImage, mask: &[bool]) -> RgbImage {
+    let mut out = frame.clone();
+    for (pixel, &keep) in out.pixels_mut().zip(mask) {
+        if !keep {
+            *pixel = image::Rgb([0, 0, 0]);
+        }
+    }
+    out
+}
+
 fn mask_png(mask: &[bool], width: u32, height: u32) -> Vec<u8> {
     let pixels = mask.iter().map(|&m| if m { 255 } else { 0 }).collect();
     png(&GrayImage::from_raw(width, height, pixels).expect("mask sized to the frame"))
 }
 
+/// One trajectory's data for one frame: mask PNG, co-visible pixel count, and under depth noise
+/// the conditioning PNG with whether it differs from the frame × mask.
+type EncodedMask = (Vec<u8>, usize, Option<(Vec<u8>, bool)>);
+
 /// One frame of a clip, encoded: (frame PNG, depth EXR, dynamic-mask PNG, per trajectory its
-/// mask PNG and co-visible pixel count).
-type EncodedFrame = (Vec<u8>, Vec<u8>, Option<Vec<u8>>, Vec<(Vec<u8>, usize)>);
+/// [`EncodedMask`]).
+type EncodedFrame = (Vec<u8>, Vec<u8>, Option<Vec<u8>>, Vec<EncodedMask>);
 
 /// One novel path for one clip, before masks.
 struct PlannedTrajectory {
@@ -262,24 +291,52 @@ fn generate_clip(
             let mesh = &crate::depth_mesh::DepthMesh::new(&sequence.depth[i], source, &config.covisibility.mesh);
             let mesh_seconds = clock.elapsed().as_secs_f64();
             let (mut ray_seconds, mut encode_seconds) = (0.0, 0.0);
+            let dynamic = sequence.dynamic_masks.as_ref().map(|m| &m[i]);
+            let noise = config.depth_noise.enabled.then_some(dynamic).flatten();
             let masks = planned
                 .iter()
                 .map(|t| {
                     let novel = PinholeCamera { world_from_camera: t.poses[i - start as usize], ..*source };
                     let clock = Instant::now();
-                    let mask = crate::covisibility::covisibility_mask(mesh, source, &novel, &config.covisibility);
+                    let mut mask = crate::covisibility::covisibility_mask(mesh, source, &novel, &config.covisibility);
                     ray_seconds += clock.elapsed().as_secs_f64();
                     let clock = Instant::now();
+                    let condition = noise.map(|dynamic| {
+                        let key = NoiseKey {
+                            seed,
+                            source_id: &sequence.source_id,
+                            clip_start: start,
+                            trajectory: t.index,
+                            frame: i as u32,
+                        };
+                        let offsets = crate::depth_noise::offsets(
+                            &config.depth_noise,
+                            &sequence.depth[i],
+                            sequence.second_depth.as_ref().map(|d| &d[i]),
+                            config.covisibility.mesh.discontinuity_ratio,
+                            &key,
+                        );
+                        let frame = SourceFrame {
+                            frame: &sequence.frames[i],
+                            depth: &sequence.depth[i],
+                            dynamic,
+                            camera: source,
+                        };
+                        let noisy = crate::depth_noise::render_back(frame, |p| mesh.point(p), &mask, &offsets, &novel);
+                        mask = noisy.mask;
+                        let differs = noisy.condition != masked_frame(&sequence.frames[i], &mask);
+                        (png(&noisy.condition), differs)
+                    });
                     let kept = mask.iter().filter(|&&m| m).count();
                     let encoded = mask_png(&mask, width, height);
                     encode_seconds += clock.elapsed().as_secs_f64();
-                    (encoded, kept)
+                    (encoded, kept, condition)
                 })
                 .collect();
             let clock = Instant::now();
             let frame = png::<image::Rgb<u8>>(&sequence.frames[i]);
             let depth = encode_depth_exr(&sequence.depth[i])?;
-            let dynamic = sequence.dynamic_masks.as_ref().map(|m| png(&m[i]));
+            let dynamic = dynamic.map(png);
             encode_seconds += clock.elapsed().as_secs_f64();
             Ok(((frame, depth, dynamic, masks), mesh_seconds, ray_seconds, encode_seconds))
         })
@@ -304,7 +361,11 @@ fn generate_clip(
             rejected_samples: plan.rejected,
             world_from_camera: plan.poses.iter().map(mat4_to_row_major).collect(),
             covisible_mask: per_frame.iter().map(|f| f.3[t].0.clone()).collect(),
-            condition: None,
+            // Stored only when depth noise changed some frame; otherwise it is frames × mask.
+            condition: per_frame
+                .iter()
+                .any(|f| f.3[t].2.as_ref().is_some_and(|c| c.1))
+                .then(|| per_frame.iter().map(|f| f.3[t].2.as_ref().expect("noise on").0.clone()).collect()),
             covisible_fraction: per_frame.iter().map(|f| f.3[t].1).sum::<usize>() as f64 / pixels,
         })
         .collect();

@@ -49,9 +49,20 @@ pub struct Sequence {
     pub cameras: Vec<PinholeCamera>,
     /// Dynamic-object id masks per frame, if the folder has them.
     pub dynamic_masks: Option<Vec<GrayImage>>,
+    /// A second, more accurate depth per frame (LiDAR, a monocular estimator) for measured depth
+    /// noise, if the user gave one ([`Sequence::load_second_depth`]).
+    pub second_depth: Option<Vec<DepthMap>>,
 }
 
 impl Sequence {
+    /// Reads a second depth source (a folder of `*.exr` or an `(N, H, W)` `.npy`, one map per
+    /// frame), resampled to the frames' size.
+    pub fn load_second_depth(&mut self, path: &Path) -> Result<()> {
+        let (width, height) = self.size();
+        self.second_depth = Some(read_depth_stack(path, self.len(), width, height)?);
+        Ok(())
+    }
+
     /// Number of frames.
     pub fn len(&self) -> usize {
         self.frames.len()
@@ -140,7 +151,16 @@ pub fn read_sequence(dir: &Path) -> Result<Sequence> {
     };
     let source_id = dir.file_name().unwrap_or_default().to_string_lossy().into_owned();
     let dynamic_masks = read_masks(dir, &frames)?;
-    Ok(Sequence { source_id, path: dir.to_owned(), fps, frames, depth: depth_arrays, cameras, dynamic_masks })
+    Ok(Sequence {
+        source_id,
+        path: dir.to_owned(),
+        fps,
+        frames,
+        depth: depth_arrays,
+        cameras,
+        dynamic_masks,
+        second_depth: None,
+    })
 }
 
 type Parts = (f64, Vec<RgbImage>, Vec<DepthMap>, Vec<PinholeCamera>);
@@ -180,7 +200,16 @@ pub fn read_with_frames(
     };
     let (fps, frames, depth, cameras) = assemble(fps, frames, frames_path, parts)?;
     let path = reconstruction.to_owned();
-    Ok(Sequence { source_id: source_id.to_owned(), path, fps, frames, depth, cameras, dynamic_masks: None })
+    Ok(Sequence {
+        source_id: source_id.to_owned(),
+        path,
+        fps,
+        frames,
+        depth,
+        cameras,
+        dynamic_masks: None,
+        second_depth: None,
+    })
 }
 
 fn cog_nvs_reconstruction(dir: &Path) -> Result<Reconstruction> {
@@ -296,29 +325,7 @@ fn read_generic(dir: &Path) -> Result<Parts> {
 
 fn generic_reconstruction(dir: &Path) -> Result<Reconstruction> {
     let depth_dir = dir.join("depth");
-    let depth_files = with_extension(&depth_dir, &["exr"])?;
-    let depth_maps = depth_files
-        .par_iter()
-        .map(|p| {
-            let bytes = std::fs::read(p).map_err(|e| Error::io(p, e))?;
-            crate::depth_exr::decode_depth_exr(&bytes, &p.display().to_string())
-        })
-        .collect::<Result<Vec<_>>>()?;
-    let (n, h, w) = match depth_maps.first() {
-        Some(first) => (depth_maps.len(), first.height, first.width),
-        None => return Err(Error::invalid(&depth_dir, "depth", "no .exr files")),
-    };
-    if let Some((i, map)) = depth_maps.iter().enumerate().find(|(_, m)| (m.width, m.height) != (w, h)) {
-        return Err(Error::invalid(
-            &depth_files[i],
-            "depth",
-            format!("{}x{} differs from the first map's {w}x{h}", map.width, map.height),
-        ));
-    }
-    let depth = NdArray {
-        shape: vec![n, h, w],
-        data: depth_maps.iter().flat_map(|m| m.values.iter().map(|&v| f64::from(v))).collect(),
-    };
+    let depth = read_exr_folder(&depth_dir)?;
     let cameras_path = dir.join("cameras.json");
     let text = std::fs::read_to_string(&cameras_path).map_err(|e| Error::io(&cameras_path, e))?;
     let cameras: CamerasJson = serde_json::from_str(&text)
@@ -465,6 +472,51 @@ fn checked_pose(path: &Path, index: usize, values: &[f64]) -> Result<DMat4> {
         ));
     }
     Ok(pose)
+}
+
+/// A folder of per-frame `*.exr` depth maps (sorted by name) as an `[N, H, W]` array; every map
+/// must have the first one's size.
+pub fn read_exr_folder(depth_dir: &Path) -> Result<NdArray<f64>> {
+    let depth_files = with_extension(depth_dir, &["exr"])?;
+    let depth_maps = depth_files
+        .par_iter()
+        .map(|p| {
+            let bytes = std::fs::read(p).map_err(|e| Error::io(p, e))?;
+            crate::depth_exr::decode_depth_exr(&bytes, &p.display().to_string())
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let (n, h, w) = match depth_maps.first() {
+        Some(first) => (depth_maps.len(), first.height, first.width),
+        None => return Err(Error::invalid(depth_dir, "depth", "no .exr files")),
+    };
+    if let Some((i, map)) = depth_maps.iter().enumerate().find(|(_, m)| (m.width, m.height) != (w, h)) {
+        return Err(Error::invalid(
+            &depth_files[i],
+            "depth",
+            format!("{}x{} differs from the first map's {w}x{h}", map.width, map.height),
+        ));
+    }
+    Ok(NdArray {
+        shape: vec![n, h, w],
+        data: depth_maps.iter().flat_map(|m| m.values.iter().map(|&v| f64::from(v))).collect(),
+    })
+}
+
+/// Per-frame depth maps from a folder of `*.exr` files or an `(N, H, W)` `.npy` array, resampled
+/// (nearest) to `width × height`; there must be exactly `frames` of them.
+pub fn read_depth_stack(path: &Path, frames: usize, width: u32, height: u32) -> Result<Vec<DepthMap>> {
+    let array = if path.is_dir() {
+        read_exr_folder(path)?
+    } else {
+        let array = crate::npy::read_npy_f64(path)?;
+        array.expect_shape(path, "depth", &[None, None, None])?;
+        array
+    };
+    let (n, h, w) = (array.shape[0], array.shape[1], array.shape[2]);
+    if n != frames {
+        return Err(Error::invalid(path, "depth", format!("{n} depth maps for {frames} frames")));
+    }
+    Ok(array.data.chunks(h * w).map(|map| resample_nearest(map, w, h, width as usize, height as usize)).collect())
 }
 
 /// Nearest-neighbour resampling with pixel centres at integer coordinates (no blending across

@@ -83,6 +83,7 @@ impl BuildConfig {
         if config.trajectories == 0 {
             return Err(Error::invalid(path, "trajectories", "must be at least 1"));
         }
+        config.pairs.validate(path)?;
         Ok(config)
     }
 }
@@ -515,4 +516,18 @@ pub fn read_corpus_status(out: &Path) -> Result<BTreeMap<String, StatusRecord>> 
         }
     }
     Ok(latest)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_example_corpus_config_parses() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/corpus_example.toml");
+        let config = BuildConfig::from_toml_file(&path).unwrap();
+        assert_eq!(config.sources.len(), 4);
+        assert!(!config.pairs.depth_noise.enabled);
+        assert_eq!(config.pairs.depth_noise.correlation_px, 8);
+    }
 }

@@ -88,7 +88,11 @@ impl<'a> SequenceProcessor<'a> {
 
 impl InputProcessor for SequenceProcessor<'_> {
     fn process(&self, entry: &VideoEntry) -> Result<Outcome> {
-        let sequence = load_entry(entry)?;
+        let mut sequence = load_entry(entry)?;
+        let noise = &self.config.pairs.depth_noise;
+        if let Some(path) = noise.second_depth_path(entry.dataset.name(), &entry.video_id).filter(|_| noise.enabled) {
+            sequence.load_second_depth(&path)?;
+        }
         let request = TrajectoryRequest { sampled: self.config.trajectories, explicit: Vec::new() };
         let clips = generate_clips(&sequence, entry.dataset.name(), &self.config.pairs, &request, self.config.seed)?;
         Ok(Outcome::Clips(clips))

@@ -3,6 +3,7 @@
 mod build;
 mod corpus;
 mod corpus_build;
+mod depth_noise;
 mod geometry;
 mod inspect;
 mod pairs;

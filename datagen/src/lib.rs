@@ -17,6 +17,7 @@ pub mod npy;
 pub mod pairs;
 pub mod render;
 pub mod sequence;
+pub mod static_background;
 pub mod synth;
 pub mod trajectory;
 pub mod video;

@@ -86,9 +86,13 @@ struct RenderArgs {
     /// Output folder.
     #[arg(long)]
     out: PathBuf,
-    /// TOML file with [covisibility] settings.
+    /// TOML file with [covisibility] and [static_background] settings.
     #[arg(long)]
     config: Option<PathBuf>,
+    /// Fill the holes of each frame's render with the static background fused from all frames
+    /// (points outside the dynamic-object masks, voxel-deduplicated).
+    #[arg(long)]
+    stack_background: bool,
 }
 
 #[derive(Debug, Args)]
@@ -199,8 +203,18 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
         None => PairsConfig::default(),
     };
     let sequence = datagen::sequence::read_sequence(&args.seq_dir)?;
-    let written = datagen::pairs::render_sequence(&sequence, &args.trajectory, &args.out, &config.covisibility)?;
-    println!("wrote {} frames to {} (render.mp4, frames/, holes/)", written, args.out.display());
+    let summary =
+        datagen::pairs::render_sequence(&sequence, &args.trajectory, &args.out, &config, args.stack_background)?;
+    println!("wrote {} frames to {} (render.mp4, frames/, holes/)", summary.frames, args.out.display());
+    let pixels = (summary.frames as f64 * f64::from(sequence.size().0) * f64::from(sequence.size().1)).max(1.0);
+    print!("  holes: {:.2} % of pixels", 100.0 * summary.holes as f64 / pixels);
+    if args.stack_background {
+        print!(
+            ", {:.2} % after filling from the stacked background",
+            100.0 * (summary.holes - summary.filled) as f64 / pixels
+        );
+    }
+    println!();
     Ok(())
 }
 

@@ -18,6 +18,7 @@ use crate::depth_exr::encode_depth_exr;
 use crate::depth_noise::{DepthNoiseConfig, NoiseKey, SourceFrame};
 use crate::error::{Error, Result};
 use crate::sequence::Sequence;
+use crate::static_background::{StackingConfig, StaticBackground};
 use crate::trajectory::TrajectoryConfig;
 
 /// Paper value: clips of 49 frames (DESIGN §1).
@@ -70,6 +71,8 @@ pub struct PairsConfig {
     pub covisibility: CovisibilityConfig,
     /// Depth noise on dynamic objects (off by default).
     pub depth_noise: DepthNoiseConfig,
+    /// Static-background stacking settings, used by `datagen render --stack-background`.
+    pub static_background: StackingConfig,
 }
 
 impl PairsConfig {
@@ -425,15 +428,27 @@ pub fn render_novel(
     crate::render::render_novel_view(&mesh, frame, source, novel).0
 }
 
+/// What [`render_sequence`] produced.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RenderSummary {
+    /// Frames rendered.
+    pub frames: usize,
+    /// Hole pixels of the per-frame renders, over all frames.
+    pub holes: usize,
+    /// Of those, filled by the stacked static background.
+    pub filled: usize,
+}
+
 /// `datagen render`: renders every frame of `sequence` from the trajectory in `trajectory_file`
-/// into `out/frames/%05d.png`, `out/holes/%05d.png` (255 = hole) and `out/render.mp4`.
-/// Returns the number of frames.
+/// into `out/frames/%05d.png`, `out/holes/%05d.png` (255 = hole) and `out/render.mp4`. With
+/// `stacking`, holes are filled from the static background fused over the whole sequence.
 pub fn render_sequence(
     sequence: &Sequence,
     trajectory_file: &Path,
     out: &Path,
-    config: &CovisibilityConfig,
-) -> Result<usize> {
+    config: &PairsConfig,
+    stacking: bool,
+) -> Result<RenderSummary> {
     let poses = crate::trajectory::read_trajectory_file(
         trajectory_file,
         sequence.len(),
@@ -443,27 +458,47 @@ pub fn render_sequence(
     for sub in ["frames", "holes"] {
         std::fs::create_dir_all(out.join(sub)).map_err(|e| Error::io(out.join(sub), e))?;
     }
-    let rendered: Vec<RgbImage> = (0..sequence.len())
+    let ratio = config.covisibility.mesh.discontinuity_ratio;
+    let background = stacking.then(|| StaticBackground::from_sequence(sequence, &config.static_background, ratio));
+    let rendered: Vec<(RgbImage, usize, usize)> = (0..sequence.len())
         .into_par_iter()
-        .map(|i| -> Result<RgbImage> {
-            let source = &sequence.cameras[i];
-            let mesh = crate::depth_mesh::DepthMesh::new(&sequence.depth[i], source, &config.mesh);
-            let novel = PinholeCamera { world_from_camera: poses[i], ..*source };
-            let (image, holes) = crate::render::render_novel_view(&mesh, &sequence.frames[i], source, &novel);
+        .map(|i| -> Result<_> {
+            let novel = PinholeCamera { world_from_camera: poses[i], ..sequence.cameras[i] };
+            let (mut image, mut holes) = render_frame(sequence, i, &novel, &config.covisibility);
+            let hole_count = holes.pixels().filter(|p| p.0[0] != 0).count();
+            let filled = background.as_ref().map_or(0, |b| b.fill_holes(&mut image, &mut holes, &novel));
             let save = |image: &dyn Fn(&Path) -> image::ImageResult<()>, path: PathBuf| {
                 image(&path).map_err(|e| Error::Image { context: path.display().to_string(), reason: e.to_string() })
             };
             save(&|p| holes.save(p), out.join(format!("holes/{i:05}.png")))?;
             save(&|p| image.save(p), out.join(format!("frames/{i:05}.png")))?;
-            Ok(image)
+            Ok((image, hole_count, filled))
         })
         .collect::<Result<_>>()?;
     let (width, height) = sequence.size();
+    let summary = RenderSummary {
+        frames: rendered.len(),
+        holes: rendered.iter().map(|r| r.1).sum(),
+        filled: rendered.iter().map(|r| r.2).sum(),
+    };
+    let frames: Vec<RgbImage> = rendered.into_iter().map(|r| r.0).collect();
     if width % 2 == 0 && height % 2 == 0 {
         let fps = if sequence.fps > 0.0 { sequence.fps } else { DEFAULT_RENDER_FPS };
-        crate::video::encode_video(&out.join("render.mp4"), &rendered, fps)?;
+        crate::video::encode_video(&out.join("render.mp4"), &frames, fps)?;
     }
-    Ok(rendered.len())
+    Ok(summary)
+}
+
+/// Frame `i` of `sequence` rendered from `novel` through its own depth mesh: image and holes.
+pub fn render_frame(
+    sequence: &Sequence,
+    i: usize,
+    novel: &PinholeCamera,
+    config: &CovisibilityConfig,
+) -> (RgbImage, image::GrayImage) {
+    let source = &sequence.cameras[i];
+    let mesh = crate::depth_mesh::DepthMesh::new(&sequence.depth[i], source, &config.mesh);
+    crate::render::render_novel_view(&mesh, &sequence.frames[i], source, novel)
 }
 
 /// Frame rate of `render.mp4` when the input's is unknown (image-folder inputs).

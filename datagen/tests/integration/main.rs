@@ -8,5 +8,6 @@ mod geometry;
 mod inspect;
 mod pairs;
 mod sequence;
+mod static_background;
 mod synth;
 mod validate;

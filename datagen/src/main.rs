@@ -38,6 +38,26 @@ enum Command {
     Build(BuildArgs),
     /// Check every shard of a folder against its stats marker and the schema.
     Validate(ValidateArgs),
+    /// Write a small corpus of synthetic videos in every dataset layout (SA-V, TAO, YouTube-VOS,
+    /// DAVIS, sequence folders) with reconstructions, annotations and a corpus.toml, to try or
+    /// benchmark `datagen build`.
+    SynthCorpus(SynthCorpusArgs),
+}
+
+#[derive(Debug, Args)]
+struct SynthCorpusArgs {
+    /// Root folder of the generated trees.
+    #[arg(long)]
+    out: PathBuf,
+    /// Videos per dataset layout.
+    #[arg(long, default_value_t = 2)]
+    videos_per_layout: usize,
+    /// Synth scene settings (TOML, as for `datagen synth --config`); default: 320x192, 25 frames.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Output folder written into the corpus.toml [default: <OUT>/corpus].
+    #[arg(long)]
+    corpus_out: Option<PathBuf>,
 }
 
 #[derive(Debug, Args)]
@@ -121,6 +141,9 @@ struct BuildArgs {
     /// List what would be built, write nothing.
     #[arg(long)]
     dry_run: bool,
+    /// Print where the time went (hashing, loading, mesh builds, rays, encoding, writing).
+    #[arg(long)]
+    timings: bool,
 }
 
 #[derive(Debug, Args)]
@@ -283,6 +306,45 @@ fn build(args: BuildArgs) -> anyhow::Result<()> {
         summary.bytes as f64 / 1e6,
         summary.seconds
     );
+    if args.timings {
+        let t = processor.timings();
+        println!(
+            "timings: {:.1} pairs/s, {:.2} MB/s written; wall {:.1} s = hash {:.1} s + process {:.1} s + write {:.1} s; \
+             process: load (decode, reconstruction, masks) {:.1} s, per-frame phase {:.1} s wall (CPU: mesh+BVH {:.1} s, \
+             rays {:.1} s, encode {:.1} s)",
+            summary.pairs as f64 / summary.seconds.max(1e-9),
+            summary.bytes as f64 / 1e6 / summary.seconds.max(1e-9),
+            summary.seconds,
+            summary.hash_seconds,
+            summary.process_seconds,
+            summary.write_seconds,
+            t.load_seconds,
+            t.pairs.masks_and_encode,
+            t.pairs.mesh_build,
+            t.pairs.ray_cpu,
+            t.pairs.encode_cpu
+        );
+    }
+    Ok(())
+}
+
+fn synth_corpus(args: SynthCorpusArgs) -> anyhow::Result<()> {
+    let config = match &args.config {
+        Some(path) => {
+            let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+            toml::from_str(&text).with_context(|| format!("{}: invalid synth config", path.display()))?
+        }
+        None => SynthConfig::default(),
+    };
+    config.validate()?;
+    let out = args.corpus_out.unwrap_or_else(|| args.out.join("corpus"));
+    let corpus = datagen::corpus::synthetic::write_synthetic_corpus(&args.out, &out, args.videos_per_layout, &config)?;
+    println!(
+        "wrote {} videos in each of 5 layouts under {}; build them with: datagen build --config {}",
+        corpus.videos_per_layout,
+        args.out.display(),
+        corpus.config.display()
+    );
     Ok(())
 }
 
@@ -394,6 +456,7 @@ fn main() -> ExitCode {
         Command::Inspect(args) => inspect(args),
         Command::Build(args) => build(args),
         Command::Validate(args) => validate(args),
+        Command::SynthCorpus(args) => synth_corpus(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

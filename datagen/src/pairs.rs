@@ -192,7 +192,8 @@ pub struct PhaseTimes {
 }
 
 impl PhaseTimes {
-    fn add(&mut self, other: &Self) {
+    /// Adds another run's times.
+    pub fn add(&mut self, other: &Self) {
         self.mesh_build += other.mesh_build;
         self.masks_and_encode += other.masks_and_encode;
         self.ray_cpu += other.ray_cpu;

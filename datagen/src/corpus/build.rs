@@ -129,6 +129,12 @@ pub struct BuildSummary {
     pub bytes: u64,
     /// Wall time of this run in seconds.
     pub seconds: f64,
+    /// Of which hashing inputs' content (for the status table and stats markers).
+    pub hash_seconds: f64,
+    /// Of which processing inputs (decode, reconstruction, pairs).
+    pub process_seconds: f64,
+    /// Of which writing shards, stats markers and status tables.
+    pub write_seconds: f64,
 }
 
 /// Progress callback events, for a progress bar.
@@ -401,12 +407,16 @@ pub fn build(
     for entry in &pending {
         let input_started = Instant::now();
         let hash = content_hash(entry).unwrap_or_default();
+        summary.hash_seconds += input_started.elapsed().as_secs_f64();
+        let process_started = Instant::now();
         let outcome = if entry.reconstruction.is_none() {
             Ok(Outcome::Skipped("no reconstruction found for this video".to_owned()))
         } else {
             processor.process(entry)
         };
+        summary.process_seconds += process_started.elapsed().as_secs_f64();
         let seconds = input_started.elapsed().as_secs_f64();
+        let write_started = Instant::now();
         match outcome {
             Ok(Outcome::Clips(clips)) => {
                 if open.is_none() {
@@ -446,13 +456,16 @@ pub fn build(
                 unflushed.push(record(entry, InputStatus::Failed, error.to_string(), hash, seconds));
             }
         }
+        summary.write_seconds += write_started.elapsed().as_secs_f64();
     }
+    let write_started = Instant::now();
     if let Some(shard) = open.take() {
         finish_shard(out, worker, shard, &mut unflushed, &mut state, &mut summary)?;
     }
     if !unflushed.is_empty() {
         write_status(out, worker, &mut state, &unflushed)?;
     }
+    summary.write_seconds += write_started.elapsed().as_secs_f64();
     summary.seconds = started.elapsed().as_secs_f64();
     let manifest = serde_json::json!({
         "tool_version": format!("datagen {}", env!("CARGO_PKG_VERSION")),

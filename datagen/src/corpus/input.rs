@@ -6,6 +6,9 @@
 //! clips); image datasets (TAO, YouTube-VOS, DAVIS) have no rate in their files, so clips record
 //! 0 (unknown) and a clip is a window of consecutive stored frames.
 
+use std::sync::Mutex;
+use std::time::Instant;
+
 use image::GrayImage;
 use rayon::prelude::*;
 
@@ -15,7 +18,7 @@ use super::annotations::{
 use super::build::{BuildConfig, InputProcessor, Outcome};
 use super::crawl::{FrameSource, MaskSource, VideoEntry};
 use crate::error::{Error, Result};
-use crate::pairs::{TrajectoryRequest, generate_clips};
+use crate::pairs::{PhaseTimes, TrajectoryRequest, generate_clips_timed};
 use crate::sequence::{Sequence, read_frames, read_sequence, read_with_frames};
 
 /// Loads everything the pair generator needs for one crawled video.
@@ -74,27 +77,48 @@ pub fn load_entry(entry: &VideoEntry) -> Result<Sequence> {
     Ok(sequence)
 }
 
+/// Where a build's processing time went, summed over inputs.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct ProcessTimings {
+    /// Wall seconds decoding frames and reading reconstructions and annotations.
+    pub load_seconds: f64,
+    /// The pair generator's phases (mesh builds, rays, encoding).
+    pub pairs: PhaseTimes,
+}
+
 /// The build's processor: load the video, generate its clips with the configured trajectories.
 pub struct SequenceProcessor<'a> {
     config: &'a BuildConfig,
+    timings: Mutex<ProcessTimings>,
 }
 
 impl<'a> SequenceProcessor<'a> {
     /// A processor for `config`.
     pub fn new(config: &'a BuildConfig) -> Self {
-        Self { config }
+        Self { config, timings: Mutex::default() }
+    }
+
+    /// Where the processing time went so far.
+    pub fn timings(&self) -> ProcessTimings {
+        *self.timings.lock().expect("timings lock")
     }
 }
 
 impl InputProcessor for SequenceProcessor<'_> {
     fn process(&self, entry: &VideoEntry) -> Result<Outcome> {
+        let started = Instant::now();
         let mut sequence = load_entry(entry)?;
         let noise = &self.config.pairs.depth_noise;
         if let Some(path) = noise.second_depth_path(entry.dataset.name(), &entry.video_id).filter(|_| noise.enabled) {
             sequence.load_second_depth(&path)?;
         }
+        let load_seconds = started.elapsed().as_secs_f64();
         let request = TrajectoryRequest { sampled: self.config.trajectories, explicit: Vec::new() };
-        let clips = generate_clips(&sequence, entry.dataset.name(), &self.config.pairs, &request, self.config.seed)?;
+        let (clips, phases) =
+            generate_clips_timed(&sequence, entry.dataset.name(), &self.config.pairs, &request, self.config.seed)?;
+        let mut timings = self.timings.lock().expect("timings lock");
+        timings.load_seconds += load_seconds;
+        timings.pairs.add(&phases);
         Ok(Outcome::Clips(clips))
     }
 }

@@ -7,4 +7,5 @@ pub mod crawl;
 pub mod input;
 pub mod partition;
 pub mod rle;
+pub mod synthetic;
 pub mod validate;

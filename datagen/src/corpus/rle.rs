@@ -79,6 +79,48 @@ pub fn decode_counts(text: &str) -> Result<Vec<u64>, RleError> {
     Ok(runs.into_iter().map(|r| r as u64).collect())
 }
 
+/// Encodes run lengths as pycocotools' compressed counts string (the inverse of
+/// [`decode_counts`]).
+pub fn encode_counts(runs: &[u64]) -> String {
+    let mut text = String::new();
+    for (i, &run) in runs.iter().enumerate() {
+        let mut value = run as i64;
+        if i > 2 {
+            value -= runs[i - 2] as i64;
+        }
+        loop {
+            let mut group = (value & 0x1f) as u8;
+            value >>= 5;
+            let more = if group & 0x10 != 0 { value != -1 } else { value != 0 };
+            if more {
+                group |= 0x20;
+            }
+            text.push(char::from(group + 48));
+            if !more {
+                break;
+            }
+        }
+    }
+    text
+}
+
+/// Run lengths of a row-major mask in COCO's column-major order, starting with background.
+pub fn mask_runs(mask: &[bool], height: usize, width: usize) -> Vec<u64> {
+    let mut runs = vec![0u64];
+    let mut current = false;
+    for column in 0..width {
+        for row in 0..height {
+            let on = mask[row * width + column];
+            if on != current {
+                runs.push(0);
+                current = on;
+            }
+            *runs.last_mut().expect("starts with one run") += 1;
+        }
+    }
+    runs
+}
+
 impl CocoRle {
     /// Decodes to a row-major mask of `height * width` booleans.
     pub fn decode(&self) -> Result<Vec<bool>, RleError> {
@@ -111,6 +153,19 @@ impl CocoRle {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn encode_inverts_decode() {
+        let mask: Vec<bool> = (0..12 * 7).map(|i| (i * 7919 % 13) < 5).collect();
+        let runs = mask_runs(&mask, 7, 12);
+        let text = encode_counts(&runs);
+        assert_eq!(decode_counts(&text).unwrap(), runs);
+        let rle = CocoRle { size: [7, 12], counts: RleCounts::Compressed(text) };
+        assert_eq!(rle.decode().unwrap(), mask);
+        // Large runs and negative deltas.
+        let runs = vec![100_000, 3, 2, 70_000, 1, 1];
+        assert_eq!(decode_counts(&encode_counts(&runs)).unwrap(), runs);
+    }
 
     /// Encodes runs the way pycocotools does (the inverse of `decode_counts`), for tests.
     fn encode_counts(runs: &[u64]) -> String {

@@ -212,3 +212,59 @@ fn two_workers_equal_one_and_dry_run_lists_the_plan() {
     }
     assert_eq!(corpus_content(&split), corpus_content(&out));
 }
+
+#[test]
+fn synthetic_corpus_in_every_layout_builds_completely() {
+    // `datagen synth-corpus` writes SA-V, TAO, YouTube-VOS, DAVIS and sequence trees in their own
+    // formats (RLE masklets, sparse id PNGs, boxes); every video must become pairs.
+    let dir = tempfile::tempdir().unwrap();
+    let scene = dir.path().join("scene.toml");
+    std::fs::write(&scene, "width = 48\nheight = 32\nframes = 9\n").unwrap();
+    let root = dir.path().join("trees");
+    let made = datagen()
+        .args(["synth-corpus", "--videos-per-layout", "1", "--out"])
+        .arg(&root)
+        .arg("--config")
+        .arg(&scene)
+        .output()
+        .unwrap();
+    assert!(made.status.success(), "{}", String::from_utf8_lossy(&made.stderr));
+    let built = datagen().arg("build").arg("--config").arg(root.join("corpus.toml")).arg("--timings").output().unwrap();
+    let stdout = String::from_utf8_lossy(&built.stdout);
+    assert!(
+        built.status.success() && stdout.contains("timings:"),
+        "{stdout}{}",
+        String::from_utf8_lossy(&built.stderr)
+    );
+    let status = datagen::corpus::build::read_corpus_status(&root.join("corpus")).unwrap();
+    let keys: BTreeSet<&str> = status.keys().map(String::as_str).collect();
+    assert_eq!(
+        keys,
+        BTreeSet::from([
+            "davis/davis-0000",
+            "sav/sav_000000",
+            "sequences/seq_0000",
+            "tao/train/SYN/tao0000",
+            "ytvos/ytvos0000"
+        ])
+    );
+    for (key, record) in &status {
+        assert_eq!(record.status, InputStatus::Ok, "{key}: {}", record.reason);
+        assert!(record.pairs >= 2, "{key}");
+    }
+    // Every layout's dynamic masks made it into the clips (boxes for TAO, RLE for SA-V, ...).
+    for shard in std::fs::read_dir(root.join("corpus")).unwrap() {
+        let path = shard.unwrap().path();
+        if path.extension().is_some_and(|e| e == "parquet")
+            && path.file_name().unwrap().to_string_lossy().starts_with("shard-")
+        {
+            for clip in schemas::read_shard(&path).unwrap() {
+                let masks = clip.dynamic_mask.as_ref().unwrap_or_else(|| panic!("{}: no dynamic masks", clip.clip_id));
+                let any = masks
+                    .iter()
+                    .any(|png| image::load_from_memory(png).unwrap().to_luma8().pixels().any(|p| p.0[0] != 0));
+                assert!(any, "{}: dynamic masks are empty", clip.clip_id);
+            }
+        }
+    }
+}

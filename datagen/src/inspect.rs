@@ -11,7 +11,10 @@ use rayon::prelude::*;
 use schemas::{ClipRecord, InputStatus, ShardReader, TrajectoryRecord};
 
 use crate::camera::{PinholeCamera, mat3_from_row_major, mat4_from_row_major};
+use crate::covisibility::CovisibilityConfig;
 use crate::error::{Error, Result};
+use crate::sequence::Sequence;
+use crate::static_background::{StackingConfig, StaticBackground};
 
 /// Frames shown per pair on the contact sheet.
 const SHEET_FRAMES: usize = 4;
@@ -163,25 +166,59 @@ fn reason_kind(reason: &str) -> &str {
     reason.split_once(": ").map_or(reason, |(_, rest)| rest)
 }
 
-/// Renders a novel view of a source frame given its depth (an injectable renderer keeps this
-/// module free of geometry): returns the rendered image.
-pub type NovelRenderer<'a> =
-    &'a (dyn Fn(&RgbImage, &crate::depth_exr::DepthMap, &PinholeCamera, &PinholeCamera) -> Result<RgbImage> + Sync);
+/// How the contact sheet's novel-render column is made.
+#[derive(Debug, Clone, Default)]
+pub struct ExportRender {
+    /// The mesh settings of the render.
+    pub covisibility: CovisibilityConfig,
+    /// Fill the render's holes from the static background stacked over the clip's frames.
+    pub stacking: Option<StackingConfig>,
+}
 
 /// Exports every pair of every shard under `path` into `out/<pair_id>/`: `target/%05d.png`,
 /// `cond/%05d.png`, `mask/%05d.png` (255 co-visible, 0 hidden), `meta.json`,
-/// `contact_sheet.png`. Returns the pair folders.
-pub fn export(path: &Path, out: &Path, render: Option<NovelRenderer>) -> Result<Vec<PathBuf>> {
+/// `contact_sheet.png` (with a novel-render column when `render` is given). Returns the pair
+/// folders.
+pub fn export(path: &Path, out: &Path, render: Option<&ExportRender>) -> Result<Vec<PathBuf>> {
     let mut folders = Vec::new();
     for shard in shard_paths(path)? {
         for record in ShardReader::open(&shard)? {
             let record = record?;
+            let renderer = match render {
+                Some(options) => Some(ClipRenderer::new(&record, options)?),
+                None => None,
+            };
             for trajectory in &record.trajectories {
-                folders.push(export_pair(&record, trajectory, out, render)?);
+                folders.push(export_pair(&record, trajectory, out, renderer.as_ref())?);
             }
         }
     }
     Ok(folders)
+}
+
+/// Renders one clip's frames from novel cameras, with its stacked background if asked for.
+struct ClipRenderer<'a> {
+    sequence: Sequence,
+    background: Option<StaticBackground>,
+    options: &'a ExportRender,
+}
+
+impl<'a> ClipRenderer<'a> {
+    fn new(record: &ClipRecord, options: &'a ExportRender) -> Result<Self> {
+        let sequence = Sequence::from_clip(record)?;
+        let ratio = options.covisibility.mesh.discontinuity_ratio;
+        let background = options.stacking.as_ref().map(|s| StaticBackground::from_sequence(&sequence, s, ratio));
+        Ok(Self { sequence, background, options })
+    }
+
+    fn render(&self, frame: usize, novel: &PinholeCamera) -> RgbImage {
+        let (mut image, mut holes) =
+            crate::pairs::render_frame(&self.sequence, frame, novel, &self.options.covisibility);
+        if let Some(background) = &self.background {
+            background.fill_holes(&mut image, &mut holes, novel);
+        }
+        image
+    }
 }
 
 fn decode_png(bytes: &[u8], context: &str) -> Result<image::DynamicImage> {
@@ -207,7 +244,7 @@ fn export_pair(
     record: &ClipRecord,
     trajectory: &TrajectoryRecord,
     out: &Path,
-    render: Option<NovelRenderer>,
+    render: Option<&ClipRenderer>,
 ) -> Result<PathBuf> {
     let folder = out.join(pair_id(record, trajectory));
     for sub in ["target", "cond", "mask"] {
@@ -238,11 +275,7 @@ fn export_pair(
             }
             let mut row = vec![target.clone(), crate::contact_sheet::mask_to_rgb(&mask), cond];
             if let Some(render) = render {
-                let depth =
-                    crate::depth_exr::decode_depth_exr(&record.depth[i], &format!("{}: depth[{i}]", record.clip_id))?;
-                let source = camera(record, &record.world_from_camera[i], i);
-                let novel = camera(record, &trajectory.world_from_camera[i], i);
-                row.push(render(&target, &depth, &source, &novel)?);
+                row.push(render.render(i, &camera(record, &trajectory.world_from_camera[i], i)));
             }
             Ok(Some(row))
         })

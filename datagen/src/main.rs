@@ -122,6 +122,10 @@ struct InspectArgs {
     /// Write every pair under this folder.
     #[arg(long)]
     export: Option<PathBuf>,
+    /// With --export: fill the holes of the contact sheet's novel renders from the static
+    /// background stacked over each clip's frames.
+    #[arg(long)]
+    stack_background: bool,
 }
 
 #[derive(Debug, Args)]
@@ -244,12 +248,9 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
 fn inspect(args: InspectArgs) -> anyhow::Result<()> {
     print!("{}", datagen::inspect::report(&args.path)?);
     if let Some(export) = &args.export {
-        let covisibility = datagen::covisibility::CovisibilityConfig::default();
-        let render = |frame: &image::RgbImage,
-                      depth: &datagen::depth_exr::DepthMap,
-                      source: &datagen::camera::PinholeCamera,
-                      novel: &datagen::camera::PinholeCamera| {
-            Ok(datagen::pairs::render_novel(frame, depth, source, novel, &covisibility))
+        let render = datagen::inspect::ExportRender {
+            covisibility: Default::default(),
+            stacking: args.stack_background.then(Default::default),
         };
         let folders = datagen::inspect::export(&args.path, export, Some(&render))?;
         println!("exported {} pairs to {}", folders.len(), export.display());
@@ -309,7 +310,7 @@ fn build(args: BuildArgs) -> anyhow::Result<()> {
     if args.timings {
         let t = processor.timings();
         println!(
-            "timings: {:.1} pairs/s, {:.2} MB/s written; wall {:.1} s = hash {:.1} s + process {:.1} s + write {:.1} s; \
+            "timings: {:.3} pairs/s, {:.2} MB/s written; wall {:.1} s = hash {:.1} s + process {:.1} s + write {:.1} s; \
              process: load (decode, reconstruction, masks) {:.1} s, per-frame phase {:.1} s wall (CPU: mesh+BVH {:.1} s, \
              rays {:.1} s, encode {:.1} s)",
             summary.pairs as f64 / summary.seconds.max(1e-9),

@@ -63,6 +63,59 @@ impl Sequence {
         Ok(())
     }
 
+    /// The sequence a stored clip was cut from, for its frames: decoded frames, depth and
+    /// dynamic masks, and its cameras. Errors name the clip and the field.
+    pub fn from_clip(record: &schemas::ClipRecord) -> Result<Self> {
+        let id = &record.clip_id;
+        let image = |bytes: &[u8], field: String| {
+            image::load_from_memory_with_format(bytes, image::ImageFormat::Png)
+                .map_err(|e| Error::Image { context: format!("{id}: {field}"), reason: e.to_string() })
+        };
+        let frames = record
+            .frames
+            .par_iter()
+            .enumerate()
+            .map(|(i, png)| Ok(image(png, format!("frames[{i}]"))?.to_rgb8()))
+            .collect::<Result<Vec<_>>>()?;
+        let depth = record
+            .depth
+            .par_iter()
+            .enumerate()
+            .map(|(i, exr)| crate::depth_exr::decode_depth_exr(exr, &format!("{id}: depth[{i}]")))
+            .collect::<Result<Vec<_>>>()?;
+        let dynamic_masks = match &record.dynamic_mask {
+            Some(masks) => Some(
+                masks
+                    .par_iter()
+                    .enumerate()
+                    .map(|(i, png)| Ok(image(png, format!("dynamic_mask[{i}]"))?.to_luma8()))
+                    .collect::<Result<Vec<_>>>()?,
+            ),
+            None => None,
+        };
+        let cameras = record
+            .intrinsics
+            .iter()
+            .zip(&record.world_from_camera)
+            .map(|(k, pose)| PinholeCamera {
+                width: record.width,
+                height: record.height,
+                intrinsics: mat3_from_row_major(k),
+                world_from_camera: mat4_from_row_major(pose),
+            })
+            .collect();
+        Ok(Self {
+            source_id: record.source_id.clone(),
+            path: PathBuf::from(&record.source_path),
+            fps: record.fps,
+            frames,
+            depth,
+            cameras,
+            dynamic_masks,
+            second_depth: None,
+        })
+    }
+
     /// Number of frames.
     pub fn len(&self) -> usize {
         self.frames.len()

@@ -21,10 +21,11 @@ APT_PACKAGES=(
 )
 # torch: libtorch for tch; diffusers + safetensors: numerical reference for the model port;
 # numpy, pyarrow, duckdb, datasets, pillow: interoperability checks of the shards; pycocotools:
-# reference RLE encoder for the SA-V mask decoder.
+# reference RLE encoder for the SA-V mask decoder; scikit-image: reference PSNR/SSIM for `trainer eval`.
 PY_PACKAGES=(
   "torch==${TORCH_VERSION}" "diffusers>=0.35" "safetensors>=0.4"
   "numpy>=1.26" "pyarrow>=17" "duckdb>=1.1" "datasets>=3" "pillow>=10" "pycocotools>=2"
+  "scikit-image>=0.22"
 )
 
 step "Debian packages: ${APT_PACKAGES[*]}"

@@ -81,6 +81,9 @@ pub enum Error {
         /// The parser's complaint.
         reason: String,
     },
+    /// Video, frames or a sequence could not be read (the `datagen` readers).
+    #[error(transparent)]
+    Datagen(#[from] datagen::Error),
     /// A training shard or other `schemas` file could not be read or written.
     #[error(transparent)]
     Schemas(#[from] schemas::Error),

@@ -10,6 +10,7 @@ pub mod diffusers_config;
 pub mod embeddings;
 pub mod error;
 pub mod forward;
+pub mod metrics;
 pub mod normalization;
 pub mod scheduling_cogvideox_dpm;
 pub mod scheduling_ddim;

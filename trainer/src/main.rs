@@ -23,6 +23,27 @@ enum Command {
     /// `timestep` [B] → `sample`; vae_encoder `sample` [B,3,F,H,W] → `latent` (posterior mean,
     /// unscaled); vae_decoder `latent` → `sample`. Outputs are written as fp32.
     Forward(ForwardArgs),
+    /// Compare a predicted video with the target: PSNR and SSIM (scikit-image conventions, data
+    /// range 1) per frame and on average, and over co-visible pixels only when --mask is given.
+    /// Prints JSON. LPIPS and FID are not computed (they need network weights this tool does
+    /// not download).
+    Eval(EvalArgs),
+}
+
+#[derive(Debug, Args)]
+struct EvalArgs {
+    /// Predicted video: a video file or a folder of PNG/JPEG frames.
+    #[arg(long)]
+    pred: PathBuf,
+    /// Target video: a video file or a folder of PNG/JPEG frames.
+    #[arg(long)]
+    target: PathBuf,
+    /// Folder of per-frame mask PNGs (non-zero = co-visible), e.g. an export's mask/ folder.
+    #[arg(long)]
+    mask: Option<PathBuf>,
+    /// Also write the JSON to this file.
+    #[arg(long)]
+    out: Option<PathBuf>,
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -69,7 +90,25 @@ struct ForwardArgs {
 fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Forward(args) => run_forward(args),
+        Command::Eval(args) => run_eval(args),
     }
+}
+
+fn run_eval(args: EvalArgs) -> anyhow::Result<()> {
+    use trainer::metrics;
+    let pred = metrics::read_frames(&args.pred).with_context(|| format!("--pred {}", args.pred.display()))?;
+    let target = metrics::read_frames(&args.target).with_context(|| format!("--target {}", args.target.display()))?;
+    let masks = match &args.mask {
+        Some(dir) => Some(metrics::read_masks(dir).with_context(|| format!("--mask {}", dir.display()))?),
+        None => None,
+    };
+    let result = metrics::video_metrics(&pred, &target, masks.as_deref())?;
+    let json = serde_json::to_string_pretty(&result)?;
+    if let Some(out) = &args.out {
+        std::fs::write(out, &json).with_context(|| format!("writing {}", out.display()))?;
+    }
+    println!("{json}");
+    Ok(())
 }
 
 fn run_forward(args: ForwardArgs) -> anyhow::Result<()> {

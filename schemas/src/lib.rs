@@ -17,8 +17,8 @@ pub use pairs::{
     TrajectoryRecord, pair_schema,
 };
 pub use shard::{
-    InputDigest, ShardReader, ShardStats, ShardWriter, ShardWriterOptions, is_finished, read_shard, read_stats,
-    stats_path, write_atomic,
+    InputDigest, ShardReader, ShardStats, ShardWriter, ShardWriterOptions, clip_count, is_finished, read_clip,
+    read_shard, read_stats, stats_path, write_atomic,
 };
 pub use status::{InputStatus, StatusRecord, read_status_table, status_schema, write_status_table};
 

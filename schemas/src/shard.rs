@@ -8,7 +8,9 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use parquet::arrow::ArrowWriter;
-use parquet::arrow::arrow_reader::{ParquetRecordBatchReader, ParquetRecordBatchReaderBuilder};
+use parquet::arrow::arrow_reader::{
+    ParquetRecordBatchReader, ParquetRecordBatchReaderBuilder, RowSelection, RowSelector,
+};
 use parquet::basic::{Compression, ZstdLevel};
 use parquet::file::metadata::KeyValue;
 use parquet::file::properties::{EnabledStatistics, WriterProperties};
@@ -242,44 +244,8 @@ pub struct ShardReader {
 impl ShardReader {
     /// Opens `path`, checking that it is a pairs shard of the version this code reads.
     pub fn open(path: &Path) -> Result<Self> {
-        let file = File::open(path).map_err(|e| Error::io(path, e))?;
+        let builder = open_checked(path)?;
         let parquet = |source| Error::Parquet { path: path.to_owned(), source };
-        let builder = ParquetRecordBatchReaderBuilder::try_new(file).map_err(parquet)?;
-        let key_values = builder.metadata().file_metadata().key_value_metadata().cloned().unwrap_or_default();
-        let lookup = |key: &str| key_values.iter().find(|kv| kv.key == key).and_then(|kv| kv.value.clone());
-        match lookup(SCHEMA_NAME_KEY) {
-            Some(name) if name == SCHEMA_NAME => {}
-            Some(name) => {
-                return Err(Error::mismatch(
-                    path,
-                    SCHEMA_NAME_KEY,
-                    format!("expected `{SCHEMA_NAME}`, found `{name}`"),
-                ));
-            }
-            None => return Err(Error::mismatch(path, SCHEMA_NAME_KEY, "missing: not a cognvs training-pair shard")),
-        }
-        let version = lookup(SCHEMA_VERSION_KEY).unwrap_or_default();
-        if version != SCHEMA_VERSION.to_string() {
-            return Err(Error::mismatch(
-                path,
-                SCHEMA_VERSION_KEY,
-                format!("shard has version `{version}`, this reader reads version {SCHEMA_VERSION}"),
-            ));
-        }
-        let expected = pair_schema();
-        for field in expected.fields() {
-            let found = builder
-                .schema()
-                .field_with_name(field.name())
-                .map_err(|_| Error::mismatch(path, field.name(), "column missing"))?;
-            if !found.data_type().equals_datatype(field.data_type()) {
-                return Err(Error::mismatch(
-                    path,
-                    field.name(),
-                    format!("expected type {}, found {}", field.data_type(), found.data_type()),
-                ));
-            }
-        }
         let num_rows = builder.metadata().file_metadata().num_rows() as usize;
         let batches = builder.with_batch_size(READ_BATCH_ROWS).build().map_err(parquet)?;
         Ok(Self { path: path.to_owned(), batches, pending: Vec::new().into_iter(), num_rows })
@@ -309,6 +275,82 @@ impl Iterator for ShardReader {
             }
         }
     }
+}
+
+/// Opens a shard for reading after checking its schema name, version and columns.
+fn open_checked(path: &Path) -> Result<ParquetRecordBatchReaderBuilder<File>> {
+    let file = File::open(path).map_err(|e| Error::io(path, e))?;
+    let parquet = |source| Error::Parquet { path: path.to_owned(), source };
+    let builder = ParquetRecordBatchReaderBuilder::try_new(file).map_err(parquet)?;
+    let key_values = builder.metadata().file_metadata().key_value_metadata().cloned().unwrap_or_default();
+    let lookup = |key: &str| key_values.iter().find(|kv| kv.key == key).and_then(|kv| kv.value.clone());
+    match lookup(SCHEMA_NAME_KEY) {
+        Some(name) if name == SCHEMA_NAME => {}
+        Some(name) => {
+            return Err(Error::mismatch(path, SCHEMA_NAME_KEY, format!("expected `{SCHEMA_NAME}`, found `{name}`")));
+        }
+        None => return Err(Error::mismatch(path, SCHEMA_NAME_KEY, "missing: not a cognvs training-pair shard")),
+    }
+    let version = lookup(SCHEMA_VERSION_KEY).unwrap_or_default();
+    if version != SCHEMA_VERSION.to_string() {
+        return Err(Error::mismatch(
+            path,
+            SCHEMA_VERSION_KEY,
+            format!("shard has version `{version}`, this reader reads version {SCHEMA_VERSION}"),
+        ));
+    }
+    let expected = pair_schema();
+    for field in expected.fields() {
+        let found = builder
+            .schema()
+            .field_with_name(field.name())
+            .map_err(|_| Error::mismatch(path, field.name(), "column missing"))?;
+        if !found.data_type().equals_datatype(field.data_type()) {
+            return Err(Error::mismatch(
+                path,
+                field.name(),
+                format!("expected type {}, found {}", field.data_type(), found.data_type()),
+            ));
+        }
+    }
+    Ok(builder)
+}
+
+/// Reads clip `row` (0-based) of a shard, decoding only the row group that holds it.
+pub fn read_clip(path: &Path, row: usize) -> Result<ClipRecord> {
+    let builder = open_checked(path)?;
+    let parquet = |source| Error::Parquet { path: path.to_owned(), source };
+    let mut first = 0usize;
+    let mut group = None;
+    for (g, meta) in builder.metadata().row_groups().iter().enumerate() {
+        let rows = meta.num_rows() as usize;
+        if row < first + rows {
+            group = Some((g, row - first));
+            break;
+        }
+        first += rows;
+    }
+    let (group, offset) = group
+        .ok_or_else(|| Error::mismatch(path, "row", format!("row {row} is past the last clip ({first} clips)")))?;
+    let selection = RowSelection::from(vec![RowSelector::skip(offset), RowSelector::select(1)]);
+    let reader = builder
+        .with_row_groups(vec![group])
+        .with_row_selection(selection)
+        .with_batch_size(1)
+        .build()
+        .map_err(parquet)?;
+    for batch in reader {
+        let batch = batch.map_err(|source| Error::Arrow { path: path.to_owned(), source })?;
+        if let Some(record) = batch_to_records(&batch, path)?.into_iter().next() {
+            return Ok(record);
+        }
+    }
+    Err(Error::mismatch(path, "row", format!("row {row} could not be read")))
+}
+
+/// Number of clips in a shard, from its footer (the schema is checked too).
+pub fn clip_count(path: &Path) -> Result<usize> {
+    Ok(open_checked(path)?.metadata().file_metadata().num_rows() as usize)
 }
 
 /// Reads every clip of a shard.

@@ -61,6 +61,13 @@ mod round_trip {
         let read = schemas::read_shard(&path).unwrap();
         assert_eq!(read, records);
         assert_eq!(schemas::read_stats(&path).unwrap(), stats);
+        // Random access reads only the row group holding the clip.
+        assert_eq!(schemas::clip_count(&path).unwrap(), 5);
+        for (row, record) in records.iter().enumerate() {
+            assert_eq!(&schemas::read_clip(&path, row).unwrap(), record, "row {row}");
+        }
+        let err = schemas::read_clip(&path, 5).unwrap_err().to_string();
+        assert!(err.contains("row 5") && err.contains("5 clips"), "{err}");
     }
 
     #[test]

@@ -6,6 +6,7 @@
 pub mod attention;
 pub mod autoencoder_kl_cogvideox;
 pub mod cogvideox_transformer_3d;
+pub mod data;
 pub mod diffusers_config;
 pub mod embeddings;
 pub mod error;

@@ -1,5 +1,6 @@
 //! The `trainer` integration tests: one binary, a module per feature.
 
+mod data;
 mod eval_cli;
 mod forward_cli;
 mod libtorch;

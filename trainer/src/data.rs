@@ -1,0 +1,408 @@
+//! Training batches from `schemas` shards (DESIGN §1, §5): each sample is one training pair —
+//! a window of a stored clip, one of its trajectories' conditioning (the masked source, or the
+//! stored depth-noise conditioning) and mask, and the clip's frames as the target — resized to
+//! cover the training resolution, centre-cropped and scaled to [-1, 1].
+//!
+//! Order: every epoch visits every clip of the corpus once in a fresh global permutation (seeded
+//! by the run seed and the epoch), which shuffles across shards completely rather than within a
+//! buffer; ranks take interleaved slices of it (`rank`, `rank + world_size`, …), so they are
+//! disjoint and together cover the epoch. Which trajectory and which window of a clip a sample
+//! uses is drawn from the seed, epoch and clip, so a batch is a pure function of
+//! (seed, epoch, batch index, rank): a run restarted at a [`DataPosition`] continues exactly.
+//! Clips are read by random access (`schemas::read_clip` decodes only the row group holding one;
+//! the corpus builder sizes row groups by bytes). Clips shorter than the window repeat their last
+//! frame.
+//!
+//! A background thread decodes batches ahead of the trainer (frames of a batch in parallel) into a
+//! bounded queue of `prefetch_batches`, so memory stays at a few batches whatever the corpus size.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::{Receiver, SyncSender, sync_channel};
+use std::thread::JoinHandle;
+
+use image::imageops::FilterType;
+use image::{GrayImage, Rgb, RgbImage};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
+use schemas::ClipRecord;
+use serde::{Deserialize, Serialize};
+use tch::{Kind, Tensor};
+
+use crate::error::{Error, Result};
+
+/// What the loader produces.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DataConfig {
+    /// Frames per sample (CogVideoX: 4k + 1, 49 in the paper).
+    pub frames: usize,
+    /// Training height in pixels.
+    pub height: u32,
+    /// Training width in pixels.
+    pub width: u32,
+    /// Samples per batch (per rank).
+    pub batch_size: usize,
+    /// Seed of the order, trajectory and window choices.
+    pub seed: u64,
+    /// This process's rank.
+    #[serde(default)]
+    pub rank: usize,
+    /// Number of ranks.
+    #[serde(default = "one")]
+    pub world_size: usize,
+    /// Batches decoded ahead of the trainer.
+    #[serde(default = "two")]
+    pub prefetch_batches: usize,
+}
+
+fn one() -> usize {
+    1
+}
+
+fn two() -> usize {
+    2
+}
+
+/// Where a loader is in the data: the next batch it will return. Stored in checkpoints.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+pub struct DataPosition {
+    /// Epoch (0-based).
+    pub epoch: u64,
+    /// Batch index within the epoch, for this rank.
+    pub batch: u64,
+}
+
+/// One batch.
+#[derive(Debug)]
+pub struct Batch {
+    /// Target frames `[B, 3, F, H, W]` in [-1, 1].
+    pub target: Tensor,
+    /// Conditioning frames `[B, 3, F, H, W]` in [-1, 1] (hidden pixels black, i.e. -1).
+    pub condition: Tensor,
+    /// Co-visibility `[B, 1, F, H, W]`, 1 co-visible, 0 hidden.
+    pub mask: Tensor,
+    /// Per sample: `clip_id#t<trajectory>@<window start>`, for error messages.
+    pub provenance: Vec<String>,
+    /// This batch's position.
+    pub position: DataPosition,
+}
+
+/// A clip in the corpus: its shard and row.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct ClipRef {
+    shard: usize,
+    row: usize,
+}
+
+/// Every clip of a set of shard folders (finished shards only).
+#[derive(Debug, Clone)]
+pub struct ClipIndex {
+    shards: Vec<PathBuf>,
+    clips: Vec<ClipRef>,
+}
+
+impl ClipIndex {
+    /// Lists the finished shards (`*.parquet` with a stats marker) of `dirs` (or shard files) and
+    /// their clip counts; a shard of another schema or version is an error naming it.
+    pub fn open(dirs: &[PathBuf]) -> Result<Self> {
+        let mut shards = Vec::new();
+        for dir in dirs {
+            if dir.is_file() {
+                shards.push(dir.clone());
+                continue;
+            }
+            let entries = std::fs::read_dir(dir).map_err(|source| Error::Io { path: dir.clone(), source })?;
+            let mut found: Vec<PathBuf> = entries
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| p.extension().is_some_and(|e| e == "parquet") && schemas::is_finished(p))
+                .collect();
+            found.sort();
+            shards.extend(found);
+        }
+        let mut clips = Vec::new();
+        for (shard, path) in shards.iter().enumerate() {
+            let rows = schemas::clip_count(path)?;
+            clips.extend((0..rows).map(|row| ClipRef { shard, row }));
+        }
+        if clips.is_empty() {
+            let names: Vec<String> = dirs.iter().map(|d| d.display().to_string()).collect();
+            return Err(Error::InvalidArgument {
+                name: "shards".to_string(),
+                reason: format!("no clips in finished shards under {}", names.join(", ")),
+            });
+        }
+        Ok(Self { shards, clips })
+    }
+
+    /// Number of clips.
+    pub fn len(&self) -> usize {
+        self.clips.len()
+    }
+
+    /// Whether there are no clips (never true for an opened index).
+    pub fn is_empty(&self) -> bool {
+        self.clips.is_empty()
+    }
+
+    /// The shard files, in index order.
+    pub fn shards(&self) -> &[PathBuf] {
+        &self.shards
+    }
+}
+
+fn rng(seed: u64, parts: &[u64]) -> ChaCha8Rng {
+    let mut hasher = blake3::Hasher::new();
+    hasher.update(b"cognvs data v1");
+    hasher.update(&seed.to_le_bytes());
+    for p in parts {
+        hasher.update(&p.to_le_bytes());
+    }
+    ChaCha8Rng::from_seed(*hasher.finalize().as_bytes())
+}
+
+/// The epoch's global clip order (Fisher–Yates on a seeded generator).
+fn epoch_order(len: usize, seed: u64, epoch: u64) -> Vec<usize> {
+    let mut order: Vec<usize> = (0..len).collect();
+    let mut rng = rng(seed, &[epoch]);
+    for i in (1..len).rev() {
+        order.swap(i, rng.random_range(0..=i));
+    }
+    order
+}
+
+/// Batches of the dataset for one rank.
+struct Plan {
+    index: Arc<ClipIndex>,
+    config: DataConfig,
+    batches_per_epoch: u64,
+}
+
+impl Plan {
+    fn new(index: Arc<ClipIndex>, config: DataConfig) -> Result<Self> {
+        let bad = |name: &str, reason: String| Error::InvalidArgument { name: name.to_string(), reason };
+        if config.world_size == 0 || config.rank >= config.world_size {
+            return Err(bad("rank", format!("{} is not below world_size {}", config.rank, config.world_size)));
+        }
+        if config.frames == 0 || config.batch_size == 0 || config.height == 0 || config.width == 0 {
+            return Err(bad("data", "frames, batch_size, height and width must be positive".to_string()));
+        }
+        let per_rank = index.len() / config.world_size;
+        let batches_per_epoch = (per_rank / config.batch_size) as u64;
+        if batches_per_epoch == 0 {
+            return Err(bad(
+                "batch_size",
+                format!(
+                    "{} clips cannot fill one batch of {} on each of {} ranks",
+                    index.len(),
+                    config.batch_size,
+                    config.world_size
+                ),
+            ));
+        }
+        Ok(Self { index, config, batches_per_epoch })
+    }
+
+    fn batch(&self, position: DataPosition) -> Result<Batch> {
+        let c = &self.config;
+        let order = epoch_order(self.index.len(), c.seed, position.epoch);
+        let samples = (0..c.batch_size)
+            .into_par_iter()
+            .map(|k| {
+                let slot = (position.batch as usize * c.batch_size + k) * c.world_size + c.rank;
+                let clip = self.index.clips[order[slot]];
+                let mut choice = rng(c.seed, &[position.epoch, clip.shard as u64, clip.row as u64]);
+                let record = schemas::read_clip(&self.index.shards[clip.shard], clip.row)?;
+                sample(&record, c, &mut choice)
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let stack = |pick: fn(&Sample) -> &Tensor| Tensor::f_stack(&samples.iter().map(pick).collect::<Vec<_>>(), 0);
+        Ok(Batch {
+            target: stack(|s| &s.target)?,
+            condition: stack(|s| &s.condition)?,
+            mask: stack(|s| &s.mask)?,
+            provenance: samples.iter().map(|s| s.provenance.clone()).collect(),
+            position,
+        })
+    }
+
+    fn advance(&self, position: DataPosition) -> DataPosition {
+        if position.batch + 1 >= self.batches_per_epoch {
+            DataPosition { epoch: position.epoch + 1, batch: 0 }
+        } else {
+            DataPosition { epoch: position.epoch, batch: position.batch + 1 }
+        }
+    }
+}
+
+struct Sample {
+    target: Tensor,
+    condition: Tensor,
+    mask: Tensor,
+    provenance: String,
+}
+
+fn decode_png(bytes: &[u8], clip: &str, field: String) -> Result<image::DynamicImage> {
+    image::load_from_memory_with_format(bytes, image::ImageFormat::Png)
+        .map_err(|e| Error::InvalidArgument { name: format!("{clip}: {field}"), reason: format!("not a PNG: {e}") })
+}
+
+/// Scales `image` to cover `width × height` (keeping its aspect) and crops the centre.
+fn cover_crop<P: image::Pixel<Subpixel = u8> + 'static>(
+    image: &image::ImageBuffer<P, Vec<u8>>,
+    width: u32,
+    height: u32,
+    filter: FilterType,
+) -> image::ImageBuffer<P, Vec<u8>> {
+    let (w, h) = image.dimensions();
+    if (w, h) == (width, height) {
+        return image.clone();
+    }
+    let scale = (f64::from(width) / f64::from(w)).max(f64::from(height) / f64::from(h));
+    let (sw, sh) =
+        (((f64::from(w) * scale).round() as u32).max(width), ((f64::from(h) * scale).round() as u32).max(height));
+    let scaled = image::imageops::resize(image, sw, sh, filter);
+    image::imageops::crop_imm(&scaled, (sw - width) / 2, (sh - height) / 2, width, height).to_image()
+}
+
+fn sample(record: &ClipRecord, c: &DataConfig, choice: &mut ChaCha8Rng) -> Result<Sample> {
+    let id = &record.clip_id;
+    let n = record.num_frames();
+    if record.trajectories.is_empty() || n == 0 {
+        return Err(Error::InvalidArgument {
+            name: id.clone(),
+            reason: "clip has no frames or no trajectories".to_string(),
+        });
+    }
+    let t = choice.random_range(0..record.trajectories.len());
+    let start = if n > c.frames { choice.random_range(0..=n - c.frames) } else { 0 };
+    let trajectory = &record.trajectories[t];
+    let frames: Vec<(RgbImage, RgbImage, GrayImage)> = (0..c.frames)
+        .map(|k| {
+            let i = (start + k).min(n - 1);
+            let target = decode_png(&record.frames[i], id, format!("frames[{i}]"))?.to_rgb8();
+            let mask = decode_png(&trajectory.covisible_mask[i], id, format!("trajectories[{t}].covisible_mask[{i}]"))?
+                .to_luma8();
+            let condition = match &trajectory.condition {
+                Some(stored) => decode_png(&stored[i], id, format!("trajectories[{t}].condition[{i}]"))?.to_rgb8(),
+                None => target.clone(),
+            };
+            let target = cover_crop(&target, c.width, c.height, FilterType::Triangle);
+            let mut condition = cover_crop(&condition, c.width, c.height, FilterType::Triangle);
+            let mask = cover_crop(&mask, c.width, c.height, FilterType::Nearest);
+            for (pixel, m) in condition.pixels_mut().zip(mask.pixels()) {
+                if m.0[0] == 0 {
+                    *pixel = Rgb([0, 0, 0]);
+                }
+            }
+            Ok((target, condition, mask))
+        })
+        .collect::<Result<_>>()?;
+    let (f, h, w) = (c.frames as i64, i64::from(c.height), i64::from(c.width));
+    let video = |pick: fn(&(RgbImage, RgbImage, GrayImage)) -> &RgbImage| -> Result<Tensor> {
+        let bytes: Vec<u8> = frames.iter().flat_map(|fr| pick(fr).as_raw().iter().copied()).collect();
+        // [F, H, W, 3] → [3, F, H, W], scaled to [-1, 1].
+        Ok(Tensor::from_slice(&bytes)
+            .f_view([f, h, w, 3])?
+            .f_permute([3, 0, 1, 2])?
+            .f_to_kind(Kind::Float)?
+            .f_div_scalar(127.5)?
+            .f_sub_scalar(1.0)?)
+    };
+    let mask_bytes: Vec<u8> = frames.iter().flat_map(|fr| fr.2.as_raw().iter().map(|&v| u8::from(v != 0))).collect();
+    Ok(Sample {
+        target: video(|fr| &fr.0)?,
+        condition: video(|fr| &fr.1)?,
+        mask: Tensor::from_slice(&mask_bytes).f_view([1, f, h, w])?.f_to_kind(Kind::Float)?,
+        provenance: format!("{id}#t{}@{start}", trajectory.index),
+    })
+}
+
+/// Batches from a background thread, in order, from a starting position.
+pub struct ShardLoader {
+    receiver: Option<Receiver<Result<Batch>>>,
+    stop: Arc<AtomicBool>,
+    worker: Option<JoinHandle<()>>,
+    next: DataPosition,
+    batches_per_epoch: u64,
+}
+
+impl ShardLoader {
+    /// Starts loading at `start` (the beginning: `DataPosition::default()`).
+    pub fn new(index: Arc<ClipIndex>, config: DataConfig, start: DataPosition) -> Result<Self> {
+        let prefetch = config.prefetch_batches.max(1);
+        let plan = Plan::new(index, config)?;
+        let batches_per_epoch = plan.batches_per_epoch;
+        let stop = Arc::new(AtomicBool::new(false));
+        let (sender, receiver) = sync_channel(prefetch);
+        let worker = {
+            let stop = Arc::clone(&stop);
+            std::thread::Builder::new()
+                .name("cognvs-data".to_string())
+                .spawn(move || produce(plan, start, sender, stop))
+                .map_err(|source| Error::Io { path: PathBuf::from("<data loader thread>"), source })?
+        };
+        Ok(Self { receiver: Some(receiver), stop, worker: Some(worker), next: start, batches_per_epoch })
+    }
+
+    /// Opens the shards under `dirs` and starts loading at `start`.
+    pub fn open(dirs: &[PathBuf], config: DataConfig, start: DataPosition) -> Result<Self> {
+        Self::new(Arc::new(ClipIndex::open(dirs)?), config, start)
+    }
+
+    /// The next batch (blocks while it is being decoded).
+    pub fn next_batch(&mut self) -> Result<Batch> {
+        let batch = self.receiver.as_ref().expect("open until dropped").recv().map_err(|_| {
+            Error::InvalidArgument { name: "data loader".to_string(), reason: "the loading thread stopped".to_string() }
+        })??;
+        self.next = if batch.position.batch + 1 >= self.batches_per_epoch {
+            DataPosition { epoch: batch.position.epoch + 1, batch: 0 }
+        } else {
+            DataPosition { epoch: batch.position.epoch, batch: batch.position.batch + 1 }
+        };
+        Ok(batch)
+    }
+
+    /// Where the next [`Self::next_batch`] continues: store it to resume exactly.
+    pub fn position(&self) -> DataPosition {
+        self.next
+    }
+
+    /// Batches per epoch for this rank.
+    pub fn batches_per_epoch(&self) -> u64 {
+        self.batches_per_epoch
+    }
+}
+
+fn produce(plan: Plan, start: DataPosition, sender: SyncSender<Result<Batch>>, stop: Arc<AtomicBool>) {
+    let mut position = start;
+    while !stop.load(Ordering::Relaxed) {
+        let batch = plan.batch(position);
+        let failed = batch.is_err();
+        if sender.send(batch).is_err() || failed {
+            return;
+        }
+        position = plan.advance(position);
+    }
+}
+
+impl Drop for ShardLoader {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        // Closing the channel unblocks a producer waiting to send.
+        drop(self.receiver.take());
+        if let Some(worker) = self.worker.take() {
+            let _ = worker.join();
+        }
+    }
+}
+
+/// The shard folders' clip count and the batches per epoch a config gives, without loading.
+pub fn describe(dirs: &[PathBuf], config: &DataConfig) -> Result<(usize, u64)> {
+    let index = Arc::new(ClipIndex::open(dirs)?);
+    let clips = index.len();
+    let plan = Plan::new(index, config.clone())?;
+    Ok((clips, plan.batches_per_epoch))
+}

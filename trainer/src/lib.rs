@@ -15,6 +15,7 @@ pub mod metrics;
 pub mod normalization;
 pub mod scheduling_cogvideox_dpm;
 pub mod scheduling_ddim;
+pub mod training;
 pub mod weights;
 
 pub use error::{Error, Result};

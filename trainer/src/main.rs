@@ -28,6 +28,30 @@ enum Command {
     /// Prints JSON. LPIPS and FID are not computed (they need network weights this tool does
     /// not download).
     Eval(EvalArgs),
+    /// Pretrain the transformer on training-pair shards (datagen pairs/build output): v-prediction
+    /// with the CogVideoX-5B schedule, AdamW, checkpoints in the diffusers layout plus optimizer
+    /// and data position; --resume continues the run exactly.
+    Pretrain(PretrainArgs),
+}
+
+#[derive(Debug, Args)]
+struct PretrainArgs {
+    /// Training TOML: [model] (transformer, vae, text_embedding), [data] (frames, height, width,
+    /// batch_size, seed), [optim], [loop] (see configs/pretrain_tiny.toml).
+    #[arg(long)]
+    config: PathBuf,
+    /// Shard folders or files; repeatable.
+    #[arg(long, required = true, num_args = 1..)]
+    shards: Vec<PathBuf>,
+    /// Run folder: checkpoints/, metrics.jsonl, config.json.
+    #[arg(long)]
+    out: PathBuf,
+    /// Continue the run in --out from its latest checkpoint.
+    #[arg(long)]
+    resume: bool,
+    /// Compute device: cpu, cuda or cuda:N.
+    #[arg(long, default_value = "cpu")]
+    device: String,
 }
 
 #[derive(Debug, Args)]
@@ -91,7 +115,31 @@ fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Forward(args) => run_forward(args),
         Command::Eval(args) => run_eval(args),
+        Command::Pretrain(args) => run_pretrain(args),
     }
+}
+
+fn run_pretrain(args: PretrainArgs) -> anyhow::Result<()> {
+    use trainer::training;
+    let config = training::PretrainConfig::from_toml_file(&args.config)?;
+    let device = forward::parse_device(&args.device)?;
+    let bar = indicatif::ProgressBar::new(config.train.steps).with_style(
+        indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} steps {msg} [{elapsed_precise}, eta {eta}]")
+            .expect("valid template"),
+    );
+    let summary = training::pretrain(&config, &args.shards, &args.out, args.resume, device, |m| {
+        bar.set_position(m.step);
+        bar.set_message(format!("loss {:.4}, {:.2} step/s", m.loss, 1.0 / m.seconds.max(1e-9)));
+    })?;
+    bar.finish_and_clear();
+    println!(
+        "trained steps {}..{} into {}; last checkpoint: {}",
+        summary.resumed_from,
+        summary.steps,
+        args.out.display(),
+        summary.last_checkpoint.map_or("none".to_string(), |p| p.display().to_string())
+    );
+    Ok(())
 }
 
 fn run_eval(args: EvalArgs) -> anyhow::Result<()> {

@@ -5,6 +5,7 @@ mod eval_cli;
 mod forward_cli;
 mod libtorch;
 mod parity;
+mod pretrain;
 mod scheduler;
 mod transformer;
 mod vae;

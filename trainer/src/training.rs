@@ -1,0 +1,652 @@
+//! Pretraining the CogNVS transformer on shard pairs (DESIGN §6): the objective, AdamW, the
+//! learning-rate schedule, gradient clipping and accumulation, checkpoints that resume exactly,
+//! and the `trainer pretrain` loop.
+//!
+//! Objective (the public CogNVS code): the target clip is VAE-encoded (a posterior sample ×
+//! `scaling_factor`); the conditioning clip is noise-augmented with σ = exp(N(μ, s)) per sample
+//! (μ = −3, s = 0.5) before encoding; the noisy target latent at a uniform timestep t and the
+//! condition latent are concatenated on channels; the transformer predicts v, from which
+//! x̂₀ = √ᾱ_t·x_t − √(1−ᾱ_t)·v̂; the loss is mean((x̂₀ − x₀)² / (1−ᾱ_t)). The VAE is frozen.
+//! The text input is a fixed embedding of the empty prompt: loaded from a safetensors file
+//! (`encoder_hidden_states` `[S, D]`, e.g. T5-XXL's encoding of "" for the real model) or zeros.
+//!
+//! Determinism: every random draw of step k comes from tch's generator seeded with
+//! (seed, k), and batches are a pure function of the data position, so a run resumed from a
+//! checkpoint reproduces the uninterrupted run's losses exactly (fp32, same machine and threads).
+//!
+//! Checkpoints: `RUN_DIR/checkpoints/step-NNNNNNNN/` holds `transformer/` (diffusers layout,
+//! loadable by `from_pretrained`), `optimizer.safetensors` (AdamW moments) and `state.json`
+//! (step, data position); written under a temporary name and renamed, the oldest beyond
+//! `keep_last` removed. `RUN_DIR/metrics.jsonl` has one line per step.
+
+use std::collections::BTreeMap;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+use tch::{Device, Kind, Tensor, nn};
+
+use crate::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoX, AutoencoderKLCogVideoXConfig};
+use crate::cogvideox_transformer_3d::{
+    self as transformer, CogVideoXTransformer3DModel, CogVideoXTransformer3DModelConfig, TransformerInput,
+};
+use crate::data::{Batch, DataConfig, DataPosition, ShardLoader};
+use crate::error::{Error, Result};
+use crate::scheduling_ddim::{CogVideoXSchedulerConfig, NoiseSchedule};
+use crate::weights;
+
+/// Which models to train and with what.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModelConfig {
+    /// Transformer: a preset (`tiny`, `cognvs-5b`, `cogvideox-2b`, random init) or a diffusers
+    /// model folder (config.json + weights) to start from.
+    pub transformer: String,
+    /// VAE: a preset (`tiny` random init with `seed`, `cogvideox-5b`) or a diffusers model folder.
+    pub vae: String,
+    /// Optional safetensors file with `encoder_hidden_states` `[S, D]`: the empty prompt's text
+    /// embedding. Zeros when unset.
+    #[serde(default)]
+    pub text_embedding: Option<PathBuf>,
+}
+
+/// AdamW and its schedule (paper: lr 2e-5, β = (0.9, 0.95)).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct OptimConfig {
+    /// Peak learning rate.
+    pub lr: f64,
+    /// First-moment decay.
+    pub beta1: f64,
+    /// Second-moment decay.
+    pub beta2: f64,
+    /// Decoupled weight decay.
+    pub weight_decay: f64,
+    /// Denominator epsilon.
+    pub eps: f64,
+    /// Linear warm-up steps from 0 to `lr`.
+    pub warmup_steps: u64,
+    /// After warm-up: `constant` or `cosine` (to 0 at the last step).
+    pub schedule: String,
+    /// Gradient-norm clip (0: none).
+    pub max_grad_norm: f64,
+    /// Micro-batches accumulated per optimizer step.
+    pub grad_accumulation: u64,
+}
+
+impl Default for OptimConfig {
+    fn default() -> Self {
+        Self {
+            lr: 2e-5,
+            beta1: 0.9,
+            beta2: 0.95,
+            weight_decay: 1e-4,
+            eps: 1e-8,
+            warmup_steps: 0,
+            schedule: "constant".to_string(),
+            max_grad_norm: 1.0,
+            grad_accumulation: 1,
+        }
+    }
+}
+
+/// The loop.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LoopConfig {
+    /// Optimizer steps in all (a resumed run continues up to this).
+    pub steps: u64,
+    /// Seed of model init and of every per-step draw.
+    pub seed: u64,
+    /// Steps between checkpoints (and one at the end).
+    pub checkpoint_every: u64,
+    /// Checkpoints kept.
+    pub keep_last: usize,
+    /// Mean of log σ of the condition noise augmentation.
+    pub condition_noise_log_mean: f64,
+    /// Standard deviation of log σ.
+    pub condition_noise_log_std: f64,
+}
+
+impl Default for LoopConfig {
+    fn default() -> Self {
+        Self {
+            steps: 12_000,
+            seed: 0,
+            checkpoint_every: 500,
+            keep_last: 3,
+            condition_noise_log_mean: -3.0,
+            condition_noise_log_std: 0.5,
+        }
+    }
+}
+
+/// `trainer pretrain --config` TOML.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PretrainConfig {
+    /// Models.
+    pub model: ModelConfig,
+    /// Batches.
+    pub data: DataConfig,
+    /// Optimizer.
+    #[serde(default)]
+    pub optim: OptimConfig,
+    /// Loop.
+    #[serde(default, rename = "loop")]
+    pub train: LoopConfig,
+}
+
+impl PretrainConfig {
+    /// Reads and checks a TOML config, naming the file and field on error.
+    pub fn from_toml_file(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).map_err(|source| Error::Io { path: path.to_path_buf(), source })?;
+        let config: Self = toml::from_str(&text).map_err(|e| Error::InvalidConfig {
+            source_name: path.display().to_string(),
+            field: "(toml)".to_string(),
+            reason: e.to_string(),
+        })?;
+        let bad = |field: &str, reason: &str| Error::InvalidConfig {
+            source_name: path.display().to_string(),
+            field: field.to_string(),
+            reason: reason.to_string(),
+        };
+        if !["constant", "cosine"].contains(&config.optim.schedule.as_str()) {
+            return Err(bad("optim.schedule", "must be `constant` or `cosine`"));
+        }
+        if config.optim.grad_accumulation == 0 || config.train.checkpoint_every == 0 || config.train.keep_last == 0 {
+            return Err(bad(
+                "optim.grad_accumulation",
+                "grad_accumulation, checkpoint_every and keep_last must be ≥ 1",
+            ));
+        }
+        if config.data.frames == 0 || !(config.data.frames - 1).is_multiple_of(4) {
+            return Err(bad("data.frames", "must be 4k + 1 (the VAE compresses time by 4 after the first frame)"));
+        }
+        Ok(config)
+    }
+}
+
+// ------------------------------------------------------------------------------------------------
+// AdamW with saveable state
+// ------------------------------------------------------------------------------------------------
+
+/// PyTorch's `torch.optim.AdamW` (decoupled weight decay, bias correction), with its moments in
+/// tensors that checkpoints save and load.
+pub struct AdamW {
+    config: OptimConfig,
+    params: Vec<(String, Tensor)>,
+    exp_avg: Vec<Tensor>,
+    exp_avg_sq: Vec<Tensor>,
+    step: u64,
+}
+
+impl AdamW {
+    /// Optimizes every trainable variable of `vs`.
+    pub fn new(vs: &nn::VarStore, config: OptimConfig) -> Self {
+        let mut params: Vec<(String, Tensor)> = vs.variables().into_iter().filter(|(_, t)| t.requires_grad()).collect();
+        params.sort_by(|a, b| a.0.cmp(&b.0));
+        let zeros = |p: &Tensor| p.zeros_like();
+        let exp_avg = params.iter().map(|(_, p)| zeros(p)).collect();
+        let exp_avg_sq = params.iter().map(|(_, p)| zeros(p)).collect();
+        Self { config, params, exp_avg, exp_avg_sq, step: 0 }
+    }
+
+    /// Zeroes every gradient.
+    pub fn zero_grad(&self) {
+        for (_, p) in &self.params {
+            let mut grad = p.grad();
+            if grad.defined() {
+                let _ = grad.zero_();
+            }
+        }
+    }
+
+    /// Scales gradients so their global L2 norm is at most `max_norm` (PyTorch's
+    /// `clip_grad_norm_`); returns the norm before clipping.
+    pub fn clip_grad_norm(&self, max_norm: f64) -> Result<f64> {
+        let mut total = 0.0;
+        for (_, p) in &self.params {
+            let grad = p.grad();
+            if grad.defined() {
+                total += grad.f_square()?.f_sum(Kind::Double)?.double_value(&[]);
+            }
+        }
+        let norm = total.sqrt();
+        if max_norm > 0.0 {
+            let coef = (max_norm / (norm + 1e-6)).min(1.0);
+            if coef < 1.0 {
+                for (_, p) in &self.params {
+                    let mut grad = p.grad();
+                    if grad.defined() {
+                        let _ = grad.f_mul_scalar_(coef)?;
+                    }
+                }
+            }
+        }
+        Ok(norm)
+    }
+
+    /// One update with learning rate `lr`.
+    pub fn step(&mut self, lr: f64) -> Result<()> {
+        self.step += 1;
+        let c = &self.config;
+        let bias1 = 1.0 - c.beta1.powi(self.step as i32);
+        let bias2 = 1.0 - c.beta2.powi(self.step as i32);
+        tch::no_grad(|| -> Result<()> {
+            for (i, (_, p)) in self.params.iter().enumerate() {
+                let grad = p.grad();
+                if !grad.defined() {
+                    continue;
+                }
+                let mut p = p.shallow_clone();
+                let _ = p.f_mul_scalar_(1.0 - lr * c.weight_decay)?;
+                let _ = self.exp_avg[i].f_mul_scalar_(c.beta1)?.f_add_(&grad.f_mul_scalar(1.0 - c.beta1)?)?;
+                let _ = self.exp_avg_sq[i]
+                    .f_mul_scalar_(c.beta2)?
+                    .f_add_(&grad.f_square()?.f_mul_scalar(1.0 - c.beta2)?)?;
+                let denom = self.exp_avg_sq[i].f_sqrt()?.f_div_scalar(bias2.sqrt())?.f_add_scalar(c.eps)?;
+                let _ = p.f_sub_(&self.exp_avg[i].f_div(&denom)?.f_mul_scalar(lr / bias1)?)?;
+            }
+            Ok(())
+        })
+    }
+
+    /// Optimizer steps taken.
+    pub fn steps(&self) -> u64 {
+        self.step
+    }
+
+    fn save(&self, path: &Path) -> Result<()> {
+        let mut named: Vec<(String, &Tensor)> = Vec::new();
+        for (i, (name, _)) in self.params.iter().enumerate() {
+            named.push((format!("exp_avg.{name}"), &self.exp_avg[i]));
+            named.push((format!("exp_avg_sq.{name}"), &self.exp_avg_sq[i]));
+        }
+        let step = Tensor::from_slice(&[self.step as i64]);
+        named.push(("step".to_string(), &step));
+        Tensor::write_safetensors(&named, path)
+            .map_err(|e| Error::Safetensors { path: path.to_path_buf(), reason: e.to_string() })
+    }
+
+    fn load(&mut self, path: &Path) -> Result<()> {
+        let tensors: BTreeMap<String, Tensor> = Tensor::read_safetensors(path)
+            .map_err(|e| Error::Safetensors { path: path.to_path_buf(), reason: e.to_string() })?
+            .into_iter()
+            .collect();
+        let get = |name: &str, like: &Tensor| -> Result<Tensor> {
+            let t = tensors.get(name).ok_or_else(|| Error::MissingTensor {
+                path: path.to_path_buf(),
+                tensor: name.to_string(),
+                expected: like.size(),
+            })?;
+            weights::check_shape(name, t, &like.size())?;
+            Ok(t.f_to_kind(like.kind())?.f_to_device(like.device())?)
+        };
+        for (i, (name, p)) in self.params.iter().enumerate() {
+            self.exp_avg[i] = get(&format!("exp_avg.{name}"), p)?;
+            self.exp_avg_sq[i] = get(&format!("exp_avg_sq.{name}"), p)?;
+        }
+        self.step = tensors.get("step").map(|t| t.int64_value(&[0]) as u64).unwrap_or(0);
+        Ok(())
+    }
+}
+
+/// The learning rate at optimizer step `step` (0-based).
+pub fn learning_rate(config: &OptimConfig, step: u64, total_steps: u64) -> f64 {
+    if step < config.warmup_steps {
+        return config.lr * (step + 1) as f64 / config.warmup_steps as f64;
+    }
+    match config.schedule.as_str() {
+        "cosine" => {
+            let span = total_steps.saturating_sub(config.warmup_steps).max(1) as f64;
+            let progress = (step - config.warmup_steps) as f64 / span;
+            config.lr * 0.5 * (1.0 + (std::f64::consts::PI * progress.min(1.0)).cos())
+        }
+        _ => config.lr,
+    }
+}
+
+// ------------------------------------------------------------------------------------------------
+// Models and the objective
+// ------------------------------------------------------------------------------------------------
+
+/// The trained transformer, the frozen VAE, the noise schedule and the text input.
+pub struct CogNvsModel {
+    /// The transformer's variables.
+    pub vs: nn::VarStore,
+    /// The transformer.
+    pub transformer: CogVideoXTransformer3DModel,
+    /// The VAE's variables (frozen).
+    pub vae_vs: nn::VarStore,
+    /// The VAE.
+    pub vae: AutoencoderKLCogVideoX,
+    /// The training noise schedule (CogVideoX-5B scheduler).
+    pub schedule: NoiseSchedule,
+    /// `[1, S, D]` text embedding of the empty prompt.
+    pub text: Tensor,
+}
+
+impl CogNvsModel {
+    /// Builds (preset names, random init from `seed`) or loads (model folders) the models.
+    pub fn load(config: &ModelConfig, seed: u64, device: Device) -> Result<Self> {
+        tch::manual_seed(seed as i64);
+        let transformer_config = match Path::new(&config.transformer) {
+            p if p.is_dir() => CogVideoXTransformer3DModelConfig::from_json_file(p)?,
+            _ => CogVideoXTransformer3DModelConfig::preset(&config.transformer)?,
+        };
+        let (vs, transformer) = transformer::build(&transformer_config, device, Kind::Float)?;
+        if Path::new(&config.transformer).is_dir() {
+            weights::load(&vs, Path::new(&config.transformer))?;
+        }
+        let vae_config = match Path::new(&config.vae) {
+            p if p.is_dir() => AutoencoderKLCogVideoXConfig::from_json_file(p)?,
+            _ => AutoencoderKLCogVideoXConfig::preset(&config.vae)?,
+        };
+        let (mut vae_vs, vae) = vae::build(&vae_config, device, Kind::Float)?;
+        if Path::new(&config.vae).is_dir() {
+            weights::load(&vae_vs, Path::new(&config.vae))?;
+        }
+        vae_vs.freeze();
+        let c = &transformer_config;
+        let text = match &config.text_embedding {
+            Some(path) => {
+                let t = Tensor::read_safetensors(path)
+                    .map_err(|e| Error::Safetensors { path: path.clone(), reason: e.to_string() })?
+                    .into_iter()
+                    .find(|(n, _)| n == "encoder_hidden_states")
+                    .ok_or_else(|| Error::MissingTensor {
+                        path: path.clone(),
+                        tensor: "encoder_hidden_states".to_string(),
+                        expected: vec![c.max_text_seq_length, c.text_embed_dim],
+                    })?
+                    .1;
+                weights::check_shape("encoder_hidden_states", &t, &[c.max_text_seq_length, c.text_embed_dim])?;
+                t.f_to_kind(Kind::Float)?.f_to_device(device)?.f_unsqueeze(0)?
+            }
+            None => Tensor::f_zeros([1, c.max_text_seq_length, c.text_embed_dim], (Kind::Float, device))?,
+        };
+        let schedule = NoiseSchedule::new(&CogVideoXSchedulerConfig::cogvideox_5b())?;
+        Ok(Self { vs, transformer, vae_vs, vae, schedule, text })
+    }
+
+    /// Scaled latents `[B, F', C, h, w]` of a video batch `[B, 3, F, H, W]` (a posterior sample).
+    pub fn encode(&self, video: &Tensor) -> Result<Tensor> {
+        let latent = tch::no_grad(|| -> Result<Tensor> { self.vae.encode_posterior(video)?.sample() })?;
+        Ok(latent.f_mul_scalar(self.vae.config().scaling_factor)?.f_permute([0, 2, 1, 3, 4])?.f_contiguous()?)
+    }
+
+    /// The training loss of one batch (see the module docs); draws from tch's generator.
+    pub fn loss(&self, batch: &Batch, noise_log_mean: f64, noise_log_std: f64) -> Result<Tensor> {
+        let device = self.text.device();
+        let target = batch.target.f_to_device(device)?;
+        let condition = batch.condition.f_to_device(device)?;
+        let b = target.size()[0];
+        let sigma =
+            (Tensor::f_randn([b, 1, 1, 1, 1], (Kind::Float, device))? * noise_log_std + noise_log_mean).f_exp()?;
+        let noisy_condition = condition.f_add(&condition.f_randn_like()?.f_mul(&sigma)?)?;
+        let x0 = self.encode(&target)?;
+        let cond = self.encode(&noisy_condition)?;
+        let steps = self.schedule.alphas_cumprod().len() as i64;
+        let t = Tensor::f_randint(steps, [b], (Kind::Int64, device))?;
+        let noise = x0.f_randn_like()?;
+        let xt = self.schedule.add_noise(&x0, &noise, &t)?;
+        let input = Tensor::f_cat(&[&xt, &cond], 2)?;
+        let text = self.text.f_expand([b, -1, -1], false)?;
+        let v = self.transformer.forward(
+            &TransformerInput {
+                hidden_states: &input,
+                encoder_hidden_states: &text,
+                timestep: &t,
+                ofs: None,
+                image_rotary_emb: None,
+            },
+            true,
+        )?;
+        let alphas: Vec<f64> =
+            (0..b).map(|i| self.schedule.alpha_cumprod_at(t.int64_value(&[i]))).collect::<Result<_>>()?;
+        let per_sample = |f: fn(f64) -> f64| -> Result<Tensor> {
+            let values: Vec<f32> = alphas.iter().map(|&a| f(a) as f32).collect();
+            Ok(Tensor::from_slice(&values).f_view([b, 1, 1, 1, 1])?.f_to_device(device)?)
+        };
+        let sqrt_alpha = per_sample(f64::sqrt)?;
+        let sqrt_one_minus = per_sample(|a| (1.0 - a).sqrt())?;
+        let weight = per_sample(|a| 1.0 / (1.0 - a).max(1e-12))?;
+        let x0_hat = xt.f_mul(&sqrt_alpha)?.f_sub(&v.f_mul(&sqrt_one_minus)?)?;
+        Ok(x0_hat.f_sub(&x0)?.f_square()?.f_mul(&weight)?.f_mean(Kind::Float)?)
+    }
+}
+
+// ------------------------------------------------------------------------------------------------
+// Checkpoints
+// ------------------------------------------------------------------------------------------------
+
+/// `state.json` of a checkpoint.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainState {
+    /// Optimizer steps done.
+    pub step: u64,
+    /// The data position of the next batch.
+    pub data_position: DataPosition,
+    /// The run seed.
+    pub seed: u64,
+}
+
+fn checkpoints_dir(run: &Path) -> PathBuf {
+    run.join("checkpoints")
+}
+
+/// The checkpoints of a run, oldest first.
+pub fn list_checkpoints(run: &Path) -> Vec<(u64, PathBuf)> {
+    let mut found: Vec<(u64, PathBuf)> = std::fs::read_dir(checkpoints_dir(run))
+        .into_iter()
+        .flatten()
+        .filter_map(|e| e.ok())
+        .filter_map(|e| {
+            let name = e.file_name().to_string_lossy().into_owned();
+            let step = name.strip_prefix("step-")?.parse().ok()?;
+            e.path().join("state.json").is_file().then(|| (step, e.path()))
+        })
+        .collect();
+    found.sort();
+    found
+}
+
+fn save_checkpoint(
+    run: &Path,
+    model: &CogNvsModel,
+    optimizer: &AdamW,
+    state: &TrainState,
+    keep: usize,
+) -> Result<PathBuf> {
+    let dir = checkpoints_dir(run);
+    let final_dir = dir.join(format!("step-{:08}", state.step));
+    let temp = dir.join(format!(".tmp-step-{:08}", state.step));
+    let io = |path: &Path| {
+        let path = path.to_path_buf();
+        move |source| Error::Io { path, source }
+    };
+    let _ = std::fs::remove_dir_all(&temp);
+    std::fs::create_dir_all(&temp).map_err(io(&temp))?;
+    weights::save(
+        &model.vs,
+        model.transformer.config(),
+        transformer::CLASS_NAME,
+        &temp.join("transformer"),
+        weights::DEFAULT_MAX_SHARD_BYTES,
+    )?;
+    optimizer.save(&temp.join("optimizer.safetensors"))?;
+    let json = serde_json::to_vec_pretty(state).expect("state serialises");
+    std::fs::write(temp.join("state.json"), json).map_err(io(&temp))?;
+    let _ = std::fs::remove_dir_all(&final_dir);
+    std::fs::rename(&temp, &final_dir).map_err(io(&final_dir))?;
+    let all = list_checkpoints(run);
+    for (_, old) in all.iter().take(all.len().saturating_sub(keep)) {
+        let _ = std::fs::remove_dir_all(old);
+    }
+    Ok(final_dir)
+}
+
+// ------------------------------------------------------------------------------------------------
+// The loop
+// ------------------------------------------------------------------------------------------------
+
+/// One line of `metrics.jsonl`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StepMetrics {
+    /// Optimizer step (1-based).
+    pub step: u64,
+    /// Mean loss over the step's micro-batches.
+    pub loss: f64,
+    /// Learning rate used.
+    pub lr: f64,
+    /// Gradient norm before clipping.
+    pub grad_norm: f64,
+    /// Wall seconds of the step.
+    pub seconds: f64,
+}
+
+/// What a pretraining run did.
+#[derive(Debug, Clone)]
+pub struct RunSummary {
+    /// The step the run started from (0, or a resumed checkpoint's).
+    pub resumed_from: u64,
+    /// Steps done at the end.
+    pub steps: u64,
+    /// The last checkpoint.
+    pub last_checkpoint: Option<PathBuf>,
+}
+
+/// `trainer pretrain`: trains up to `config.train.steps`, resuming from the run's latest
+/// checkpoint when `resume` is set. `progress(step, metrics)` is called after every step.
+pub fn pretrain(
+    config: &PretrainConfig,
+    shards: &[PathBuf],
+    run: &Path,
+    resume: bool,
+    device: Device,
+    mut progress: impl FnMut(&StepMetrics),
+) -> Result<RunSummary> {
+    std::fs::create_dir_all(run).map_err(|source| Error::Io { path: run.to_path_buf(), source })?;
+    let run_config = run.join("config.json");
+    let text = serde_json::to_vec_pretty(config).expect("config serialises");
+    let latest = if resume { list_checkpoints(run).pop() } else { None };
+    if !resume && run_config.exists() {
+        return Err(Error::InvalidArgument {
+            name: "out".to_string(),
+            reason: format!(
+                "{} already holds a run; pass --resume to continue it or choose another folder",
+                run.display()
+            ),
+        });
+    }
+    std::fs::write(&run_config, text).map_err(|source| Error::Io { path: run_config.clone(), source })?;
+
+    let model = CogNvsModel::load(&config.model, config.train.seed, device)?;
+    let mut optimizer = AdamW::new(&model.vs, config.optim.clone());
+    let mut state = TrainState { step: 0, data_position: DataPosition::default(), seed: config.train.seed };
+    if let Some((_, dir)) = &latest {
+        weights::load(&model.vs, &dir.join("transformer"))?;
+        optimizer.load(&dir.join("optimizer.safetensors"))?;
+        let path = dir.join("state.json");
+        let text = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), source })?;
+        state = serde_json::from_str(&text).map_err(|e| Error::InvalidConfig {
+            source_name: path.display().to_string(),
+            field: "(json)".to_string(),
+            reason: e.to_string(),
+        })?;
+    }
+    let resumed_from = state.step;
+    rewrite_metrics(run, resumed_from)?;
+    let mut metrics_file = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(run.join("metrics.jsonl"))
+        .map_err(|source| Error::Io { path: run.join("metrics.jsonl"), source })?;
+    let mut loader = ShardLoader::open(shards, config.data.clone(), state.data_position)?;
+    let mut last_checkpoint = latest.map(|(_, d)| d);
+    let accumulation = config.optim.grad_accumulation;
+    while state.step < config.train.steps {
+        let started = Instant::now();
+        // Every draw of this step comes from (seed, step): resumed runs repeat them exactly.
+        tch::manual_seed(step_seed(config.train.seed, state.step));
+        optimizer.zero_grad();
+        let mut loss_sum = 0.0;
+        for _ in 0..accumulation {
+            let batch = loader.next_batch()?;
+            let loss =
+                model.loss(&batch, config.train.condition_noise_log_mean, config.train.condition_noise_log_std)?;
+            let value = loss.double_value(&[]);
+            if !value.is_finite() {
+                return Err(Error::InvalidArgument {
+                    name: "loss".to_string(),
+                    reason: format!(
+                        "non-finite loss {value} at step {} on batch {:?}; last good checkpoint: {}",
+                        state.step + 1,
+                        batch.provenance,
+                        last_checkpoint.as_ref().map_or("none".to_string(), |p| p.display().to_string())
+                    ),
+                });
+            }
+            loss_sum += value;
+            (loss / accumulation as f64).f_backward()?;
+        }
+        let grad_norm = optimizer.clip_grad_norm(config.optim.max_grad_norm)?;
+        let lr = learning_rate(&config.optim, state.step, config.train.steps);
+        optimizer.step(lr)?;
+        state.step += 1;
+        state.data_position = loader.position();
+        let metrics = StepMetrics {
+            step: state.step,
+            loss: loss_sum / accumulation as f64,
+            lr,
+            grad_norm,
+            seconds: started.elapsed().as_secs_f64(),
+        };
+        writeln!(metrics_file, "{}", serde_json::to_string(&metrics).expect("metrics serialise"))
+            .map_err(|source| Error::Io { path: run.join("metrics.jsonl"), source })?;
+        progress(&metrics);
+        if state.step.is_multiple_of(config.train.checkpoint_every) || state.step == config.train.steps {
+            last_checkpoint = Some(save_checkpoint(run, &model, &optimizer, &state, config.train.keep_last)?);
+        }
+    }
+    Ok(RunSummary { resumed_from, steps: state.step, last_checkpoint })
+}
+
+fn step_seed(seed: u64, step: u64) -> i64 {
+    let mut hasher = blake3::Hasher::new();
+    hasher.update(b"cognvs train step v1");
+    hasher.update(&seed.to_le_bytes());
+    hasher.update(&step.to_le_bytes());
+    let bytes = hasher.finalize();
+    i64::from_le_bytes(bytes.as_bytes()[..8].try_into().expect("8 bytes")) & i64::MAX
+}
+
+/// Keeps the metrics lines of steps up to `step` (a resumed run rewrites what followed).
+fn rewrite_metrics(run: &Path, step: u64) -> Result<()> {
+    let path = run.join("metrics.jsonl");
+    let Ok(text) = std::fs::read_to_string(&path) else { return Ok(()) };
+    let kept: String = text
+        .lines()
+        .filter(|line| serde_json::from_str::<StepMetrics>(line).is_ok_and(|m| m.step <= step))
+        .map(|line| format!("{line}\n"))
+        .collect();
+    schemas::write_atomic(&path, kept.as_bytes())?;
+    Ok(())
+}
+
+/// Reads a run's `metrics.jsonl`.
+pub fn read_metrics(run: &Path) -> Result<Vec<StepMetrics>> {
+    let path = run.join("metrics.jsonl");
+    let text = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), source })?;
+    text.lines()
+        .map(|line| {
+            serde_json::from_str(line).map_err(|e| Error::InvalidConfig {
+                source_name: path.display().to_string(),
+                field: "(jsonl)".to_string(),
+                reason: e.to_string(),
+            })
+        })
+        .collect()
+}

@@ -13,6 +13,7 @@ pub mod error;
 pub mod forward;
 pub mod metrics;
 pub mod normalization;
+pub mod sampling;
 pub mod scheduling_cogvideox_dpm;
 pub mod scheduling_ddim;
 pub mod training;

@@ -32,6 +32,71 @@ enum Command {
     /// with the CogVideoX-5B schedule, AdamW, checkpoints in the diffusers layout plus optimizer
     /// and data position; --resume continues the run exactly.
     Pretrain(PretrainArgs),
+    /// Sample a novel-view video from a checkpoint and a conditioning render (datagen render
+    /// output, a frame folder or a video): DPM sampler, classifier-free guidance, mp4 out.
+    Sample(SampleArgs),
+    /// Test-time finetuning: build the video's own self-supervised pairs in-process (datagen
+    /// library) and finetune a checkpoint on them.
+    Finetune(FinetuneArgs),
+}
+
+#[derive(Debug, Args)]
+struct FinetuneArgs {
+    /// Checkpoint to start from (RUN/checkpoints/step-N).
+    #[arg(long)]
+    init: PathBuf,
+    /// The test video's sequence folder (cog-nvs, MegaSAM npz or generic layout).
+    #[arg(long)]
+    sequence: PathBuf,
+    /// Run folder for the finetuned checkpoints, metrics and the pairs built.
+    #[arg(long)]
+    out: PathBuf,
+    /// Optimizer steps.
+    #[arg(long, default_value_t = 200)]
+    steps: u64,
+    /// Sampled trajectories per clip.
+    #[arg(long, default_value_t = 2)]
+    trajectories: u32,
+    /// Training TOML overriding the init run's settings.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Compute device: cpu, cuda or cuda:N.
+    #[arg(long, default_value = "cpu")]
+    device: String,
+}
+
+#[derive(Debug, Args)]
+struct SampleArgs {
+    /// Checkpoint folder (RUN/checkpoints/step-N, with transformer/) or a transformer folder.
+    #[arg(long)]
+    ckpt: PathBuf,
+    /// Conditioning: a `datagen render` folder, a folder of frames, or a video (4k+1 frames).
+    #[arg(long)]
+    cond: PathBuf,
+    /// Output video (mp4).
+    #[arg(long)]
+    out: PathBuf,
+    /// Denoising steps.
+    #[arg(long, default_value_t = 50)]
+    steps: usize,
+    /// Classifier-free guidance scale (no effect when prompt and negative prompt are the same).
+    #[arg(long, default_value_t = 6.0)]
+    guidance: f64,
+    /// Seed of the noise.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// VAE folder [default: CKPT/vae or the run's vae/].
+    #[arg(long)]
+    vae: Option<PathBuf>,
+    /// Text embedding safetensors (`encoder_hidden_states` [S, D]) [default: the run's, else zeros].
+    #[arg(long)]
+    text_embedding: Option<PathBuf>,
+    /// Negative text embedding for guidance [default: the prompt's].
+    #[arg(long)]
+    negative_text_embedding: Option<PathBuf>,
+    /// Compute device: cpu, cuda or cuda:N.
+    #[arg(long, default_value = "cpu")]
+    device: String,
 }
 
 #[derive(Debug, Args)]
@@ -116,7 +181,63 @@ fn main() -> anyhow::Result<()> {
         Command::Forward(args) => run_forward(args),
         Command::Eval(args) => run_eval(args),
         Command::Pretrain(args) => run_pretrain(args),
+        Command::Sample(args) => run_sample(args),
+        Command::Finetune(args) => run_finetune(args),
     }
+}
+
+fn run_finetune(args: FinetuneArgs) -> anyhow::Result<()> {
+    let device = forward::parse_device(&args.device)?;
+    let bar = indicatif::ProgressBar::new(args.steps).with_style(
+        indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} steps {msg} [{elapsed_precise}, eta {eta}]")
+            .expect("valid template"),
+    );
+    let request = trainer::training::FinetuneRequest {
+        init: args.init,
+        sequence: args.sequence,
+        out: args.out.clone(),
+        steps: args.steps,
+        trajectories: args.trajectories,
+        config: args.config,
+    };
+    let summary = trainer::training::finetune(&request, device, |m| {
+        bar.set_position(m.step);
+        bar.set_message(format!("loss {:.4}, {:.2} step/s", m.loss, 1.0 / m.seconds.max(1e-9)));
+    })?;
+    bar.finish_and_clear();
+    println!(
+        "finetuned {} steps into {}; checkpoint: {}",
+        summary.steps,
+        args.out.display(),
+        summary.last_checkpoint.map_or("none".to_string(), |p| p.display().to_string())
+    );
+    Ok(())
+}
+
+fn run_sample(args: SampleArgs) -> anyhow::Result<()> {
+    let request = trainer::sampling::SampleRequest {
+        checkpoint: args.ckpt,
+        vae: args.vae,
+        text_embedding: args.text_embedding,
+        negative_text_embedding: args.negative_text_embedding,
+        condition: args.cond,
+        out: args.out.clone(),
+        steps: args.steps,
+        guidance: args.guidance,
+        seed: args.seed,
+        device: forward::parse_device(&args.device)?,
+    };
+    let report = trainer::sampling::sample(&request).context("trainer sample")?;
+    println!(
+        "wrote {} ({} frames, {}x{}) after {} steps in {:.1} s",
+        args.out.display(),
+        report.frames,
+        report.size.0,
+        report.size.1,
+        args.steps,
+        report.seconds
+    );
+    Ok(())
 }
 
 fn run_pretrain(args: PretrainArgs) -> anyhow::Result<()> {

@@ -115,3 +115,99 @@ fn pretrain_learns_and_resume_repeats_the_uninterrupted_run() {
     let ours = trainer::tch::no_grad(|| model.forward(&input, false)).unwrap();
     super::parity::assert_close("pretrained checkpoint in diffusers", &ours, &read_tensors(&out)["sample"], 1e-4);
 }
+
+fn run(args: &[&std::ffi::OsStr]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_trainer")).args(args).output().unwrap()
+}
+
+#[test]
+fn pretrain_finetune_sample_eval_end_to_end() {
+    let dir = tempfile::tempdir().unwrap();
+    let shards = pairs(dir.path());
+    let pretrained = dir.path().join("pretrained");
+    ok(&pretrain(&config(dir.path(), 4), &shards, &pretrained, false));
+    let init = pretrained.join("checkpoints/step-00000004");
+
+    // A second synthetic video at the model's resolution (80 x 64, 9 frames): finetune on its
+    // own pairs (built in-process), then sample its novel view from a datagen render.
+    let video = dir.path().join("test_video");
+    let scene = datagen::synth::SynthConfig { width: 80, height: 64, frames: 9, seed: 7, ..Default::default() };
+    datagen::synth::write_sequence(&scene, &video, |_| {}).unwrap();
+    let finetuned = dir.path().join("finetuned");
+    let steps = "3".as_ref();
+    ok(&run(&[
+        "finetune".as_ref(),
+        "--init".as_ref(),
+        init.as_os_str(),
+        "--sequence".as_ref(),
+        video.as_os_str(),
+        "--out".as_ref(),
+        finetuned.as_os_str(),
+        "--steps".as_ref(),
+        steps,
+        "--trajectories".as_ref(),
+        "1".as_ref(),
+    ]));
+    assert_eq!(read_metrics(&finetuned).unwrap().len(), 3);
+    assert!(finetuned.join("pairs/test_video.parquet").is_file(), "the video's pairs were built in-process");
+    let checkpoint = finetuned.join("checkpoints/step-00000003");
+    assert!(checkpoint.join("transformer/config.json").is_file());
+
+    let sequence = datagen::sequence::read_sequence(&video).unwrap();
+    let trajectory = dir.path().join("orbit.txt");
+    std::fs::write(&trajectory, "0 1 2 3 4 5 6 7 8\n0 0 0 0 0 0 0 0 0\n0 0 0 0 0 0 0 0 0\n").unwrap();
+    let render = dir.path().join("render");
+    datagen::pairs::render_sequence(&sequence, &trajectory, &render, &Default::default(), false).unwrap();
+    let sample = |seed: &str, out: &Path| {
+        run(&[
+            "sample".as_ref(),
+            "--ckpt".as_ref(),
+            checkpoint.as_os_str(),
+            "--cond".as_ref(),
+            render.as_os_str(),
+            "--out".as_ref(),
+            out.as_os_str(),
+            "--steps".as_ref(),
+            "4".as_ref(),
+            "--seed".as_ref(),
+            seed.as_ref(),
+        ])
+    };
+    let (a, b, c) = (dir.path().join("a.mp4"), dir.path().join("b.mp4"), dir.path().join("c.mp4"));
+    ok(&sample("1", &a));
+    ok(&sample("1", &b));
+    ok(&sample("2", &c));
+    let frames = |p: &Path| datagen::video::decode_video(p).unwrap().frames;
+    let (fa, fb, fc) = (frames(&a), frames(&b), frames(&c));
+    assert_eq!(fa.len(), 9);
+    assert_eq!(fa[0].dimensions(), (80, 64));
+    assert_eq!(fa, fb, "same seed, same video");
+    assert_ne!(fa, fc, "another seed, another video");
+
+    // eval: the sample against the video's frames, JSON with finite PSNR and SSIM in range.
+    let output = run(&[
+        "eval".as_ref(),
+        "--pred".as_ref(),
+        a.as_os_str(),
+        "--target".as_ref(),
+        video.join("frames").as_os_str(),
+    ]);
+    ok(&output);
+    let json: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    assert_eq!(json["frames"], 9);
+    assert!(json["psnr"].as_f64().unwrap().is_finite());
+    assert!((-1.0..=1.0).contains(&json["ssim"].as_f64().unwrap()));
+
+    // A conditioning of the wrong size is refused, naming the input and the size needed.
+    let wrong = run(&[
+        "sample".as_ref(),
+        "--ckpt".as_ref(),
+        checkpoint.as_os_str(),
+        "--cond".as_ref(),
+        dir.path().join("seq/gt_rgb.mp4").as_os_str(),
+        "--out".as_ref(),
+        dir.path().join("x.mp4").as_os_str(),
+    ]);
+    let stderr = String::from_utf8_lossy(&wrong.stderr);
+    assert!(!wrong.status.success() && stderr.contains("96x64") && stderr.contains("80x64"), "{stderr}");
+}

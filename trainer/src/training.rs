@@ -41,8 +41,8 @@ use crate::weights;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ModelConfig {
-    /// Transformer: a preset (`tiny`, `cognvs-5b`, `cogvideox-2b`, random init) or a diffusers
-    /// model folder (config.json + weights) to start from.
+    /// Transformer: a preset (`tiny`, `cognvs-5b`, `cogvideox-2b`) or a `config.json` file, both
+    /// random init, or a diffusers model folder (config.json + weights) to start from.
     pub transformer: String,
     /// VAE: a preset (`tiny` random init with `seed`, `cogvideox-5b`) or a diffusers model folder.
     pub vae: String,
@@ -334,7 +334,7 @@ impl CogNvsModel {
     pub fn load(config: &ModelConfig, seed: u64, device: Device) -> Result<Self> {
         tch::manual_seed(seed as i64);
         let transformer_config = match Path::new(&config.transformer) {
-            p if p.is_dir() => CogVideoXTransformer3DModelConfig::from_json_file(p)?,
+            p if p.is_dir() || p.is_file() => CogVideoXTransformer3DModelConfig::from_json_file(p)?,
             _ => CogVideoXTransformer3DModelConfig::preset(&config.transformer)?,
         };
         let (vs, transformer) = transformer::build(&transformer_config, device, Kind::Float)?;

@@ -19,8 +19,10 @@ use std::time::Instant;
 use image::RgbImage;
 use tch::{Device, Kind, Tensor};
 
-use crate::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoXConfig};
-use crate::cogvideox_transformer_3d::{self as transformer, CogVideoXTransformer3DModelConfig, TransformerInput};
+use crate::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoX, AutoencoderKLCogVideoXConfig};
+use crate::cogvideox_transformer_3d::{
+    self as transformer, CogVideoXTransformer3DModel, CogVideoXTransformer3DModelConfig, TransformerInput,
+};
 use crate::error::{Error, Result};
 use crate::scheduling_cogvideox_dpm::CogVideoXDPMScheduler;
 use crate::scheduling_ddim::CogVideoXSchedulerConfig;
@@ -192,12 +194,38 @@ pub fn sample(request: &SampleRequest) -> Result<SampleReport> {
 
     tch::manual_seed(request.seed as i64);
     let started = Instant::now();
-    let output = tch::no_grad(|| -> Result<Tensor> {
-        let scale = vae_config.scaling_factor;
-        let cond = vae_model.encode(&video)?.f_mul_scalar(scale)?.f_permute([0, 2, 1, 3, 4])?.f_contiguous()?;
+    let negative = guided.then_some(&negative);
+    let output = generate(&model, &vae_model, &video, &text, negative, request.steps, request.guidance)?;
+    let seconds = started.elapsed().as_secs_f64();
+    let images = to_frames(&output)?;
+    let frames_out = images.len();
+    if let Some(parent) = request.out.parent().filter(|p| !p.as_os_str().is_empty()) {
+        std::fs::create_dir_all(parent).map_err(|source| Error::Io { path: parent.to_path_buf(), source })?;
+    }
+    datagen::video::encode_video(&request.out, &images, if fps > 0.0 { fps } else { DEFAULT_FPS })?;
+    Ok(SampleReport { frames: frames_out, size: (width, height), seconds })
+}
+
+/// Generates a video `[1, 3, F, H, W]` in [-1, 1] for a conditioning video of the same shape:
+/// encode, DPM denoising with guidance against `negative` (when given), decode. Draws from tch's
+/// global generator.
+pub fn generate(
+    model: &CogVideoXTransformer3DModel,
+    vae_model: &AutoencoderKLCogVideoX,
+    condition: &Tensor,
+    text: &Tensor,
+    negative: Option<&Tensor>,
+    steps: usize,
+    guidance: f64,
+) -> Result<Tensor> {
+    let config = model.config();
+    let device = text.device();
+    tch::no_grad(|| -> Result<Tensor> {
+        let scale = vae_model.config().scaling_factor;
+        let cond = vae_model.encode(condition)?.f_mul_scalar(scale)?.f_permute([0, 2, 1, 3, 4])?.f_contiguous()?;
         let mut latents = cond.f_randn_like()?.f_narrow(2, 0, config.output_channels())?.f_contiguous()?;
         let mut scheduler = CogVideoXDPMScheduler::new(&CogVideoXSchedulerConfig::cogvideox_5b())?;
-        scheduler.set_timesteps(request.steps)?;
+        scheduler.set_timesteps(steps)?;
         let timesteps = scheduler.timesteps().to_vec();
         let mut old_pred: Option<Tensor> = None;
         for (i, &t) in timesteps.iter().enumerate() {
@@ -215,10 +243,10 @@ pub fn sample(request: &SampleRequest) -> Result<SampleReport> {
                     false,
                 )
             };
-            let mut v = run(&text)?;
-            if guided {
-                let v_uncond = run(&negative)?;
-                v = v_uncond.f_add(&v.f_sub(&v_uncond)?.f_mul_scalar(request.guidance)?)?;
+            let mut v = run(text)?;
+            if let Some(negative) = negative {
+                let v_uncond = run(negative)?;
+                v = v_uncond.f_add(&v.f_sub(&v_uncond)?.f_mul_scalar(guidance)?)?;
             }
             let back = if i > 0 { Some(timesteps[i - 1]) } else { None };
             let out = scheduler.step(&v, old_pred.as_ref(), t, back, &latents)?;
@@ -227,11 +255,14 @@ pub fn sample(request: &SampleRequest) -> Result<SampleReport> {
         }
         let latent = latents.f_permute([0, 2, 1, 3, 4])?.f_div_scalar(scale)?;
         vae_model.decode(&latent)
-    })?;
-    let seconds = started.elapsed().as_secs_f64();
-    // [1, 3, F, H, W] in [-1, 1] → RGB frames.
-    let frames_out = output.size()[2];
-    let pixels = output
+    })
+}
+
+/// The frames of a video tensor `[1, 3, F, H, W]` in [-1, 1].
+pub fn to_frames(video: &Tensor) -> Result<Vec<RgbImage>> {
+    let size = video.size();
+    let (height, width) = (size[3], size[4]);
+    let pixels = video
         .f_squeeze_dim(0)?
         .f_permute([1, 2, 3, 0])?
         .f_add_scalar(1.0)?
@@ -242,16 +273,10 @@ pub fn sample(request: &SampleRequest) -> Result<SampleReport> {
         .f_to_device(Device::Cpu)?
         .f_contiguous()?;
     let data: Vec<u8> = Vec::<u8>::try_from(pixels.f_flatten(0, -1)?)?;
-    let frame_bytes = (w * h * 3) as usize;
-    let images: Vec<RgbImage> = data
-        .chunks(frame_bytes)
-        .map(|chunk| RgbImage::from_raw(width, height, chunk.to_vec()).expect("frame-sized chunk"))
-        .collect();
-    if let Some(parent) = request.out.parent().filter(|p| !p.as_os_str().is_empty()) {
-        std::fs::create_dir_all(parent).map_err(|source| Error::Io { path: parent.to_path_buf(), source })?;
-    }
-    datagen::video::encode_video(&request.out, &images, if fps > 0.0 { fps } else { DEFAULT_FPS })?;
-    Ok(SampleReport { frames: frames_out as usize, size: (width, height), seconds })
+    Ok(data
+        .chunks((width * height * 3) as usize)
+        .map(|chunk| RgbImage::from_raw(width as u32, height as u32, chunk.to_vec()).expect("frame-sized chunk"))
+        .collect())
 }
 
 /// Frame rate of the output when the conditioning has none (frame folders): CogVideoX's 8 fps.

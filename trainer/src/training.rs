@@ -17,7 +17,7 @@
 //! Checkpoints: `RUN_DIR/checkpoints/step-NNNNNNNN/` holds `transformer/` (diffusers layout,
 //! loadable by `from_pretrained`), `optimizer.safetensors` (AdamW moments) and `state.json`
 //! (step, data position); written under a temporary name and renamed, the oldest beyond
-//! `keep_last` removed. The frozen VAE is saved once as `RUN_DIR/vae/` and the run's config as
+//! `keep_last` removed. With `validate_every`, validation samples go to `RUN_DIR/samples/`. The frozen VAE is saved once as `RUN_DIR/vae/` and the run's config as
 //! `RUN_DIR/config.json`. `RUN_DIR/metrics.jsonl` has one line per step.
 
 use std::collections::BTreeMap;
@@ -108,6 +108,12 @@ pub struct LoopConfig {
     pub condition_noise_log_mean: f64,
     /// Standard deviation of log σ.
     pub condition_noise_log_std: f64,
+    /// Steps between validation samples (0: none): the first pair of the data is sampled from
+    /// its conditioning into `RUN/samples/step-N/` (`sample.mp4`, `contact_sheet.png` with
+    /// target | conditioning | sample rows).
+    pub validate_every: u64,
+    /// Denoising steps of a validation sample.
+    pub validation_steps: usize,
 }
 
 impl Default for LoopConfig {
@@ -119,6 +125,8 @@ impl Default for LoopConfig {
             keep_last: 3,
             condition_noise_log_mean: -3.0,
             condition_noise_log_std: 0.5,
+            validate_every: 0,
+            validation_steps: 20,
         }
     }
 }
@@ -573,6 +581,7 @@ pub fn pretrain(
     let mut loader = ShardLoader::open(shards, config.data.clone(), state.data_position)?;
     let mut last_checkpoint = latest.map(|(_, d)| d);
     let accumulation = config.optim.grad_accumulation;
+    let mut validation: Option<Result<Batch>> = None;
     while state.step < config.train.steps {
         let started = Instant::now();
         // Every draw of this step comes from (seed, step): resumed runs repeat them exactly.
@@ -613,12 +622,66 @@ pub fn pretrain(
         writeln!(metrics_file, "{}", serde_json::to_string(&metrics).expect("metrics serialise"))
             .map_err(|source| Error::Io { path: run.join("metrics.jsonl"), source })?;
         progress(&metrics);
+        if config.train.validate_every > 0 && state.step.is_multiple_of(config.train.validate_every) {
+            let batch = validation.get_or_insert_with(|| {
+                ShardLoader::open(shards, DataConfig { batch_size: 1, ..config.data.clone() }, DataPosition::default())
+                    .and_then(|mut l| l.next_batch())
+            });
+            let batch = batch
+                .as_ref()
+                .map_err(|e| Error::InvalidArgument { name: "validation".to_string(), reason: e.to_string() })?;
+            write_validation_sample(run, state.step, &model, batch, config)?;
+        }
         if state.step.is_multiple_of(config.train.checkpoint_every) || state.step == config.train.steps {
             last_checkpoint = Some(save_checkpoint(run, &model, &optimizer, &state, config.train.keep_last)?);
         }
     }
     Ok(RunSummary { resumed_from, steps: state.step, last_checkpoint })
 }
+
+/// Samples the validation pair's conditioning and writes the video and a contact sheet. Its
+/// random draws come from (seed, step) too, and every training step reseeds, so validation does
+/// not change the training run.
+fn write_validation_sample(
+    run: &Path,
+    step: u64,
+    model: &CogNvsModel,
+    batch: &Batch,
+    config: &PretrainConfig,
+) -> Result<()> {
+    let dir = run.join("samples").join(format!("step-{step:08}"));
+    std::fs::create_dir_all(&dir).map_err(|source| Error::Io { path: dir.clone(), source })?;
+    let device = model.text.device();
+    let condition = batch.condition.f_narrow(0, 0, 1)?.f_to_device(device)?;
+    tch::manual_seed(step_seed(config.train.seed ^ VALIDATION_SEED, step));
+    let video = crate::sampling::generate(
+        &model.transformer,
+        &model.vae,
+        &condition,
+        &model.text,
+        None,
+        config.train.validation_steps,
+        1.0,
+    )?;
+    let sample = crate::sampling::to_frames(&video)?;
+    let target = crate::sampling::to_frames(&batch.target.f_narrow(0, 0, 1)?)?;
+    let cond = crate::sampling::to_frames(&condition)?;
+    datagen::video::encode_video(&dir.join("sample.mp4"), &sample, VALIDATION_FPS)?;
+    let picked: Vec<usize> = (0..SHEET_ROWS).map(|k| k * (sample.len() - 1) / (SHEET_ROWS - 1)).collect();
+    let rows: Vec<Vec<image::RgbImage>> =
+        picked.iter().map(|&i| vec![target[i].clone(), cond[i].clone(), sample[i].clone()]).collect();
+    datagen::contact_sheet::write_contact_sheet(&dir.join("contact_sheet.png"), &rows)?;
+    let provenance = serde_json::json!({ "step": step, "pair": batch.provenance[0] });
+    std::fs::write(dir.join("pair.json"), provenance.to_string()).map_err(|source| Error::Io { path: dir, source })?;
+    Ok(())
+}
+
+/// Mixed into the seed of validation sampling (so it differs from the training draws).
+const VALIDATION_SEED: u64 = 0x5eed_0f_5a3b1e;
+/// Frame rate of validation videos (CogVideoX's 8 fps).
+const VALIDATION_FPS: f64 = 8.0;
+/// Frames shown on a validation contact sheet.
+const SHEET_ROWS: usize = 4;
 
 fn step_seed(seed: u64, step: u64) -> i64 {
     let mut hasher = blake3::Hasher::new();

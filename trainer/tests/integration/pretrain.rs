@@ -28,7 +28,9 @@ fn config(dir: &Path, steps: u64) -> PathBuf {
     let text = std::fs::read_to_string(repo_root().join("configs/pretrain_tiny.toml"))
         .unwrap()
         .replace("steps = 20", &format!("steps = {steps}"))
-        .replace("checkpoint_every = 10", "checkpoint_every = 4");
+        .replace("checkpoint_every = 10", "checkpoint_every = 4")
+        .replace("validate_every = 10", "validate_every = 4")
+        .replace("validation_steps = 10", "validation_steps = 2");
     let path = dir.join(format!("pretrain_{steps}.toml"));
     std::fs::write(&path, text).unwrap();
     path
@@ -77,6 +79,11 @@ fn pretrain_learns_and_resume_repeats_the_uninterrupted_run() {
         read_tensors(&parts.join("checkpoints/step-00000012/transformer/diffusion_pytorch_model.safetensors"));
     for (name, tensor) in &final_a {
         assert!(tensor.equal(&final_b[name]), "{name} differs after resume");
+    }
+    // Validation samples every 4 steps: a video and a contact sheet.
+    for step in [4, 8, 12] {
+        let samples = full.join(format!("samples/step-{step:08}"));
+        assert!(samples.join("sample.mp4").is_file() && samples.join("contact_sheet.png").is_file(), "{samples:?}");
     }
     // keep_last = 2: steps 8 and 12 remain.
     let kept: Vec<u64> = trainer::training::list_checkpoints(&full).into_iter().map(|(s, _)| s).collect();

@@ -677,7 +677,7 @@ fn write_validation_sample(
 }
 
 /// Mixed into the seed of validation sampling (so it differs from the training draws).
-const VALIDATION_SEED: u64 = 0x5eed_0f_5a3b1e;
+const VALIDATION_SEED: u64 = 0x5eed_0f5a_3b1e;
 /// Frame rate of validation videos (CogVideoX's 8 fps).
 const VALIDATION_FPS: f64 = 8.0;
 /// Frames shown on a validation contact sheet.

@@ -218,3 +218,26 @@ fn pretrain_finetune_sample_eval_end_to_end() {
     let stderr = String::from_utf8_lossy(&wrong.stderr);
     assert!(!wrong.status.success() && stderr.contains("96x64") && stderr.contains("80x64"), "{stderr}");
 }
+
+#[test]
+fn non_finite_loss_stops_naming_the_step_batch_and_last_checkpoint() {
+    let dir = tempfile::tempdir().unwrap();
+    let shards = pairs(dir.path());
+    // A text embedding holding NaN poisons the forward pass from the first step.
+    let text = dir.path().join("nan_text.safetensors");
+    let nan = trainer::tch::Tensor::full([8, 16], f64::NAN, (trainer::tch::Kind::Float, trainer::tch::Device::Cpu));
+    trainer::tch::Tensor::write_safetensors(&[("encoder_hidden_states", &nan)], &text).unwrap();
+    let config_path = config(dir.path(), 4);
+    let toml = std::fs::read_to_string(&config_path).unwrap().replace(
+        "# text_embedding = \"empty_prompt_t5.safetensors\"",
+        &format!("text_embedding = \"{}\"", text.display()),
+    );
+    std::fs::write(&config_path, toml).unwrap();
+    let out = dir.path().join("run");
+    let output = pretrain(&config_path, &shards, &out, false);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success(), "{stderr}");
+    assert!(stderr.contains("non-finite loss") && stderr.contains("step 1"), "{stderr}");
+    assert!(stderr.contains("synth/seq/") && stderr.contains("last good checkpoint: none"), "{stderr}");
+    assert!(trainer::training::list_checkpoints(&out).is_empty(), "no checkpoint of a poisoned model");
+}

@@ -21,7 +21,6 @@
 //! so a diffusers checkpoint loads into the [`tch::nn::VarStore`] unchanged.
 
 use std::collections::BTreeMap;
-use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor, nn};
@@ -197,22 +196,6 @@ impl AutoencoderKLCogVideoXConfig {
                 reason: format!("unknown VAE preset `{other}`; expected cogvideox-5b, cogvideox-2b or tiny"),
             }),
         }
-    }
-
-    /// Parses and validates a diffusers VAE config; `source_name` names it in errors.
-    pub fn from_json_str(json: &str, source_name: &str) -> Result<Self> {
-        crate::diffusers_config::parse(json, source_name)
-    }
-
-    /// Reads a `config.json` (or a folder holding one); unknown keys are printed to stderr as a
-    /// warning and kept in [`Self::extra`].
-    pub fn from_json_file(path: impl AsRef<Path>) -> Result<Self> {
-        crate::diffusers_config::read(path.as_ref())
-    }
-
-    /// Keys that are neither fields nor diffusers metadata (`_…`).
-    pub fn unknown_keys(&self) -> Vec<&str> {
-        DiffusersConfig::unknown_keys(self)
     }
 
     /// Spatial down-scaling factor, `2^(levels − 1)` (8).

@@ -11,7 +11,6 @@
 //! diffusers' `from_pretrained` reads.
 
 use std::collections::BTreeMap;
-use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor, nn};
@@ -208,22 +207,6 @@ impl CogVideoXTransformer3DModelConfig {
                 reason: format!("unknown transformer preset `{other}`; expected cognvs-5b, cogvideox-2b or tiny"),
             }),
         }
-    }
-
-    /// Parses and validates a diffusers transformer config; `source_name` names it in errors.
-    pub fn from_json_str(json: &str, source_name: &str) -> Result<Self> {
-        crate::diffusers_config::parse(json, source_name)
-    }
-
-    /// Reads a `config.json` (or a folder holding one); unknown keys are printed to stderr as a
-    /// warning and kept in `extra`.
-    pub fn from_json_file(path: impl AsRef<Path>) -> Result<Self> {
-        crate::diffusers_config::read(path.as_ref())
-    }
-
-    /// Keys that are neither fields nor diffusers metadata (`_…`).
-    pub fn unknown_keys(&self) -> Vec<&str> {
-        DiffusersConfig::unknown_keys(self)
     }
 
     /// Token width, `heads × head_dim`.

@@ -26,6 +26,17 @@ pub trait DiffusersConfig: DeserializeOwned {
     fn unknown_keys(&self) -> Vec<&str> {
         self.extra().keys().filter(|k| !k.starts_with('_')).map(String::as_str).collect()
     }
+
+    /// Parses and validates a config; `source_name` names it in errors.
+    fn from_json_str(json: &str, source_name: &str) -> Result<Self> {
+        parse(json, source_name)
+    }
+
+    /// Reads a config file (or the [`DiffusersConfig::FILE_NAME`] in a folder); unknown keys are
+    /// printed to stderr as a warning and kept.
+    fn from_json_file(path: impl AsRef<Path>) -> Result<Self> {
+        read(path.as_ref())
+    }
 }
 
 /// Parses and validates a config; `source_name` names it in errors.

@@ -16,6 +16,7 @@ use tch::{Device, Kind, Tensor};
 
 use crate::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoXConfig, TilingConfig};
 use crate::cogvideox_transformer_3d::{self as transformer, CogVideoXTransformer3DModelConfig, TransformerInput};
+use crate::diffusers_config::DiffusersConfig;
 use crate::error::{Error, Result};
 use crate::weights;
 

@@ -23,6 +23,7 @@ use crate::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoX, Autoe
 use crate::cogvideox_transformer_3d::{
     self as transformer, CogVideoXTransformer3DModel, CogVideoXTransformer3DModelConfig, TransformerInput,
 };
+use crate::diffusers_config::DiffusersConfig;
 use crate::error::{Error, Result};
 use crate::scheduling_cogvideox_dpm::CogVideoXDPMScheduler;
 use crate::scheduling_ddim::CogVideoXSchedulerConfig;
@@ -103,7 +104,13 @@ fn run_text_embedding(checkpoint: &Path) -> Option<PathBuf> {
     json["model"]["text_embedding"].as_str().map(PathBuf::from)
 }
 
-fn load_text(path: Option<&Path>, config: &CogVideoXTransformer3DModelConfig, device: Device) -> Result<Tensor> {
+/// The text embedding `[1, S, D]` from a safetensors file's `encoder_hidden_states` `[S, D]`
+/// (shape checked against the transformer config), or zeros without a file.
+pub fn load_text_embedding(
+    path: Option<&Path>,
+    config: &CogVideoXTransformer3DModelConfig,
+    device: Device,
+) -> Result<Tensor> {
     let shape = [config.max_text_seq_length, config.text_embed_dim];
     match path {
         None => Ok(Tensor::f_zeros([1, shape[0], shape[1]], (Kind::Float, device))?),
@@ -141,9 +148,9 @@ pub fn sample(request: &SampleRequest) -> Result<SampleReport> {
     let (vae_vs, vae_model) = vae::build(&vae_config, device, Kind::Float)?;
     weights::load(&vae_vs, &vae_path)?;
     let prompt_path = request.text_embedding.clone().or_else(|| run_text_embedding(&request.checkpoint));
-    let text = load_text(prompt_path.as_deref(), &config, device)?;
+    let text = load_text_embedding(prompt_path.as_deref(), &config, device)?;
     let negative = match &request.negative_text_embedding {
-        Some(path) => load_text(Some(path), &config, device)?,
+        Some(path) => load_text_embedding(Some(path), &config, device)?,
         None => text.shallow_clone(),
     };
     let guided = request.guidance > 1.0 && !text.equal(&negative);

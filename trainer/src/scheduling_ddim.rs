@@ -8,7 +8,6 @@
 //! `scaled_linear`), so ᾱ_t agrees to the last bit; step coefficients are float64 scalars.
 
 use std::collections::BTreeMap;
-use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor};
@@ -133,22 +132,6 @@ impl CogVideoXSchedulerConfig {
     /// `THUDM/CogVideoX-2b` `scheduler/scheduler_config.json`: as 5B with SNR shift 3.0.
     pub fn cogvideox_2b() -> Self {
         Self { snr_shift_scale: 3.0, ..Self::cogvideox_5b() }
-    }
-
-    /// Parses and validates a diffusers scheduler config; `source_name` names it in errors.
-    pub fn from_json_str(json: &str, source_name: &str) -> Result<Self> {
-        crate::diffusers_config::parse(json, source_name)
-    }
-
-    /// Reads a `scheduler_config.json` (or a folder holding one); unknown keys are printed to stderr as a
-    /// warning and kept in [`Self::extra`].
-    pub fn from_json_file(path: impl AsRef<Path>) -> Result<Self> {
-        crate::diffusers_config::read(path.as_ref())
-    }
-
-    /// Keys that are neither fields nor diffusers metadata (`_…`).
-    pub fn unknown_keys(&self) -> Vec<&str> {
-        DiffusersConfig::unknown_keys(self)
     }
 
     /// The parsed `prediction_type`.

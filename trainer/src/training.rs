@@ -33,6 +33,7 @@ use crate::cogvideox_transformer_3d::{
     self as transformer, CogVideoXTransformer3DModel, CogVideoXTransformer3DModelConfig, TransformerInput,
 };
 use crate::data::{Batch, DataConfig, DataPosition, ShardLoader};
+use crate::diffusers_config::DiffusersConfig;
 use crate::error::{Error, Result};
 use crate::scheduling_ddim::{CogVideoXSchedulerConfig, NoiseSchedule};
 use crate::weights;
@@ -358,24 +359,7 @@ impl CogNvsModel {
             weights::load(&vae_vs, Path::new(&config.vae))?;
         }
         vae_vs.freeze();
-        let c = &transformer_config;
-        let text = match &config.text_embedding {
-            Some(path) => {
-                let t = Tensor::read_safetensors(path)
-                    .map_err(|e| Error::Safetensors { path: path.clone(), reason: e.to_string() })?
-                    .into_iter()
-                    .find(|(n, _)| n == "encoder_hidden_states")
-                    .ok_or_else(|| Error::MissingTensor {
-                        path: path.clone(),
-                        tensor: "encoder_hidden_states".to_string(),
-                        expected: vec![c.max_text_seq_length, c.text_embed_dim],
-                    })?
-                    .1;
-                weights::check_shape("encoder_hidden_states", &t, &[c.max_text_seq_length, c.text_embed_dim])?;
-                t.f_to_kind(Kind::Float)?.f_to_device(device)?.f_unsqueeze(0)?
-            }
-            None => Tensor::f_zeros([1, c.max_text_seq_length, c.text_embed_dim], (Kind::Float, device))?,
-        };
+        let text = crate::sampling::load_text_embedding(config.text_embedding.as_deref(), &transformer_config, device)?;
         let schedule = NoiseSchedule::new(&CogVideoXSchedulerConfig::cogvideox_5b())?;
         Ok(Self { vs, transformer, vae_vs, vae, schedule, text })
     }

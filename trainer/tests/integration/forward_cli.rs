@@ -18,6 +18,24 @@ fn trainer(args: &[&dyn AsRef<std::ffi::OsStr>]) -> Output {
     cmd.output().expect("run trainer")
 }
 
+/// `trainer forward --module transformer` with `extra` flags.
+fn transformer(config: &Path, weights: &Path, inputs: &Path, out: &Path, extra: &[&str]) -> Output {
+    let mut args: Vec<&dyn AsRef<std::ffi::OsStr>> = vec![
+        &"--module",
+        &"transformer",
+        &"--config",
+        &config,
+        &"--weights",
+        &weights,
+        &"--inputs",
+        &inputs,
+        &"--out",
+        &out,
+    ];
+    args.extend(extra.iter().map(|e| e as &dyn AsRef<std::ffi::OsStr>));
+    trainer(&args)
+}
+
 fn write_inputs(path: &Path, io: &BTreeMap<String, Tensor>, pairs: &[(&str, &str)]) {
     let named: Vec<(&str, &Tensor)> = pairs.iter().map(|(name, key)| (*name, &io[*key])).collect();
     Tensor::write_safetensors(&named, path).unwrap();
@@ -47,35 +65,11 @@ fn transformer_forward_matches_diffusers() {
     let out = dir.path().join("out.safetensors");
     let model = goldens.join("cognvs_tiny_sharded");
     let index = model.join("diffusion_pytorch_model.safetensors.index.json");
-    ok(&trainer(&[
-        &"--module",
-        &"transformer",
-        &"--config",
-        &model,
-        &"--weights",
-        &index,
-        &"--inputs",
-        &inputs,
-        &"--out",
-        &out,
-    ]));
+    ok(&transformer(&model, &index, &inputs, &out, &[]));
     assert_close("trainer forward transformer", &read_tensors(&out)["sample"], &io["cognvs.sample"], 1e-4);
 
     let bf16 = dir.path().join("bf16.safetensors");
-    ok(&trainer(&[
-        &"--module",
-        &"transformer",
-        &"--config",
-        &model,
-        &"--weights",
-        &index,
-        &"--inputs",
-        &inputs,
-        &"--out",
-        &bf16,
-        &"--dtype",
-        &"bf16",
-    ]));
+    ok(&transformer(&model, &index, &inputs, &bf16, &["--dtype", "bf16"]));
     assert_close("trainer forward transformer bf16", &read_tensors(&bf16)["sample"], &io["cognvs_bf16.sample"], 3e-2);
 }
 
@@ -132,18 +126,7 @@ fn bad_inputs_fail_naming_the_tensor() {
         &io,
         &[("hidden_states", "cognvs.hidden_states"), ("encoder_hidden_states", "cognvs.encoder_hidden_states")],
     );
-    let run = trainer(&[
-        &"--module",
-        &"transformer",
-        &"--config",
-        &model,
-        &"--weights",
-        &model,
-        &"--inputs",
-        &inputs,
-        &"--out",
-        &out,
-    ]);
+    let run = transformer(&model, &model, &inputs, &out, &[]);
     let stderr = String::from_utf8_lossy(&run.stderr);
     assert!(!run.status.success() && stderr.contains("`timestep`"), "{stderr}");
     // Latents with the wrong channel count (the 2B case's 16 channels for the 32-channel model).
@@ -156,18 +139,7 @@ fn bad_inputs_fail_naming_the_tensor() {
             ("timestep", "cogvideox2b.timestep"),
         ],
     );
-    let run = trainer(&[
-        &"--module",
-        &"transformer",
-        &"--config",
-        &model,
-        &"--weights",
-        &model,
-        &"--inputs",
-        &inputs,
-        &"--out",
-        &out,
-    ]);
+    let run = transformer(&model, &model, &inputs, &out, &[]);
     let stderr = String::from_utf8_lossy(&run.stderr);
     assert!(
         !run.status.success() && stderr.contains("hidden_states") && stderr.contains("[1, 3, 16, 6, 8]"),
@@ -175,18 +147,7 @@ fn bad_inputs_fail_naming_the_tensor() {
     );
     // A config that does not match the weights: named tensor, both shapes, before allocation.
     let other = goldens.join("cogvideox2b_tiny");
-    let run = trainer(&[
-        &"--module",
-        &"transformer",
-        &"--config",
-        &other,
-        &"--weights",
-        &model,
-        &"--inputs",
-        &inputs,
-        &"--out",
-        &out,
-    ]);
+    let run = transformer(&other, &model, &inputs, &out, &[]);
     let stderr = String::from_utf8_lossy(&run.stderr);
     assert!(
         !run.status.success()

@@ -5,6 +5,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
+use trainer::diffusers_config::DiffusersConfig;
 use trainer::training::read_metrics;
 
 use super::parity::{read_tensors, repo_root, run_python};

@@ -3,6 +3,7 @@
 //!
 //! Reference values come from `scripts/goldens_vae_scheduler.py` (see `vae.rs`'s `goldens`).
 
+use trainer::diffusers_config::DiffusersConfig;
 use trainer::scheduling_cogvideox_dpm::CogVideoXDPMScheduler;
 use trainer::scheduling_ddim::{CogVideoXDDIMScheduler, CogVideoXSchedulerConfig};
 use trainer::tch::Tensor;

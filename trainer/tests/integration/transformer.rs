@@ -12,6 +12,7 @@ use std::sync::OnceLock;
 use trainer::cogvideox_transformer_3d::{
     self as transformer, CogVideoXTransformer3DModel, CogVideoXTransformer3DModelConfig, TransformerInput,
 };
+use trainer::diffusers_config::DiffusersConfig;
 use trainer::tch::{self, Device, Kind, Tensor, nn};
 use trainer::weights;
 

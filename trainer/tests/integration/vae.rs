@@ -11,6 +11,7 @@ use std::sync::OnceLock;
 use trainer::autoencoder_kl_cogvideox::{
     self as vae, AutoencoderKLCogVideoX, AutoencoderKLCogVideoXConfig, TilingConfig,
 };
+use trainer::diffusers_config::DiffusersConfig;
 use trainer::tch::{self, Device, Kind, Tensor, nn};
 
 use super::parity::{assert_close, errors, read_tensors, run_script};

@@ -115,6 +115,8 @@ pub struct LoopConfig {
     pub validate_every: u64,
     /// Denoising steps of a validation sample.
     pub validation_steps: usize,
+    /// A folder caching VAE latents per pair (see [`LatentCache`]); none when unset.
+    pub latent_cache: Option<PathBuf>,
 }
 
 impl Default for LoopConfig {
@@ -128,6 +130,7 @@ impl Default for LoopConfig {
             condition_noise_log_std: 0.5,
             validate_every: 0,
             validation_steps: 20,
+            latent_cache: None,
         }
     }
 }
@@ -367,20 +370,55 @@ impl CogNvsModel {
     /// Scaled latents `[B, F', C, h, w]` of a video batch `[B, 3, F, H, W]` (a posterior sample).
     pub fn encode(&self, video: &Tensor) -> Result<Tensor> {
         let latent = tch::no_grad(|| -> Result<Tensor> { self.vae.encode_posterior(video)?.sample() })?;
+        self.scale_latent(&latent)
+    }
+
+    /// A VAE latent `[B, C, F', h, w]` scaled and laid out for the transformer `[B, F', C, h, w]`.
+    fn scale_latent(&self, latent: &Tensor) -> Result<Tensor> {
         Ok(latent.f_mul_scalar(self.vae.config().scaling_factor)?.f_permute([0, 2, 1, 3, 4])?.f_contiguous()?)
     }
 
-    /// The training loss of one batch (see the module docs); draws from tch's generator.
-    pub fn loss(&self, batch: &Batch, noise_log_mean: f64, noise_log_std: f64) -> Result<Tensor> {
+    /// The training loss of one batch (see the module docs); draws from tch's generator. With a
+    /// latent cache, the VAE runs only for samples not cached yet (see [`LatentCache`]).
+    pub fn loss(
+        &self,
+        batch: &Batch,
+        noise_log_mean: f64,
+        noise_log_std: f64,
+        cache: Option<&LatentCache>,
+    ) -> Result<Tensor> {
         let device = self.text.device();
-        let target = batch.target.f_to_device(device)?;
-        let condition = batch.condition.f_to_device(device)?;
-        let b = target.size()[0];
-        let sigma =
-            (Tensor::f_randn([b, 1, 1, 1, 1], (Kind::Float, device))? * noise_log_std + noise_log_mean).f_exp()?;
-        let noisy_condition = condition.f_add(&condition.f_randn_like()?.f_mul(&sigma)?)?;
-        let x0 = self.encode(&target)?;
-        let cond = self.encode(&noisy_condition)?;
+        let b = batch.target.size()[0];
+        let (x0, cond) = match cache {
+            None => {
+                let target = batch.target.f_to_device(device)?;
+                let condition = batch.condition.f_to_device(device)?;
+                let sigma = (Tensor::f_randn([b, 1, 1, 1, 1], (Kind::Float, device))? * noise_log_std + noise_log_mean)
+                    .f_exp()?;
+                let noisy_condition = condition.f_add(&condition.f_randn_like()?.f_mul(&sigma)?)?;
+                (self.encode(&target)?, self.encode(&noisy_condition)?)
+            }
+            Some(cache) => {
+                // Cache look-ups and fills draw from their own seeds; the step's generator state is
+                // saved around them by reseeding with a draw taken before.
+                let resume_seed = Tensor::f_randint(i64::MAX, [1], (Kind::Int64, Device::Cpu))?.int64_value(&[0]);
+                let mut x0 = Vec::new();
+                let mut cond = Vec::new();
+                let mut posteriors = Vec::new();
+                for i in 0..b {
+                    let entry = cache.get_or_encode(self, batch, i, noise_log_mean, noise_log_std)?;
+                    posteriors.push(entry);
+                }
+                tch::manual_seed(resume_seed);
+                for (mean, logvar, condition) in posteriors {
+                    let std = logvar.f_mul_scalar(0.5)?.f_exp()?;
+                    let sample = mean.f_add(&std.f_mul(&mean.f_randn_like()?)?)?;
+                    x0.push(self.scale_latent(&sample)?);
+                    cond.push(condition);
+                }
+                (Tensor::f_cat(&x0, 0)?, Tensor::f_cat(&cond, 0)?)
+            }
+        };
         let steps = self.schedule.alphas_cumprod().len() as i64;
         let t = Tensor::f_randint(steps, [b], (Kind::Int64, device))?;
         let noise = x0.f_randn_like()?;
@@ -414,6 +452,88 @@ impl CogNvsModel {
 // ------------------------------------------------------------------------------------------------
 // Checkpoints
 // ------------------------------------------------------------------------------------------------
+
+/// Precomputed VAE latents, so that small runs encode each pair once and train many epochs:
+/// per sample (clip, trajectory, window — the batch's provenance — at the configured size) the
+/// target's posterior (mean, log-variance; a fresh sample is drawn at every use, as without the
+/// cache) and the conditioning latent. The conditioning's noise augmentation is then drawn once
+/// per sample (seeded by the sample) instead of at every use: the cache trades augmentation
+/// variety for speed. Entries are keyed by the sample, the data size and the VAE's weights, and
+/// written atomically, so runs and resumed runs share them; a cached entry equals a fresh one
+/// bit for bit.
+pub struct LatentCache {
+    dir: PathBuf,
+    prefix: String,
+}
+
+impl LatentCache {
+    /// A cache in `dir` for `model`'s VAE and the data size.
+    pub fn open(dir: &Path, model: &CogNvsModel, data: &DataConfig) -> Result<Self> {
+        std::fs::create_dir_all(dir).map_err(|source| Error::Io { path: dir.to_path_buf(), source })?;
+        let mut hasher = blake3::Hasher::new();
+        hasher.update(b"cognvs latent cache v1");
+        hasher.update(serde_json::to_string(model.vae.config()).expect("config serialises").as_bytes());
+        let mut variables: Vec<(String, Tensor)> = model.vae_vs.variables().into_iter().collect();
+        variables.sort_by(|a, b| a.0.cmp(&b.0));
+        for (name, tensor) in variables {
+            hasher.update(name.as_bytes());
+            let t = tensor.f_to_kind(Kind::Float)?.f_to_device(Device::Cpu)?.f_contiguous()?;
+            let values = Vec::<f32>::try_from(t.f_flatten(0, -1)?)?;
+            for v in values {
+                hasher.update(&v.to_le_bytes());
+            }
+        }
+        hasher.update(format!("{}x{}x{}", data.frames, data.height, data.width).as_bytes());
+        Ok(Self { dir: dir.to_path_buf(), prefix: hasher.finalize().to_hex()[..16].to_string() })
+    }
+
+    fn key(&self, provenance: &str) -> (PathBuf, i64) {
+        let hash = blake3::hash(format!("{}/{provenance}", self.prefix).as_bytes());
+        let seed = i64::from_le_bytes(hash.as_bytes()[..8].try_into().expect("8 bytes")) & i64::MAX;
+        (self.dir.join(format!("{}.safetensors", &hash.to_hex()[..32])), seed)
+    }
+
+    /// Sample `i` of `batch`: (posterior mean, log-variance, scaled conditioning latent), from the
+    /// cache or encoded and stored.
+    fn get_or_encode(
+        &self,
+        model: &CogNvsModel,
+        batch: &Batch,
+        i: i64,
+        noise_log_mean: f64,
+        noise_log_std: f64,
+    ) -> Result<(Tensor, Tensor, Tensor)> {
+        let device = model.text.device();
+        let (path, seed) = self.key(&batch.provenance[i as usize]);
+        if let Ok(entries) = Tensor::read_safetensors(&path) {
+            let map: BTreeMap<String, Tensor> = entries.into_iter().collect();
+            if let (Some(m), Some(l), Some(c)) = (map.get("mean"), map.get("logvar"), map.get("condition")) {
+                return Ok((m.f_to_device(device)?, l.f_to_device(device)?, c.f_to_device(device)?));
+            }
+        }
+        tch::manual_seed(seed);
+        let target = batch.target.f_narrow(0, i, 1)?.f_to_device(device)?;
+        let condition = batch.condition.f_narrow(0, i, 1)?.f_to_device(device)?;
+        let sigma = (Tensor::f_randn([1], (Kind::Float, Device::Cpu))?.double_value(&[0]) * noise_log_std
+            + noise_log_mean)
+            .exp();
+        let noisy = condition.f_add(&condition.f_randn_like()?.f_mul_scalar(sigma)?)?;
+        let (posterior, cond) = tch::no_grad(|| -> Result<_> {
+            let posterior = model.vae.encode_posterior(&target)?;
+            let cond = model.vae.encode(&noisy)?;
+            Ok((posterior, cond))
+        })?;
+        let cond = model.scale_latent(&cond)?;
+        let temp = path.with_extension(format!("tmp-{}", std::process::id()));
+        Tensor::write_safetensors(
+            &[("mean", &posterior.mean), ("logvar", &posterior.logvar), ("condition", &cond)],
+            &temp,
+        )
+        .map_err(|e| Error::Safetensors { path: temp.clone(), reason: e.to_string() })?;
+        std::fs::rename(&temp, &path).map_err(|source| Error::Io { path: path.clone(), source })?;
+        Ok((posterior.mean, posterior.logvar, cond))
+    }
+}
 
 /// `state.json` of a checkpoint.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -565,6 +685,10 @@ pub fn pretrain(
     let mut loader = ShardLoader::open(shards, config.data.clone(), state.data_position)?;
     let mut last_checkpoint = latest.map(|(_, d)| d);
     let accumulation = config.optim.grad_accumulation;
+    let cache = match &config.train.latent_cache {
+        Some(dir) => Some(LatentCache::open(dir, &model, &config.data)?),
+        None => None,
+    };
     let mut validation: Option<Result<Batch>> = None;
     while state.step < config.train.steps {
         let started = Instant::now();
@@ -574,8 +698,12 @@ pub fn pretrain(
         let mut loss_sum = 0.0;
         for _ in 0..accumulation {
             let batch = loader.next_batch()?;
-            let loss =
-                model.loss(&batch, config.train.condition_noise_log_mean, config.train.condition_noise_log_std)?;
+            let loss = model.loss(
+                &batch,
+                config.train.condition_noise_log_mean,
+                config.train.condition_noise_log_std,
+                cache.as_ref(),
+            )?;
             let value = loss.double_value(&[]);
             if !value.is_finite() {
                 return Err(Error::InvalidArgument {

@@ -242,3 +242,27 @@ fn non_finite_loss_stops_naming_the_step_batch_and_last_checkpoint() {
     assert!(stderr.contains("synth/seq/") && stderr.contains("last good checkpoint: none"), "{stderr}");
     assert!(trainer::training::list_checkpoints(&out).is_empty(), "no checkpoint of a poisoned model");
 }
+
+#[test]
+fn latent_cache_gives_the_same_run_cold_and_warm() {
+    let dir = tempfile::tempdir().unwrap();
+    let shards = pairs(dir.path());
+    let cache = dir.path().join("latents");
+    let config_path = config(dir.path(), 6);
+    let toml = std::fs::read_to_string(&config_path).unwrap() + &format!("latent_cache = \"{}\"\n", cache.display());
+    std::fs::write(&config_path, toml).unwrap();
+    let timed = |out: &Path| {
+        let started = std::time::Instant::now();
+        ok(&pretrain(&config_path, &shards, out, false));
+        started.elapsed().as_secs_f64()
+    };
+    let (cold, warm) = (dir.path().join("cold"), dir.path().join("warm"));
+    let cold_seconds = timed(&cold);
+    let entries = std::fs::read_dir(&cache).unwrap().count();
+    let warm_seconds = timed(&warm);
+    println!("latent cache: {entries} entries; cold run {cold_seconds:.2} s, warm run {warm_seconds:.2} s");
+    assert!(entries > 0);
+    assert_eq!(std::fs::read_dir(&cache).unwrap().count(), entries, "a warm run adds nothing");
+    let losses = |run: &Path| read_metrics(run).unwrap().into_iter().map(|m| m.loss).collect::<Vec<_>>();
+    assert_eq!(losses(&cold), losses(&warm), "cached latents equal freshly encoded ones");
+}

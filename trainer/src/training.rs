@@ -641,6 +641,8 @@ pub fn pretrain(
     device: Device,
     mut progress: impl FnMut(&StepMetrics),
 ) -> Result<RunSummary> {
+    // Bad shard folders fail before the run folder is touched.
+    crate::data::describe(shards, &config.data)?;
     std::fs::create_dir_all(run).map_err(|source| Error::Io { path: run.to_path_buf(), source })?;
     let run_config = run.join("config.json");
     let text = serde_json::to_vec_pretty(config).expect("config serialises");

@@ -29,6 +29,7 @@ fn config(dir: &Path, steps: u64) -> PathBuf {
     let text = std::fs::read_to_string(repo_root().join("configs/pretrain_tiny.toml"))
         .unwrap()
         .replace("steps = 20", &format!("steps = {steps}"))
+        .replace("batch_size = 1 ", "batch_size = 2 ")
         .replace("checkpoint_every = 10", "checkpoint_every = 4")
         .replace("validate_every = 10", "validate_every = 4")
         .replace("validation_steps = 10", "validation_steps = 2");

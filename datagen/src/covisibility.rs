@@ -40,7 +40,7 @@ pub fn covisibility_mask(
     config: &CovisibilityConfig,
 ) -> Vec<bool> {
     let pixels = source.width as usize * source.height as usize;
-    let eye = novel.center();
+    let view = mesh.view(novel);
     let novel_from_world = novel.camera_from_world();
     let mut mask = vec![false; pixels];
     mask.par_chunks_mut(source.width as usize).enumerate().for_each(|(row, out)| {
@@ -55,7 +55,7 @@ pub fn covisibility_mask(
             if !novel.contains(glam::DVec2::new(pixel.x, pixel.y)) {
                 continue;
             }
-            *keep = !mesh.segment_blocked(eye, point, Some(index as u32), config.epsilon);
+            *keep = !view.segment_blocked(point, Some(index as u32), config.epsilon);
         }
     });
     mask

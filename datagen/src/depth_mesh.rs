@@ -1,5 +1,5 @@
-//! A depth map lifted to a triangle mesh in world space, with an obvhs BVH over it (DESIGN §4):
-//! two triangles per 2×2 pixel quad, vertices at pixel centres; triangles touching invalid depth
+//! A depth map lifted to a triangle mesh in world space, and the structures that answer ray
+//! queries against it exactly (DESIGN §4): two triangles per 2×2 pixel quad, vertices at pixel centres; triangles touching invalid depth
 //! are dropped, and so are those spanning a depth discontinuity (max/min depth of the quad above a
 //! ratio), which would otherwise be "rubber sheets" joining foreground and background.
 //!
@@ -8,7 +8,15 @@
 //! depth, modelling the unobserved space just behind a foreground edge as solid for a limited
 //! depth. Skirts block visibility rays but are never rendered. Thickness 0 is the plain cut mesh;
 //! a very large thickness approaches the uncut mesh.
+//!
+//! Queries run the obvhs ray/triangle test on the f32 triangles; what differs is how candidates
+//! are found (`accelerator`). The default exploits that the mesh is a regular grid seen from one
+//! camera: nothing generic is built per frame, a depth pyramid over the source image serves single
+//! rays ([`crate::depth_pyramid`]) and per-view triangle bins serve the batches of rays leaving a
+//! novel camera ([`crate::view_bins`]). The obvhs CWBVH over all triangles is the alternative.
+//! Every path equals a brute-force loop over all triangles (integration tests).
 
+use std::sync::OnceLock;
 use std::time::Duration;
 
 use glam::{DVec3, Vec3A};
@@ -22,6 +30,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::camera::PinholeCamera;
 use crate::depth_exr::DepthMap;
+use crate::depth_pyramid::DepthPyramid;
+use crate::view_bins::ViewBins;
 
 /// How the mesh is cut and how unobserved space is treated.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -34,11 +44,17 @@ pub struct MeshConfig {
     /// (0: plain cut mesh, gaps behind every edge). Keep it small (≤ 1): skirts reaching far
     /// behind the scene make degenerate triangles.
     pub occluder_thickness: f64,
+    /// The ray-query structure. Both give the same answers (the brute-force test checks each).
+    pub accelerator: Accelerator,
 }
 
 impl Default for MeshConfig {
     fn default() -> Self {
-        Self { discontinuity_ratio: 1.05, occluder_thickness: DEFAULT_OCCLUDER_THICKNESS }
+        Self {
+            discontinuity_ratio: 1.05,
+            occluder_thickness: DEFAULT_OCCLUDER_THICKNESS,
+            accelerator: Accelerator::default(),
+        }
     }
 }
 
@@ -47,82 +63,260 @@ impl Default for MeshConfig {
 /// IoU (0.985 → 0.987); thicker skirts lower false-keep further but cost more IoU than they gain.
 pub const DEFAULT_OCCLUDER_THICKNESS: f64 = 0.05;
 
-/// A triangle with the pixel indices of its vertices.
-type Corners = (Triangle, [u32; 3]);
+/// The structure that answers ray queries against a frame's mesh.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Accelerator {
+    /// Structures built on the image grids, in milliseconds: a quadtree with per-node depth
+    /// ranges over the source image ([`DepthPyramid`]) for single rays, and triangle bins over
+    /// each novel image ([`ViewBins`]) for the batches of rays leaving one novel camera.
+    #[default]
+    ImageGrids,
+    /// A generic obvhs compressed-wide BVH over the triangles (SAH build per frame); kept as the
+    /// reference the pyramid is compared with.
+    Cwbvh,
+}
 
 fn valid(depth: f32) -> bool {
     depth.is_finite() && depth > 0.0
 }
 
-/// The mesh of one frame and its BVH.
+/// The two triangles of a quad, as corner indices 0 = (u, v), 1 = (u+1, v), 2 = (u, v+1),
+/// 3 = (u+1, v+1).
+const SPLIT: [[usize; 3]; 2] = [[0, 1, 2], [1, 3, 2]];
+
+/// A quad with no triangles (a corner has invalid depth, or it spans an edge without a skirt).
+const NO_TRIANGLES: u32 = u32::MAX;
+/// A surface quad, whose triangles join its corners' surface points.
+const SURFACE: u32 = u32::MAX - 1;
+
+/// The ray-query structure of one mesh.
+enum Acceleration {
+    /// The source-image pyramid, built on the first single-ray query (the per-view batches use
+    /// [`ViewBins`] and never need it).
+    ImageGrids(Box<LazyPyramid>),
+    /// The BVH and, per BVH triangle pair (surface quads first, then skirts), its quad.
+    Cwbvh { bvh: CwBvh, triangles: Vec<Triangle>, quad_of: Vec<u32> },
+}
+
+/// A [`DepthPyramid`] built on first use, from the camera the mesh was lifted with.
+struct LazyPyramid {
+    pyramid: OnceLock<DepthPyramid>,
+    camera: PinholeCamera,
+}
+
+/// Per row of quads: whether each is a surface quad, and the row's skirts by column.
+type QuadRow = (Vec<bool>, Vec<(usize, [Triangle; 2])>);
+
+/// The mesh of one frame and its ray-query structure.
 pub struct DepthMesh {
     width: usize,
+    height: usize,
     /// World-space surface point of each pixel (None where depth is invalid).
     points: Vec<Option<DVec3>>,
-    triangles: Vec<Triangle>,
-    /// Per triangle: the pixel indices of its (original) vertices.
-    corners: Vec<[u32; 3]>,
-    /// Triangles `0..surface_triangles` are surface; the rest are occluder skirts.
-    surface_triangles: usize,
-    bvh: CwBvh,
+    /// The same points in f32, the triangles' corners (zero where depth is invalid).
+    vertices: Vec<Vec3A>,
+    /// Per pixel, the quad whose corner 0 it is (see [`SPLIT`]; none in the last column and row):
+    /// [`NO_TRIANGLES`], [`SURFACE`], or the index of its occluder-skirt triangles in `skirts`.
+    /// Quads are named by that pixel throughout.
+    quads: Vec<u32>,
+    skirts: Vec<[Triangle; 2]>,
+    surface_quads: usize,
+    /// The smallest valid depth.
+    nearest_depth: f64,
+    acceleration: Acceleration,
 }
 
 impl DepthMesh {
-    /// Lifts `depth` seen by `camera` into a mesh and builds its BVH.
+    /// Lifts `depth` seen by `camera` into a mesh and builds its ray-query structure.
     pub fn new(depth: &DepthMap, camera: &PinholeCamera, config: &MeshConfig) -> Self {
         let (width, height) = (depth.width, depth.height);
         let center = camera.center();
-        let rays: Vec<DVec3> =
-            (0..width * height).map(|i| camera.pixel_ray((i % width) as f64, (i / width) as f64)).collect();
-        let points: Vec<Option<DVec3>> =
-            depth.values.iter().zip(&rays).map(|(&d, ray)| valid(d).then(|| center + f64::from(d) * *ray)).collect();
-        let quads: Vec<(Vec<Corners>, Vec<Corners>)> = (0..height.saturating_sub(1))
+        // `camera.pixel_ray` with K inverted once.
+        let camera_from_pixel = camera.intrinsics.inverse();
+        let pixel_ray = |p: usize| {
+            let in_camera = camera_from_pixel * DVec3::new((p % width) as f64, (p / width) as f64, 1.0);
+            camera.world_from_camera.transform_vector3(in_camera)
+        };
+        let rays: Vec<DVec3> = (0..width * height).into_par_iter().map(pixel_ray).collect();
+        let points: Vec<Option<DVec3>> = depth
+            .values
+            .par_iter()
+            .zip(&rays)
+            .map(|(&d, ray)| valid(d).then(|| center + f64::from(d) * *ray))
+            .collect();
+        let vertices: Vec<Vec3A> = points.par_iter().map(|p| p.map_or(Vec3A::ZERO, to_vec3a)).collect();
+        // Per row of quads: each quad's kind, and the skirt triangles of the row.
+        let rows: Vec<QuadRow> = (0..height.saturating_sub(1))
             .into_par_iter()
             .map(|v| {
-                let (mut surface, mut skirts) = (Vec::new(), Vec::new());
-                for u in 0..width - 1 {
-                    let index = [v * width + u, v * width + u + 1, (v + 1) * width + u, (v + 1) * width + u + 1];
+                let (mut kinds, mut skirts) = (vec![false; width], Vec::new());
+                for (u, surface) in kinds.iter_mut().enumerate().take(width - 1) {
+                    let index = corner_indices(v * width + u, width);
                     let d = index.map(|i| depth.values[i]);
                     if !d.iter().all(|&x| valid(x)) {
                         continue;
                     }
                     let near = d.iter().copied().fold(f32::INFINITY, f32::min) as f64;
                     let far = d.iter().copied().fold(0.0f32, f32::max) as f64;
-                    // Two triangles per quad: (00, 10, 01) and (10, 11, 01).
-                    let split = [[0, 1, 2], [1, 3, 2]];
                     if far <= near * config.discontinuity_ratio {
-                        for tri in split {
-                            let p = tri.map(|k| points[index[k]].expect("valid depth"));
-                            surface.push((triangle(p), tri.map(|k| index[k] as u32)));
-                        }
+                        *surface = true;
                     } else if config.occluder_thickness > 0.0 {
                         let limit = near * (1.0 + config.occluder_thickness);
-                        for tri in split {
-                            let p = tri.map(|k| center + (d[k] as f64).min(limit) * rays[index[k]]);
-                            skirts.push((triangle(p), tri.map(|k| index[k] as u32)));
-                        }
+                        let skirt =
+                            SPLIT.map(|tri| triangle(tri.map(|k| center + (d[k] as f64).min(limit) * rays[index[k]])));
+                        skirts.push((u, skirt));
                     }
                 }
-                (surface, skirts)
+                (kinds, skirts)
             })
             .collect();
-        let mut triangles = Vec::new();
-        let mut corners = Vec::new();
-        for (surface, _) in &quads {
-            for (t, c) in surface {
-                triangles.push(*t);
-                corners.push(*c);
+        let mut quads = vec![NO_TRIANGLES; width * height];
+        let mut skirts = Vec::new();
+        for (v, (kinds, row_skirts)) in rows.into_iter().enumerate() {
+            for (u, surface) in kinds.into_iter().enumerate() {
+                if surface {
+                    quads[v * width + u] = SURFACE;
+                }
+            }
+            for (u, skirt) in row_skirts {
+                quads[v * width + u] = skirts.len() as u32;
+                skirts.push(skirt);
             }
         }
-        let surface_triangles = triangles.len();
-        for (_, skirts) in &quads {
-            for (t, c) in skirts {
-                triangles.push(*t);
-                corners.push(*c);
+        let surface_quads = quads.iter().filter(|&&q| q == SURFACE).count();
+        let nearest_depth = depth.values.iter().filter(|&&d| valid(d)).fold(f64::INFINITY, |a, &d| a.min(f64::from(d)));
+        let acceleration =
+            Acceleration::ImageGrids(Box::new(LazyPyramid { pyramid: OnceLock::new(), camera: *camera }));
+        let mut mesh =
+            Self { width, height, points, vertices, quads, skirts, surface_quads, nearest_depth, acceleration };
+        if config.accelerator == Accelerator::Cwbvh {
+            mesh.acceleration = mesh.cwbvh();
+        }
+        mesh
+    }
+
+    /// The quadtree over the quads, from each quad's source-camera depth range.
+    fn depth_pyramid(&self, camera: &PinholeCamera) -> DepthPyramid {
+        let camera_from_world = camera.camera_from_world();
+        let depth_of = |p: Vec3A| camera_from_world.transform_point3(p.as_dvec3()).z as f32;
+        let corner_depths: Vec<f32> = self.vertices.par_iter().map(|&p| depth_of(p)).collect();
+        let (quad_width, quad_height) = (self.width.saturating_sub(1), self.height.saturating_sub(1));
+        let ranges = (0..quad_width * quad_height)
+            .into_par_iter()
+            .map(|q| {
+                let quad = q + q / quad_width;
+                match self.quads[quad] {
+                    NO_TRIANGLES => [f32::INFINITY, f32::NEG_INFINITY],
+                    SURFACE => {
+                        let d = corner_indices(quad, self.width).map(|i| corner_depths[i]);
+                        [d.into_iter().fold(f32::INFINITY, f32::min), d.into_iter().fold(f32::NEG_INFINITY, f32::max)]
+                    }
+                    skirt => {
+                        let d = self.skirts[skirt as usize].map(|t| [t.v0, t.v1, t.v2].map(depth_of));
+                        let d = d.as_flattened();
+                        [
+                            d.iter().copied().fold(f32::INFINITY, f32::min),
+                            d.iter().copied().fold(f32::NEG_INFINITY, f32::max),
+                        ]
+                    }
+                }
+            })
+            .collect();
+        DepthPyramid::new(quad_width, quad_height, ranges, camera_from_world, camera.intrinsics)
+    }
+
+    /// The obvhs BVH over every triangle (surface first, then skirts).
+    fn cwbvh(&self) -> Acceleration {
+        let (mut triangles, mut quad_of) = (Vec::new(), Vec::new());
+        for want_skirts in [false, true] {
+            for quad in 0..self.quads.len() {
+                if let Some((skirt, pair)) = self.quad_triangles(quad)
+                    && skirt == want_skirts
+                {
+                    triangles.extend(pair);
+                    quad_of.push(quad as u32);
+                }
             }
         }
         let bvh = build_cwbvh_from_tris(&triangles, BvhBuildParams::fast_build(), &mut Duration::default());
-        Self { width, points, triangles, corners, surface_triangles, bvh }
+        Acceleration::Cwbvh { bvh, triangles, quad_of }
+    }
+
+    /// A quad's two triangles and whether they are a skirt; None for a quad without triangles.
+    fn quad_triangles(&self, quad: usize) -> Option<(bool, [Triangle; 2])> {
+        match self.quads[quad] {
+            NO_TRIANGLES => None,
+            SURFACE => {
+                let corners = corner_indices(quad, self.width).map(|i| self.vertices[i]);
+                Some((false, SPLIT.map(|t| Triangle { v0: corners[t[0]], v1: corners[t[1]], v2: corners[t[2]] })))
+            }
+            skirt => Some((true, self.skirts[skirt as usize])),
+        }
+    }
+
+    /// Whether triangle `half` of `quad` has pixel `exclude` as a corner.
+    fn has_corner(&self, quad: usize, half: usize, exclude: Option<u32>) -> bool {
+        exclude.is_some_and(|p| {
+            let corners = corner_indices(quad, self.width);
+            SPLIT[half].iter().any(|&k| corners[k] == p as usize)
+        })
+    }
+
+    /// The nearest hit distance of `ray` on a quad's triangles, +∞ for a miss; a quad without
+    /// triangles, a skirt unless `skirts`, and triangles with pixel `exclude` as a corner never hit.
+    fn hit_quad(&self, quad: usize, ray: &Ray, skirts: bool, exclude: Option<u32>) -> f32 {
+        let kind = self.quads[quad];
+        if kind == NO_TRIANGLES || (kind != SURFACE && !skirts) {
+            return f32::INFINITY;
+        }
+        let corners = corner_indices(quad, self.width);
+        let mut nearest = f32::INFINITY;
+        for (half, split) in SPLIT.iter().enumerate() {
+            if exclude.is_some_and(|p| split.iter().any(|&k| corners[k] == p as usize)) {
+                continue;
+            }
+            let triangle = if kind == SURFACE {
+                let [a, b, c] = split.map(|k| self.vertices[corners[k]]);
+                Triangle { v0: a, v1: b, v2: c }
+            } else {
+                self.skirts[kind as usize][half]
+            };
+            nearest = nearest.min(triangle.intersect(ray));
+        }
+        nearest
+    }
+
+    /// The mesh seen from a novel camera, for the batches of rays leaving its centre.
+    pub fn view(&self, novel: &PinholeCamera) -> MeshView<'_> {
+        let bins = matches!(self.acceleration, Acceleration::ImageGrids(_)).then(|| {
+            let novel_from_world = novel.camera_from_world();
+            // Pixel coordinates and depth in the novel camera (pixel coordinates are meaningless
+            // for depth ≤ 0, which the bins never project).
+            let project = |v: Vec3A| {
+                let in_novel = novel_from_world.transform_point3(v.as_dvec3());
+                let pixel = novel.intrinsics * (in_novel / in_novel.z);
+                DVec3::new(pixel.x, pixel.y, in_novel.z)
+            };
+            let projected: Vec<DVec3> = self.vertices.par_iter().map(|&v| project(v)).collect();
+            // One bin entry per quad: its two triangles share most of their footprint.
+            let corners = |quad: u32| {
+                let quad = quad as usize;
+                match self.quads[quad] {
+                    NO_TRIANGLES => None,
+                    SURFACE => Some(corner_indices(quad, self.width).map(|i| projected[i])),
+                    skirt => {
+                        let [a, b] = self.skirts[skirt as usize];
+                        // Corners 0..3 of the quad, pulled onto the skirt (see SPLIT).
+                        Some([a.v0, a.v1, a.v2, b.v1].map(project))
+                    }
+                }
+            };
+            let size = (novel.width as usize, novel.height as usize);
+            let count = self.quads.len() as u32;
+            ViewBins::new(count, corners, novel_from_world, novel.intrinsics, size, self.nearest_depth)
+        });
+        MeshView { mesh: self, eye: novel.center(), bins }
     }
 
     /// The surface point of pixel `index` (row-major), if its depth is valid.
@@ -137,59 +331,131 @@ impl DepthMesh {
 
     /// Number of surface and skirt triangles.
     pub fn triangle_counts(&self) -> (usize, usize) {
-        (self.surface_triangles, self.triangles.len() - self.surface_triangles)
+        (2 * self.surface_quads, 2 * self.skirts.len())
     }
 
     /// Whether any triangle (skirts included) other than those with pixel `exclude` as a corner
     /// crosses the segment from `from` to `to`, shortened by `epsilon` (relative) at `to`.
     pub fn segment_blocked(&self, from: DVec3, to: DVec3, exclude: Option<u32>, epsilon: f64) -> bool {
-        let offset = to - from;
-        let length = offset.length();
-        if length <= 0.0 {
-            return false;
-        }
-        let direction = offset / length;
-        let ray = Ray::new(to_vec3a(from), to_vec3a(direction), 0.0, (length * (1.0 - epsilon)) as f32);
-        let mut state = self.bvh.new_ray_traversal(ray);
-        let mut hit = RayHit::none();
-        self.bvh.ray_traverse_dynamic(&mut state, &mut hit, |ray, id| {
-            let triangle = self.bvh.primitive_indices[id] as usize;
-            if exclude.is_some_and(|p| self.corners[triangle].contains(&p)) {
-                return f32::INFINITY;
+        let Some(ray) = segment_ray(from, to, epsilon) else { return false };
+        match &self.acceleration {
+            Acceleration::ImageGrids(lazy) => {
+                let pyramid = lazy.pyramid.get_or_init(|| self.depth_pyramid(&lazy.camera));
+                // Hits at exactly the segment's end do not count, as in the BVH's traversal.
+                let hit = |u, v| {
+                    let t = self.hit_quad(v * self.width + u, &ray, true, exclude);
+                    if t < ray.tmax { t } else { f32::INFINITY }
+                };
+                pyramid
+                    .traverse(world_of(ray.origin), world_of(ray.direction), f64::from(ray.tmax), true, hit)
+                    .is_some()
             }
-            self.triangles[triangle].intersect(ray)
-        })
-    }
-
-    /// Whether the segment between two points crosses the surface (skirts included).
-    pub fn occluded(&self, from: DVec3, to: DVec3) -> bool {
-        self.segment_blocked(from, to, None, 0.0)
+            Acceleration::Cwbvh { bvh, triangles, quad_of } => {
+                let mut state = bvh.new_ray_traversal(ray);
+                let mut hit = RayHit::none();
+                bvh.ray_traverse_dynamic(&mut state, &mut hit, |ray, id| {
+                    let triangle = bvh.primitive_indices[id] as usize;
+                    if self.has_corner(quad_of[triangle / 2] as usize, triangle % 2, exclude) {
+                        return f32::INFINITY;
+                    }
+                    triangles[triangle].intersect(ray)
+                })
+            }
+        }
     }
 
     /// The first surface triangle (skirts ignored) hit by the ray: distance along the unit
     /// `direction`.
     pub fn first_surface_hit(&self, origin: DVec3, direction: DVec3) -> Option<f64> {
         let ray = Ray::new_inf(to_vec3a(origin), to_vec3a(direction));
-        let mut hit = RayHit::none();
-        let found = self.bvh.ray_traverse(ray, &mut hit, |ray, id| {
-            let triangle = self.bvh.primitive_indices[id] as usize;
-            if triangle >= self.surface_triangles { f32::INFINITY } else { self.triangles[triangle].intersect(ray) }
-        });
-        found.then_some(f64::from(hit.t))
+        match &self.acceleration {
+            Acceleration::ImageGrids(lazy) => {
+                let pyramid = lazy.pyramid.get_or_init(|| self.depth_pyramid(&lazy.camera));
+                let hit = |u, v| self.hit_quad(v * self.width + u, &ray, false, None);
+                pyramid
+                    .traverse(world_of(ray.origin), world_of(ray.direction), f64::INFINITY, false, hit)
+                    .map(f64::from)
+            }
+            Acceleration::Cwbvh { bvh, triangles, .. } => {
+                let surface_triangles = 2 * self.surface_quads;
+                let mut hit = RayHit::none();
+                let found = bvh.ray_traverse(ray, &mut hit, |ray, id| {
+                    let triangle = bvh.primitive_indices[id] as usize;
+                    if triangle >= surface_triangles { f32::INFINITY } else { triangles[triangle].intersect(ray) }
+                });
+                found.then_some(f64::from(hit.t))
+            }
+        }
     }
 
     /// Brute-force version of [`DepthMesh::segment_blocked`] over every triangle, for tests.
     pub fn segment_blocked_brute_force(&self, from: DVec3, to: DVec3, exclude: Option<u32>, epsilon: f64) -> bool {
-        let offset = to - from;
-        let length = offset.length();
-        if length <= 0.0 {
-            return false;
-        }
-        let ray = Ray::new(to_vec3a(from), to_vec3a(offset / length), 0.0, (length * (1.0 - epsilon)) as f32);
-        self.triangles.iter().zip(&self.corners).any(|(triangle, corners)| {
-            !exclude.is_some_and(|p| corners.contains(&p)) && triangle.intersect(&ray) < ray.tmax
-        })
+        let Some(ray) = segment_ray(from, to, epsilon) else { return false };
+        (0..self.quads.len()).any(|quad| self.hit_quad(quad, &ray, true, exclude) < ray.tmax)
     }
+
+    /// Brute-force version of [`DepthMesh::first_surface_hit`] over every triangle, for tests.
+    pub fn first_surface_hit_brute_force(&self, origin: DVec3, direction: DVec3) -> Option<f64> {
+        let ray = Ray::new_inf(to_vec3a(origin), to_vec3a(direction));
+        let nearest =
+            (0..self.quads.len()).map(|quad| self.hit_quad(quad, &ray, false, None)).fold(f32::INFINITY, f32::min);
+        nearest.is_finite().then_some(f64::from(nearest))
+    }
+}
+
+/// Pixel indices of the corners of the quad whose corner 0 is pixel `quad` (see [`SPLIT`]).
+fn corner_indices(quad: usize, width: usize) -> [usize; 4] {
+    [quad, quad + 1, quad + width, quad + width + 1]
+}
+
+/// The f32 ray of a visibility segment: from `from` towards `to`, ending `epsilon` (relative)
+/// short of it. None for a zero-length segment.
+fn segment_ray(from: DVec3, to: DVec3, epsilon: f64) -> Option<Ray> {
+    let offset = to - from;
+    let length = offset.length();
+    (length > 0.0).then(|| Ray::new(to_vec3a(from), to_vec3a(offset / length), 0.0, (length * (1.0 - epsilon)) as f32))
+}
+
+/// A depth mesh seen from one novel camera ([`DepthMesh::view`]): the same answers as the mesh's
+/// own queries from the camera's centre, faster for whole images of rays.
+pub struct MeshView<'a> {
+    mesh: &'a DepthMesh,
+    eye: DVec3,
+    /// None with the BVH accelerator, which serves every ray alike.
+    bins: Option<ViewBins>,
+}
+
+impl MeshView<'_> {
+    /// Bin entries and unbinned primitives of the per-view bins (None with the BVH).
+    pub fn bin_sizes(&self) -> Option<(usize, usize)> {
+        self.bins.as_ref().map(ViewBins::sizes)
+    }
+
+    /// [`DepthMesh::segment_blocked`] from the camera's centre to `to`.
+    pub fn segment_blocked(&self, to: DVec3, exclude: Option<u32>, epsilon: f64) -> bool {
+        let fallback = || self.mesh.segment_blocked(self.eye, to, exclude, epsilon);
+        let Some(bins) = &self.bins else { return fallback() };
+        let Some(ray) = segment_ray(self.eye, to, epsilon) else { return false };
+        bins.any_towards(to, |quad| self.mesh.hit_quad(quad as usize, &ray, true, exclude) < ray.tmax)
+            .unwrap_or_else(fallback)
+    }
+
+    /// [`DepthMesh::first_surface_hit`] from the camera's centre along the unit `direction`.
+    pub fn first_surface_hit(&self, direction: DVec3) -> Option<f64> {
+        let fallback = || self.mesh.first_surface_hit(self.eye, direction);
+        let Some(bins) = &self.bins else { return fallback() };
+        let ray = Ray::new_inf(to_vec3a(self.eye), to_vec3a(direction));
+        let nearest =
+            bins.nearest_towards(self.eye + direction, |quad| self.mesh.hit_quad(quad as usize, &ray, false, None));
+        match nearest {
+            Some(t) => t.is_finite().then_some(f64::from(t)),
+            None => fallback(),
+        }
+    }
+}
+
+fn world_of(v: Vec3A) -> DVec3 {
+    v.as_dvec3()
 }
 
 fn to_vec3a(v: DVec3) -> Vec3A {

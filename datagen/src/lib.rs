@@ -11,6 +11,7 @@ pub mod covisibility;
 pub mod depth_exr;
 pub mod depth_mesh;
 pub mod depth_noise;
+pub mod depth_pyramid;
 pub mod error;
 pub mod inspect;
 pub mod npy;
@@ -21,5 +22,6 @@ pub mod static_background;
 pub mod synth;
 pub mod trajectory;
 pub mod video;
+pub mod view_bins;
 
 pub use error::{Error, Result};

@@ -35,11 +35,12 @@ pub fn render_novel_view(
 ) -> (RgbImage, GrayImage) {
     let (width, height) = (novel.width as usize, novel.height as usize);
     let eye = novel.center();
+    let view = mesh.view(novel);
     let colours: Vec<Option<Rgb<u8>>> = (0..width * height)
         .into_par_iter()
         .map(|i| {
             let direction = novel.pixel_ray((i % width) as f64, (i / width) as f64).normalize();
-            let distance = mesh.first_surface_hit(eye, direction)?;
+            let distance = view.first_surface_hit(direction)?;
             let (pixel, _) = source.project(eye + direction * distance)?;
             Some(bilinear(frame, pixel))
         })

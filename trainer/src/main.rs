@@ -186,12 +186,22 @@ fn main() -> anyhow::Result<()> {
     }
 }
 
-fn run_finetune(args: FinetuneArgs) -> anyhow::Result<()> {
-    let device = forward::parse_device(&args.device)?;
-    let bar = indicatif::ProgressBar::new(args.steps).with_style(
+/// The progress bar of a training run: steps, loss and speed, ETA.
+fn step_bar(steps: u64) -> indicatif::ProgressBar {
+    indicatif::ProgressBar::new(steps).with_style(
         indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} steps {msg} [{elapsed_precise}, eta {eta}]")
             .expect("valid template"),
-    );
+    )
+}
+
+fn show_step(bar: &indicatif::ProgressBar, m: &trainer::training::StepMetrics) {
+    bar.set_position(m.step);
+    bar.set_message(format!("loss {:.4}, {:.2} step/s", m.loss, 1.0 / m.seconds.max(1e-9)));
+}
+
+fn run_finetune(args: FinetuneArgs) -> anyhow::Result<()> {
+    let device = forward::parse_device(&args.device)?;
+    let bar = step_bar(args.steps);
     let request = trainer::training::FinetuneRequest {
         init: args.init,
         sequence: args.sequence,
@@ -200,10 +210,7 @@ fn run_finetune(args: FinetuneArgs) -> anyhow::Result<()> {
         trajectories: args.trajectories,
         config: args.config,
     };
-    let summary = trainer::training::finetune(&request, device, |m| {
-        bar.set_position(m.step);
-        bar.set_message(format!("loss {:.4}, {:.2} step/s", m.loss, 1.0 / m.seconds.max(1e-9)));
-    })?;
+    let summary = trainer::training::finetune(&request, device, |m| show_step(&bar, m))?;
     bar.finish_and_clear();
     println!(
         "finetuned {} steps into {}; checkpoint: {}",
@@ -244,14 +251,8 @@ fn run_pretrain(args: PretrainArgs) -> anyhow::Result<()> {
     use trainer::training;
     let config = training::PretrainConfig::from_toml_file(&args.config)?;
     let device = forward::parse_device(&args.device)?;
-    let bar = indicatif::ProgressBar::new(config.train.steps).with_style(
-        indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} steps {msg} [{elapsed_precise}, eta {eta}]")
-            .expect("valid template"),
-    );
-    let summary = training::pretrain(&config, &args.shards, &args.out, args.resume, device, |m| {
-        bar.set_position(m.step);
-        bar.set_message(format!("loss {:.4}, {:.2} step/s", m.loss, 1.0 / m.seconds.max(1e-9)));
-    })?;
+    let bar = step_bar(config.train.steps);
+    let summary = training::pretrain(&config, &args.shards, &args.out, args.resume, device, |m| show_step(&bar, m))?;
     bar.finish_and_clear();
     println!(
         "trained steps {}..{} into {}; last checkpoint: {}",

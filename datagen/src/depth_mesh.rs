@@ -31,7 +31,7 @@ use serde::{Deserialize, Serialize};
 use crate::camera::PinholeCamera;
 use crate::depth_exr::DepthMap;
 use crate::depth_pyramid::DepthPyramid;
-use crate::view_bins::ViewBins;
+use crate::view_bins::{self, ViewBins};
 
 /// How the mesh is cut and how unobserved space is treated.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -289,7 +289,7 @@ impl DepthMesh {
 
     /// The mesh seen from a novel camera, for the batches of rays leaving its centre.
     pub fn view(&self, novel: &PinholeCamera) -> MeshView<'_> {
-        let bins = matches!(self.acceleration, Acceleration::ImageGrids(_)).then(|| {
+        let projection = matches!(self.acceleration, Acceleration::ImageGrids(_)).then(|| {
             let novel_from_world = novel.camera_from_world();
             // Pixel coordinates and depth in the novel camera (pixel coordinates are meaningless
             // for depth ≤ 0, which the bins never project).
@@ -314,9 +314,24 @@ impl DepthMesh {
             };
             let size = (novel.width as usize, novel.height as usize);
             let count = self.quads.len() as u32;
-            ViewBins::new(count, corners, novel_from_world, novel.intrinsics, size, self.nearest_depth)
+            let bins = ViewBins::new(count, corners, novel_from_world, novel.intrinsics, size, self.nearest_depth);
+            // Per surface quad: whether its diagonal separates corners 0 and 3 in the image.
+            let diagonal_separates = (0..self.quads.len())
+                .into_par_iter()
+                .map(|quad| {
+                    self.quads[quad] == SURFACE && {
+                        let c = corner_indices(quad, self.width).map(|i| projected[i]);
+                        let [c0, c1, c2, c3] = c.map(|p| p.truncate());
+                        // Twice the margin covers the f32 rounding of the corners' positions.
+                        c.iter().all(|p| p.z > 0.0)
+                            && view_bins::line_separates(c1, c2, c0, c3, 2.0)
+                            && view_bins::line_separates(c1, c2, c3, c0, 2.0)
+                    }
+                })
+                .collect();
+            Projection { bins, diagonal_separates }
         });
-        MeshView { mesh: self, eye: novel.center(), bins }
+        MeshView { mesh: self, eye: novel.center(), projection }
     }
 
     /// The surface point of pixel `index` (row-major), if its depth is valid.
@@ -422,31 +437,54 @@ pub struct MeshView<'a> {
     mesh: &'a DepthMesh,
     eye: DVec3,
     /// None with the BVH accelerator, which serves every ray alike.
-    bins: Option<ViewBins>,
+    projection: Option<Projection>,
+}
+
+/// The per-view structures of the image-grid accelerator.
+struct Projection {
+    bins: ViewBins,
+    /// Per surface quad (by its corner-0 pixel): whether, in the novel image, the diagonal shared
+    /// by its two triangles separates corners 0 and 3 beyond the bins' margin. Then neither corner
+    /// can be hidden by the quad's triangle opposite it ([`view_bins::line_separates`]). A source
+    /// point's own four quads always reach its bin and its two opposite triangles would otherwise
+    /// be most of the exact tests.
+    diagonal_separates: Vec<bool>,
 }
 
 impl MeshView<'_> {
     /// Bin entries and unbinned primitives of the per-view bins (None with the BVH).
     pub fn bin_sizes(&self) -> Option<(usize, usize)> {
-        self.bins.as_ref().map(ViewBins::sizes)
+        self.projection.as_ref().map(|p| p.bins.sizes())
     }
 
     /// [`DepthMesh::segment_blocked`] from the camera's centre to `to`.
     pub fn segment_blocked(&self, to: DVec3, exclude: Option<u32>, epsilon: f64) -> bool {
         let fallback = || self.mesh.segment_blocked(self.eye, to, exclude, epsilon);
-        let Some(bins) = &self.bins else { return fallback() };
+        let Some(projection) = &self.projection else { return fallback() };
         let Some(ray) = segment_ray(self.eye, to, epsilon) else { return false };
-        bins.any_towards(to, |quad| self.mesh.hit_quad(quad as usize, &ray, true, exclude) < ray.tmax)
-            .unwrap_or_else(fallback)
+        // The four quads around the excluded pixel reach its bin for every view. It is corner 1
+        // or 2 of two of them and in both their triangles; corner 0 or 3 of the other two and in
+        // one triangle, the other one missed if their diagonal separates them.
+        let width = self.mesh.width as u32;
+        let (both, one) = match exclude {
+            Some(p) => ([p.wrapping_sub(1), p.wrapping_sub(width)], [p, p.wrapping_sub(width + 1)]),
+            None => ([u32::MAX; 2], [u32::MAX; 2]),
+        };
+        let blocks = |quad: u32, binned: bool| {
+            let skipped =
+                both.contains(&quad) || (binned && one.contains(&quad) && projection.diagonal_separates[quad as usize]);
+            !skipped && self.mesh.hit_quad(quad as usize, &ray, true, exclude) < ray.tmax
+        };
+        projection.bins.any_towards(to, blocks).unwrap_or_else(fallback)
     }
 
     /// [`DepthMesh::first_surface_hit`] from the camera's centre along the unit `direction`.
     pub fn first_surface_hit(&self, direction: DVec3) -> Option<f64> {
         let fallback = || self.mesh.first_surface_hit(self.eye, direction);
-        let Some(bins) = &self.bins else { return fallback() };
+        let Some(projection) = &self.projection else { return fallback() };
         let ray = Ray::new_inf(to_vec3a(self.eye), to_vec3a(direction));
-        let nearest =
-            bins.nearest_towards(self.eye + direction, |quad| self.mesh.hit_quad(quad as usize, &ray, false, None));
+        let hit = |quad: u32| self.mesh.hit_quad(quad as usize, &ray, false, None);
+        let nearest = projection.bins.nearest_towards(self.eye + direction, hit);
         match nearest {
             Some(t) => t.is_finite().then_some(f64::from(t)),
             None => fallback(),

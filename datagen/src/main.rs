@@ -171,7 +171,13 @@ fn pairs(args: PairsArgs) -> anyhow::Result<()> {
     };
     config.depth_noise.enabled |= args.depth_noise || args.second_depth.is_some();
     let started = std::time::Instant::now();
-    let mut sequence = datagen::sequence::read_sequence(&args.seq_dir)?;
+    // The input's content hash (for the stats marker) is taken while the sequence is read.
+    let (sequence, content_hash) = rayon::join(
+        || datagen::sequence::read_sequence(&args.seq_dir),
+        || datagen::corpus::build::hash_tree(&args.seq_dir),
+    );
+    let mut sequence = sequence?;
+    let input = schemas::InputDigest { source_path: args.seq_dir.display().to_string(), content_hash: content_hash? };
     let second_depth =
         args.second_depth.clone().or_else(|| config.depth_noise.second_depth_path(&args.dataset, &sequence.source_id));
     if let Some(path) = second_depth.filter(|_| config.depth_noise.enabled) {
@@ -188,17 +194,11 @@ fn pairs(args: PairsArgs) -> anyhow::Result<()> {
     let (records, times) =
         datagen::pairs::generate_clips_timed(&sequence, &args.dataset, &config, &request, args.seed)?;
     let clock = std::time::Instant::now();
-    let input = schemas::InputDigest {
-        source_path: args.seq_dir.display().to_string(),
-        content_hash: datagen::corpus::build::hash_tree(&args.seq_dir)?,
-    };
-    let hash_seconds = clock.elapsed().as_secs_f64();
-    let clock = std::time::Instant::now();
     let (path, stats) = datagen::pairs::write_shard(&args.out, &sequence.source_id, &records, input)?;
     if args.timings {
         eprintln!(
-            "timings: read+decode {read_seconds:.3} s, per-frame phase {:.3} s wall \
-             (CPU: mesh build {:.3} s, view bins + rays {:.3} s, encode {:.3} s), input hash {hash_seconds:.3} s, shard write {:.3} s",
+            "timings: read+decode+hash {read_seconds:.3} s, per-frame phase {:.3} s wall \
+             (CPU: mesh build {:.3} s, view bins + rays {:.3} s, encode {:.3} s), shard write {:.3} s",
             times.masks_and_encode,
             times.mesh_build,
             times.ray_cpu,

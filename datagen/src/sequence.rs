@@ -228,8 +228,11 @@ struct Reconstruction {
 
 fn read_cog_nvs(dir: &Path) -> Result<Parts> {
     let video_path = dir.join("gt_rgb.mp4");
-    let video = crate::video::decode_video(&video_path)?;
-    assemble(video.fps, video.frames, &video_path, cog_nvs_reconstruction(dir)?)
+    // Decoding is mostly serial: read the reconstruction meanwhile.
+    let (video, reconstruction) =
+        rayon::join(|| crate::video::decode_video(&video_path), || cog_nvs_reconstruction(dir));
+    let video = video?;
+    assemble(video.fps, video.frames, &video_path, reconstruction?)
 }
 
 /// Reads the reconstruction at `reconstruction` (a cog-nvs folder with `cam_info/`, a MegaSAM
@@ -370,8 +373,10 @@ fn read_generic(dir: &Path) -> Result<Parts> {
             .into_iter()
             .next()
             .ok_or_else(|| Error::invalid(dir, "frames", "no frames/ folder and no video file"))?;
-        let decoded = crate::video::decode_video(&video)?;
-        (decoded.fps, decoded.frames, video)
+        let (decoded, reconstruction) =
+            rayon::join(|| crate::video::decode_video(&video), || generic_reconstruction(dir));
+        let decoded = decoded?;
+        return assemble(decoded.fps, decoded.frames, &video, reconstruction?);
     };
     assemble(fps, frames, &frames_source, generic_reconstruction(dir)?)
 }

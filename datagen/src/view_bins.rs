@@ -133,7 +133,8 @@ impl ViewBins {
             return None;
         }
         let p = self.intrinsics * (in_novel / in_novel.z);
-        let (x, y) = ((p.x + 0.5).floor(), (p.y + 0.5).floor());
+        let (x, y) = (p.x + 0.5, p.y + 0.5);
+        // Pixel k owns [k − 0.5, k + 0.5): truncation is floor for the non-negative values kept.
         let inside = x >= 0.0 && y >= 0.0 && x < self.width as f64 && y < self.height as f64;
         inside.then(|| (DVec2::new(p.x, p.y), y as usize * self.width + x as usize, in_novel.z))
     }
@@ -148,18 +149,20 @@ impl ViewBins {
         })
     }
 
-    /// Calls `test(id)` for each primitive that may cross the segment from the camera's centre
-    /// to `point`, until it returns true; whether it did. None when `point` is outside the image
-    /// or behind the camera (not binned).
-    pub fn any_towards(&self, point: DVec3, test: impl FnMut(u32) -> bool) -> Option<bool> {
+    /// Calls `test(id, binned)` for each primitive that may cross the segment from the camera's
+    /// centre to `point`, until it returns true; whether it did. `binned` is false for the
+    /// primitives tested by every ray. None when `point` is outside the image or behind the
+    /// camera (not binned).
+    pub fn any_towards(&self, point: DVec3, mut test: impl FnMut(u32, bool) -> bool) -> Option<bool> {
         let (pixel, bin, depth) = self.bin_of(point)?;
         let limit = depth * (1.0 + DEPTH_SLACK);
-        Some(self.candidates(bin, pixel, limit).chain(self.everywhere.iter().copied()).any(test))
+        let binned = self.candidates(bin, pixel, limit).any(|id| test(id, true));
+        Some(binned || self.everywhere.iter().any(|&id| test(id, false)))
     }
 
     /// The nearest of `hit(id)` (a ray distance, +∞ for a miss) over the primitives that may
     /// cross the ray through `point`. None when `point` is not binned (see [`Self::any_towards`]).
-    pub fn nearest_towards(&self, point: DVec3, hit: impl FnMut(u32) -> f32) -> Option<f32> {
+    pub fn nearest_towards(&self, point: DVec3, hit: impl Fn(u32) -> f32) -> Option<f32> {
         let (pixel, bin, _) = self.bin_of(point)?;
         let candidates = self.candidates(bin, pixel, f64::INFINITY).chain(self.everywhere.iter().copied());
         Some(candidates.map(hit).fold(f32::INFINITY, f32::min))
@@ -168,5 +171,42 @@ impl ViewBins {
     /// Number of bin entries, and of primitives tested by every ray.
     pub fn sizes(&self) -> (usize, usize) {
         (self.ids.len(), self.everywhere.len())
+    }
+}
+
+/// Whether the line through `a` and `b` (pixel coordinates) has `point` farther than
+/// `margins` × [`MARGIN_PIXELS`] on one side and `other` on the other side or on the line. A
+/// binned triangle with edge a–b and third corner `other` then cannot be hit by a ray through the
+/// image point `point` (the margin argument of the module documentation, which makes the bins'
+/// boxes exact, holds for any separating line).
+pub fn line_separates(a: DVec2, b: DVec2, point: DVec2, other: DVec2, margins: f64) -> bool {
+    let edge = b - a;
+    let (point_side, other_side) = (edge.perp_dot(point - a), edge.perp_dot(other - a));
+    // |edge|₁ ≥ |edge|₂: a conservative distance bound without a square root.
+    let margin = margins * MARGIN_PIXELS * (edge.x.abs() + edge.y.abs());
+    (point_side > margin && other_side <= 0.0) || (point_side < -margin && other_side >= 0.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_line_separates_only_beyond_the_margin_and_with_the_triangle_on_the_other_side() {
+        let (a, b) = (DVec2::new(0.0, 0.0), DVec2::new(1.0, 1.0));
+        let (left, right) = (DVec2::new(0.0, 1.0), DVec2::new(1.0, 0.0));
+        assert!(line_separates(a, b, left, right, 1.0));
+        assert!(line_separates(a, b, right, left, 1.0));
+        // Third corner on the line: the triangle is degenerate but still on one side.
+        assert!(line_separates(a, b, left, DVec2::new(2.0, 2.0), 1.0));
+        // Both on the same side: no separation.
+        assert!(!line_separates(a, b, left, DVec2::new(0.2, 0.9), 1.0));
+        // Within the margin of the line (0.05 px; the bound uses |edge|₁ = 2, so ≈ 0.07 px).
+        let close = DVec2::new(0.5, 0.5) + DVec2::new(-1.0, 1.0).normalize() * 0.06;
+        assert!(!line_separates(a, b, close, right, 1.0));
+        let far = DVec2::new(0.5, 0.5) + DVec2::new(-1.0, 1.0).normalize() * 0.08;
+        assert!(line_separates(a, b, far, right, 1.0));
+        // A zero-length edge separates nothing.
+        assert!(!line_separates(a, a, left, right, 1.0));
     }
 }

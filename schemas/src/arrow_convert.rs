@@ -4,8 +4,8 @@ use std::path::Path;
 use std::sync::Arc;
 
 use arrow::array::{
-    Array, ArrayRef, AsArray, FixedSizeListArray, Float64Array, LargeBinaryArray, ListArray, RecordBatch, StringArray,
-    StructArray, UInt32Array, UInt64Array,
+    Array, ArrayRef, AsArray, FixedSizeListArray, Float64Array, LargeBinaryBuilder, ListArray, RecordBatch,
+    StringArray, StructArray, UInt32Array, UInt64Array,
 };
 use arrow::buffer::{NullBuffer, OffsetBuffer};
 use arrow::datatypes::{DataType, FieldRef, Float64Type, SchemaRef, UInt32Type, UInt64Type};
@@ -27,7 +27,11 @@ fn offsets<I: IntoIterator<Item = usize>>(lengths: I) -> OffsetBuffer<i32> {
 
 /// `list<large_binary>` from per-row byte lists; a `None` row is null.
 fn bytes_list(data_type: &DataType, rows: &[Option<&[Vec<u8>]>]) -> Result<ListArray, arrow::error::ArrowError> {
-    let values = LargeBinaryArray::from_iter_values(rows.iter().flatten().flat_map(|row| row.iter()));
+    // Sized up front: the frames of a clip are tens of megabytes, copied once.
+    let items = || rows.iter().flatten().flat_map(|row| row.iter());
+    let mut values = LargeBinaryBuilder::with_capacity(items().count(), items().map(Vec::len).sum());
+    items().for_each(|item| values.append_value(item));
+    let values = values.finish();
     let nulls = rows.iter().any(Option::is_none).then(|| NullBuffer::from_iter(rows.iter().map(Option::is_some)));
     let lengths = rows.iter().map(|row| row.map_or(0, <[Vec<u8>]>::len));
     ListArray::try_new(item_field(data_type), offsets(lengths), Arc::new(values), nulls)

@@ -918,6 +918,11 @@ impl AutoencoderKLCogVideoX {
         &self.config
     }
 
+    /// The element type of the weights, which inputs must have.
+    pub fn kind(&self) -> Kind {
+        self.weight_probe.kind()
+    }
+
     /// Turns spatial tiling on for frames larger than a tile (diffusers' `enable_tiling`).
     pub fn enable_tiling(&mut self, tiling: TilingConfig) -> Result<()> {
         tiling.validate(self.config.spatial_compression_ratio())?;

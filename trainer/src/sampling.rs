@@ -215,7 +215,8 @@ pub fn sample(request: &SampleRequest) -> Result<SampleReport> {
 
 /// Generates a video `[1, 3, F, H, W]` in [-1, 1] for a conditioning video of the same shape:
 /// encode, DPM denoising with guidance against `negative` (when given), decode. Draws from tch's
-/// global generator.
+/// global generator. The models run in their weights' element type (the transformer's must be
+/// the VAE's); the scheduler and the returned video are fp32.
 pub fn generate(
     model: &CogVideoXTransformer3DModel,
     vae_model: &AutoencoderKLCogVideoX,
@@ -229,14 +230,21 @@ pub fn generate(
     let device = text.device();
     tch::no_grad(|| -> Result<Tensor> {
         let scale = vae_model.config().scaling_factor;
-        let cond = vae_model.encode(condition)?.f_mul_scalar(scale)?.f_permute([0, 2, 1, 3, 4])?.f_contiguous()?;
-        let mut latents = cond.f_randn_like()?.f_narrow(2, 0, config.output_channels())?.f_contiguous()?;
+        let kind = vae_model.kind();
+        let cond = vae_model
+            .encode(&condition.f_to_kind(kind)?)?
+            .f_mul_scalar(scale)?
+            .f_permute([0, 2, 1, 3, 4])?
+            .f_contiguous()?;
+        let mut latents =
+            cond.f_randn_like()?.f_narrow(2, 0, config.output_channels())?.f_to_kind(Kind::Float)?.f_contiguous()?;
+        let (text, negative) = (text.f_to_kind(kind)?, negative.map(|n| n.f_to_kind(kind)).transpose()?);
         let mut scheduler = CogVideoXDPMScheduler::new(&CogVideoXSchedulerConfig::cogvideox_5b())?;
         scheduler.set_timesteps(steps)?;
         let timesteps = scheduler.timesteps().to_vec();
         let mut old_pred: Option<Tensor> = None;
         for (i, &t) in timesteps.iter().enumerate() {
-            let input = Tensor::f_cat(&[&latents, &cond], 2)?;
+            let input = Tensor::f_cat(&[&latents.f_to_kind(kind)?, &cond], 2)?;
             let timestep = Tensor::from_slice(&[t]).f_to_device(device)?;
             let run = |text: &Tensor| {
                 model.forward(
@@ -250,9 +258,9 @@ pub fn generate(
                     false,
                 )
             };
-            let mut v = run(text)?;
-            if let Some(negative) = negative {
-                let v_uncond = run(negative)?;
+            let mut v = run(&text)?.f_to_kind(Kind::Float)?;
+            if let Some(negative) = &negative {
+                let v_uncond = run(negative)?.f_to_kind(Kind::Float)?;
                 v = v_uncond.f_add(&v.f_sub(&v_uncond)?.f_mul_scalar(guidance)?)?;
             }
             let back = if i > 0 { Some(timesteps[i - 1]) } else { None };
@@ -260,8 +268,8 @@ pub fn generate(
             latents = out.prev_sample;
             old_pred = Some(out.pred_original_sample);
         }
-        let latent = latents.f_permute([0, 2, 1, 3, 4])?.f_div_scalar(scale)?;
-        vae_model.decode(&latent)
+        let latent = latents.f_permute([0, 2, 1, 3, 4])?.f_div_scalar(scale)?.f_to_kind(kind)?;
+        Ok(vae_model.decode(&latent)?.f_to_kind(Kind::Float)?)
     })
 }
 

@@ -117,6 +117,35 @@ pub struct LoopConfig {
     pub validation_steps: usize,
     /// A folder caching VAE latents per pair (see [`LatentCache`]); none when unset.
     pub latent_cache: Option<PathBuf>,
+    /// Arithmetic of the transformer and the VAE.
+    pub precision: Precision,
+}
+
+/// Training arithmetic.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum Precision {
+    /// bf16 on CUDA, fp32 elsewhere (CPUs have no fast bf16 kernels).
+    #[default]
+    Auto,
+    /// Weights, activations and gradients in fp32.
+    Fp32,
+    /// Mixed precision: weights, activations and gradients in bf16 (half the memory, tensor-core
+    /// speed); fp32 master weights, optimizer moments, noise schedule and loss. Checkpoints hold
+    /// the fp32 master weights. bf16 keeps fp32's exponent range, so no loss scaling is needed
+    /// (fp16's overflows are what turn into NaN losses).
+    Bf16,
+}
+
+impl Precision {
+    /// The element type of the models' weights on `device`.
+    pub fn kind(self, device: Device) -> Kind {
+        match self {
+            Self::Auto if device.is_cuda() => Kind::BFloat16,
+            Self::Auto | Self::Fp32 => Kind::Float,
+            Self::Bf16 => Kind::BFloat16,
+        }
+    }
 }
 
 impl Default for LoopConfig {
@@ -131,6 +160,7 @@ impl Default for LoopConfig {
             validate_every: 0,
             validation_steps: 20,
             latent_cache: None,
+            precision: Precision::Auto,
         }
     }
 }
@@ -186,13 +216,17 @@ impl PretrainConfig {
 // ------------------------------------------------------------------------------------------------
 
 /// PyTorch's `torch.optim.AdamW` (decoupled weight decay, bias correction), with its moments in
-/// tensors that checkpoints save and load.
+/// tensors that checkpoints save and load. For mixed precision it keeps fp32 master weights:
+/// updates apply to them (with fp32 gradients and moments) and are copied, rounded, into the
+/// low-precision parameters.
 pub struct AdamW {
     config: OptimConfig,
     params: Vec<(String, Tensor)>,
     exp_avg: Vec<Tensor>,
     exp_avg_sq: Vec<Tensor>,
     step: u64,
+    /// fp32 master copies of `params` when those are kept in lower precision.
+    master: Option<Vec<Tensor>>,
 }
 
 impl AdamW {
@@ -203,7 +237,26 @@ impl AdamW {
         let zeros = |p: &Tensor| p.zeros_like();
         let exp_avg = params.iter().map(|(_, p)| zeros(p)).collect();
         let exp_avg_sq = params.iter().map(|(_, p)| zeros(p)).collect();
-        Self { config, params, exp_avg, exp_avg_sq, step: 0 }
+        Self { config, params, exp_avg, exp_avg_sq, step: 0, master: None }
+    }
+
+    /// Keeps fp32 master copies of the parameters, which must still be fp32: call before the
+    /// model is cast to a lower precision.
+    pub fn keep_master_weights(&mut self) -> Result<()> {
+        if let Some((name, p)) = self.params.iter().find(|(_, p)| p.kind() != Kind::Float) {
+            return Err(Error::InvalidArgument {
+                name: "precision".to_string(),
+                reason: format!("master weights are taken from fp32 parameters; {name} is {:?}", p.kind()),
+            });
+        }
+        self.master = Some(tch::no_grad(|| self.params.iter().map(|(_, p)| p.detach().copy()).collect()));
+        Ok(())
+    }
+
+    /// The fp32 master weights by variable name, when kept.
+    pub fn master_weights(&self) -> Option<Vec<(String, Tensor)>> {
+        let master = self.master.as_ref()?;
+        Some(self.params.iter().zip(master).map(|((name, _), m)| (name.clone(), m.shallow_clone())).collect())
     }
 
     /// Zeroes every gradient.
@@ -248,12 +301,15 @@ impl AdamW {
         let bias1 = 1.0 - c.beta1.powi(self.step as i32);
         let bias2 = 1.0 - c.beta2.powi(self.step as i32);
         tch::no_grad(|| -> Result<()> {
-            for (i, (_, p)) in self.params.iter().enumerate() {
-                let grad = p.grad();
+            for (i, (_, param)) in self.params.iter().enumerate() {
+                let grad = param.grad();
                 if !grad.defined() {
                     continue;
                 }
-                let mut p = p.shallow_clone();
+                let (mut p, grad) = match &self.master {
+                    Some(master) => (master[i].shallow_clone(), grad.f_to_kind(Kind::Float)?),
+                    None => (param.shallow_clone(), grad),
+                };
                 let _ = p.f_mul_scalar_(1.0 - lr * c.weight_decay)?;
                 let _ = self.exp_avg[i].f_mul_scalar_(c.beta1)?.f_add_(&grad.f_mul_scalar(1.0 - c.beta1)?)?;
                 let _ = self.exp_avg_sq[i]
@@ -261,6 +317,9 @@ impl AdamW {
                     .f_add_(&grad.f_square()?.f_mul_scalar(1.0 - c.beta2)?)?;
                 let denom = self.exp_avg_sq[i].f_sqrt()?.f_div_scalar(bias2.sqrt())?.f_add_scalar(c.eps)?;
                 let _ = p.f_sub_(&self.exp_avg[i].f_div(&denom)?.f_mul_scalar(lr / bias1)?)?;
+                if self.master.is_some() {
+                    param.shallow_clone().f_copy_(&p)?;
+                }
             }
             Ok(())
         })
@@ -337,8 +396,10 @@ pub struct CogNvsModel {
     pub vae: AutoencoderKLCogVideoX,
     /// The training noise schedule (CogVideoX-5B scheduler).
     pub schedule: NoiseSchedule,
-    /// `[1, S, D]` text embedding of the empty prompt.
+    /// `[1, S, D]` text embedding of the empty prompt (fp32).
     pub text: Tensor,
+    /// Element type of both models' weights and of their inputs.
+    kind: Kind,
 }
 
 impl CogNvsModel {
@@ -364,12 +425,28 @@ impl CogNvsModel {
         vae_vs.freeze();
         let text = crate::sampling::load_text_embedding(config.text_embedding.as_deref(), &transformer_config, device)?;
         let schedule = NoiseSchedule::new(&CogVideoXSchedulerConfig::cogvideox_5b())?;
-        Ok(Self { vs, transformer, vae_vs, vae, schedule, text })
+        Ok(Self { vs, transformer, vae_vs, vae, schedule, text, kind: Kind::Float })
     }
 
-    /// Scaled latents `[B, F', C, h, w]` of a video batch `[B, 3, F, H, W]` (a posterior sample).
+    /// Casts both models' weights to `kind` (fp32 as loaded; bf16 for mixed precision, after the
+    /// optimizer has taken its master copies).
+    pub fn set_kind(&mut self, kind: Kind) {
+        self.vs.set_kind(kind);
+        self.vae_vs.set_kind(kind);
+        self.kind = kind;
+    }
+
+    /// Element type of the models' weights.
+    pub fn kind(&self) -> Kind {
+        self.kind
+    }
+
+    /// Scaled fp32 latents `[B, F', C, h, w]` of a video batch `[B, 3, F, H, W]` (a posterior
+    /// sample).
     pub fn encode(&self, video: &Tensor) -> Result<Tensor> {
-        let latent = tch::no_grad(|| -> Result<Tensor> { self.vae.encode_posterior(video)?.sample() })?;
+        let latent = tch::no_grad(|| -> Result<Tensor> {
+            Ok(self.vae.encode_posterior(&video.f_to_kind(self.kind)?)?.sample()?.f_to_kind(Kind::Float)?)
+        })?;
         self.scale_latent(&latent)
     }
 
@@ -411,10 +488,11 @@ impl CogNvsModel {
                 }
                 tch::manual_seed(resume_seed);
                 for (mean, logvar, condition) in posteriors {
+                    let (mean, logvar) = (mean.f_to_kind(Kind::Float)?, logvar.f_to_kind(Kind::Float)?);
                     let std = logvar.f_mul_scalar(0.5)?.f_exp()?;
                     let sample = mean.f_add(&std.f_mul(&mean.f_randn_like()?)?)?;
                     x0.push(self.scale_latent(&sample)?);
-                    cond.push(condition);
+                    cond.push(condition.f_to_kind(Kind::Float)?);
                 }
                 (Tensor::f_cat(&x0, 0)?, Tensor::f_cat(&cond, 0)?)
             }
@@ -423,18 +501,21 @@ impl CogNvsModel {
         let t = Tensor::f_randint(steps, [b], (Kind::Int64, device))?;
         let noise = x0.f_randn_like()?;
         let xt = self.schedule.add_noise(&x0, &noise, &t)?;
-        let input = Tensor::f_cat(&[&xt, &cond], 2)?;
-        let text = self.text.f_expand([b, -1, -1], false)?;
-        let v = self.transformer.forward(
-            &TransformerInput {
-                hidden_states: &input,
-                encoder_hidden_states: &text,
-                timestep: &t,
-                ofs: None,
-                image_rotary_emb: None,
-            },
-            true,
-        )?;
+        let input = Tensor::f_cat(&[&xt, &cond], 2)?.f_to_kind(self.kind)?;
+        let text = self.text.f_to_kind(self.kind)?.f_expand([b, -1, -1], false)?;
+        let v = self
+            .transformer
+            .forward(
+                &TransformerInput {
+                    hidden_states: &input,
+                    encoder_hidden_states: &text,
+                    timestep: &t,
+                    ofs: None,
+                    image_rotary_emb: None,
+                },
+                true,
+            )?
+            .f_to_kind(Kind::Float)?;
         let alphas: Vec<f64> =
             (0..b).map(|i| self.schedule.alpha_cumprod_at(t.int64_value(&[i]))).collect::<Result<_>>()?;
         let per_sample = |f: fn(f64) -> f64| -> Result<Tensor> {
@@ -517,7 +598,8 @@ impl LatentCache {
         let sigma = (Tensor::f_randn([1], (Kind::Float, Device::Cpu))?.double_value(&[0]) * noise_log_std
             + noise_log_mean)
             .exp();
-        let noisy = condition.f_add(&condition.f_randn_like()?.f_mul_scalar(sigma)?)?;
+        let noisy = condition.f_add(&condition.f_randn_like()?.f_mul_scalar(sigma)?)?.f_to_kind(model.kind)?;
+        let target = target.f_to_kind(model.kind)?;
         let (posterior, cond) = tch::no_grad(|| -> Result<_> {
             let posterior = model.vae.encode_posterior(&target)?;
             let cond = model.vae.encode(&noisy)?;
@@ -582,8 +664,15 @@ fn save_checkpoint(
     };
     let _ = std::fs::remove_dir_all(&temp);
     std::fs::create_dir_all(&temp).map_err(io(&temp))?;
-    weights::save(
-        &model.vs,
+    // fp32 throughout: a mixed-precision run's master weights replace its bf16 parameters.
+    let mut variables: BTreeMap<String, Tensor> = model.vs.variables().into_iter().collect();
+    variables.extend(optimizer.master_weights().into_iter().flatten());
+    let variables = variables
+        .into_iter()
+        .map(|(name, t)| Ok((name, if t.is_floating_point() { t.f_to_kind(Kind::Float)? } else { t })))
+        .collect::<Result<_>>()?;
+    weights::save_tensors(
+        variables,
         model.transformer.config(),
         transformer::CLASS_NAME,
         &temp.join("transformer"),
@@ -658,7 +747,7 @@ pub fn pretrain(
     }
     std::fs::write(&run_config, text).map_err(|source| Error::Io { path: run_config.clone(), source })?;
 
-    let model = CogNvsModel::load(&config.model, config.train.seed, device)?;
+    let mut model = CogNvsModel::load(&config.model, config.train.seed, device)?;
     // The frozen VAE goes with the run once (sampling and finetuning find it there).
     let vae_dir = run.join("vae");
     if !vae_dir.join("config.json").exists() {
@@ -676,6 +765,12 @@ pub fn pretrain(
             field: "(json)".to_string(),
             reason: e.to_string(),
         })?;
+    }
+    let kind = config.train.precision.kind(device);
+    if kind != Kind::Float {
+        // Mixed precision: the optimizer keeps the fp32 weights (as initialised or resumed).
+        optimizer.keep_master_weights()?;
+        model.set_kind(kind);
     }
     let resumed_from = state.step;
     rewrite_metrics(run, resumed_from)?;
@@ -899,4 +994,67 @@ pub fn finetune(request: &FinetuneRequest, device: Device, progress: impl FnMut(
     // Small test videos have few clips: never ask for more per batch than there are.
     config.data.batch_size = config.data.batch_size.min(records.len()).max(1);
     pretrain(&config, &[pairs_dir], run, false, device, progress)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A var store with one trainable `[4, 3]` variable holding `values`, and that variable.
+    fn store(values: &Tensor) -> (nn::VarStore, Tensor) {
+        let vs = nn::VarStore::new(Device::Cpu);
+        let w = vs.root().var_copy("w", values);
+        (vs, w)
+    }
+
+    /// Mixed precision updates the fp32 master exactly as fp32 AdamW would with the same
+    /// (bf16-rounded) gradients, and the bf16 parameter is the master rounded.
+    #[test]
+    fn adamw_master_weights_follow_the_fp32_update() {
+        tch::manual_seed(3);
+        let init = Tensor::randn([4, 3], (Kind::Float, Device::Cpu));
+        let config = OptimConfig { weight_decay: 0.01, ..OptimConfig::default() };
+        let (reference_vs, reference) = store(&init);
+        let mut reference_optimizer = AdamW::new(&reference_vs, config.clone());
+        let (mut mixed_vs, mixed) = store(&init);
+        let mut mixed_optimizer = AdamW::new(&mixed_vs, config);
+        mixed_optimizer.keep_master_weights().unwrap();
+        mixed_vs.set_kind(Kind::BFloat16);
+        assert_eq!(mixed.kind(), Kind::BFloat16);
+        for step in 0..3 {
+            let target = Tensor::randn([4, 3], (Kind::Float, Device::Cpu));
+            reference_optimizer.zero_grad();
+            mixed_optimizer.zero_grad();
+            // The same loss; the reference sees the gradient the bf16 parameter receives.
+            let loss = |w: &Tensor| w.to_kind(Kind::Float).f_sub(&target).unwrap().square().sum(Kind::Float);
+            loss(&mixed).backward();
+            // d/dw Σ w·g = g: the reference's gradient is the mixed one, exactly.
+            let gradient = mixed.grad().to_kind(Kind::Float);
+            reference.f_mul(&gradient).unwrap().sum(Kind::Float).backward();
+            reference_optimizer.step(1e-2).unwrap();
+            mixed_optimizer.step(1e-2).unwrap();
+            let master = &mixed_optimizer.master_weights().unwrap()[0].1;
+            assert!(master.equal(&reference), "step {step}: master differs from the fp32 update");
+            assert!(
+                mixed.equal(&reference.to_kind(Kind::BFloat16)),
+                "step {step}: parameter is not the rounded master"
+            );
+        }
+    }
+
+    #[test]
+    fn master_weights_must_come_from_fp32_parameters() {
+        let (mut vs, _) = store(&Tensor::zeros([4, 3], (Kind::Float, Device::Cpu)));
+        vs.set_kind(Kind::BFloat16);
+        let mut optimizer = AdamW::new(&vs, OptimConfig::default());
+        assert!(optimizer.keep_master_weights().is_err());
+    }
+
+    #[test]
+    fn auto_precision_is_bf16_on_cuda_only() {
+        assert_eq!(Precision::Auto.kind(Device::Cpu), Kind::Float);
+        assert_eq!(Precision::Auto.kind(Device::Cuda(0)), Kind::BFloat16);
+        assert_eq!(Precision::Bf16.kind(Device::Cpu), Kind::BFloat16);
+        assert_eq!(Precision::Fp32.kind(Device::Cuda(0)), Kind::Float);
+    }
 }

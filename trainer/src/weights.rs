@@ -403,6 +403,18 @@ pub fn save<C: Serialize>(
     dir: &Path,
     max_shard_bytes: u64,
 ) -> Result<()> {
+    save_tensors(vs.variables().into_iter().collect(), config, class_name, dir, max_shard_bytes)
+}
+
+/// [`save`] for named tensors (a store's variables with some replaced, such as the fp32 master
+/// weights of a bf16 training run).
+pub fn save_tensors<C: Serialize>(
+    variables: BTreeMap<String, Tensor>,
+    config: &C,
+    class_name: &str,
+    dir: &Path,
+    max_shard_bytes: u64,
+) -> Result<()> {
     std::fs::create_dir_all(dir).map_err(|source| Error::Io { path: dir.to_path_buf(), source })?;
     let mut json = serde_json::to_value(config)
         .map_err(|e| Error::InvalidArgument { name: "config".to_string(), reason: format!("cannot serialise: {e}") })?;
@@ -413,7 +425,6 @@ pub fn save<C: Serialize>(
     let text = serde_json::to_string_pretty(&json).expect("a JSON value serialises");
     schemas::shard::write_atomic(&dir.join("config.json"), text.as_bytes())?;
 
-    let variables: BTreeMap<String, Tensor> = vs.variables().into_iter().collect();
     let mut shards: Vec<Vec<(String, Tensor)>> = vec![Vec::new()];
     let mut shard_bytes = 0u64;
     let mut total = 0u64;

@@ -365,20 +365,22 @@ struct CamerasJson {
 
 fn read_generic(dir: &Path) -> Result<Parts> {
     let frames_dir = dir.join("frames");
-    let (fps, frames, frames_source) = if frames_dir.is_dir() {
-        let files = with_extension(&frames_dir, &["png", "jpg", "jpeg"])?;
-        (0.0, read_frames(&files)?, frames_dir.clone())
-    } else {
+    let read_frames_or_video = || -> Result<(f64, Vec<RgbImage>, PathBuf)> {
+        if frames_dir.is_dir() {
+            let files = with_extension(&frames_dir, &["png", "jpg", "jpeg"])?;
+            return Ok((0.0, read_frames(&files)?, frames_dir.clone()));
+        }
         let video = with_extension(dir, &["mp4", "mov", "mkv", "avi", "webm"])?
             .into_iter()
             .next()
             .ok_or_else(|| Error::invalid(dir, "frames", "no frames/ folder and no video file"))?;
-        let (decoded, reconstruction) =
-            rayon::join(|| crate::video::decode_video(&video), || generic_reconstruction(dir));
-        let decoded = decoded?;
-        return assemble(decoded.fps, decoded.frames, &video, reconstruction?);
+        let decoded = crate::video::decode_video(&video)?;
+        Ok((decoded.fps, decoded.frames, video))
     };
-    assemble(fps, frames, &frames_source, generic_reconstruction(dir)?)
+    // Decoding is mostly serial: read the reconstruction meanwhile.
+    let (frames, reconstruction) = rayon::join(read_frames_or_video, || generic_reconstruction(dir));
+    let (fps, frames, frames_source) = frames?;
+    assemble(fps, frames, &frames_source, reconstruction?)
 }
 
 fn generic_reconstruction(dir: &Path) -> Result<Reconstruction> {

@@ -1,0 +1,87 @@
+//! Checkpoints: `RUN/checkpoints/step-NNNNNNNN/` with the transformer in the diffusers layout,
+//! the optimizer state and `state.json`, written under a temporary name and renamed.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+use tch::{Kind, Tensor};
+
+use super::{AdamW, CogNvsModel};
+use crate::cogvideox_transformer_3d as transformer;
+use crate::data::DataPosition;
+use crate::error::{Error, Result};
+use crate::weights;
+
+/// `state.json` of a checkpoint.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainState {
+    /// Optimizer steps done.
+    pub step: u64,
+    /// The data position of the next batch.
+    pub data_position: DataPosition,
+    /// The run seed.
+    pub seed: u64,
+}
+
+fn checkpoints_dir(run: &Path) -> PathBuf {
+    run.join("checkpoints")
+}
+
+/// The checkpoints of a run, oldest first.
+pub fn list_checkpoints(run: &Path) -> Vec<(u64, PathBuf)> {
+    let mut found: Vec<(u64, PathBuf)> = std::fs::read_dir(checkpoints_dir(run))
+        .into_iter()
+        .flatten()
+        .filter_map(|e| e.ok())
+        .filter_map(|e| {
+            let name = e.file_name().to_string_lossy().into_owned();
+            let step = name.strip_prefix("step-")?.parse().ok()?;
+            e.path().join("state.json").is_file().then(|| (step, e.path()))
+        })
+        .collect();
+    found.sort();
+    found
+}
+
+pub(super) fn save_checkpoint(
+    run: &Path,
+    model: &CogNvsModel,
+    optimizer: &AdamW,
+    state: &TrainState,
+    keep: usize,
+) -> Result<PathBuf> {
+    let dir = checkpoints_dir(run);
+    let final_dir = dir.join(format!("step-{:08}", state.step));
+    let temp = dir.join(format!(".tmp-step-{:08}", state.step));
+    let io = |path: &Path| {
+        let path = path.to_path_buf();
+        move |source| Error::Io { path, source }
+    };
+    let _ = std::fs::remove_dir_all(&temp);
+    std::fs::create_dir_all(&temp).map_err(io(&temp))?;
+    // fp32 throughout: a mixed-precision run's master weights replace its bf16 parameters.
+    let mut variables: BTreeMap<String, Tensor> = model.vs.variables().into_iter().collect();
+    variables.extend(optimizer.master_weights().into_iter().flatten());
+    let variables = variables
+        .into_iter()
+        .map(|(name, t)| Ok((name, if t.is_floating_point() { t.f_to_kind(Kind::Float)? } else { t })))
+        .collect::<Result<_>>()?;
+    weights::save_tensors(
+        variables,
+        model.transformer.config(),
+        transformer::CLASS_NAME,
+        &temp.join("transformer"),
+        weights::DEFAULT_MAX_SHARD_BYTES,
+    )?;
+    optimizer.save(&temp.join("optimizer.safetensors"))?;
+    let json = serde_json::to_vec_pretty(state).expect("state serialises");
+    std::fs::write(temp.join("state.json"), json).map_err(io(&temp))?;
+    let _ = std::fs::remove_dir_all(&final_dir);
+    std::fs::rename(&temp, &final_dir).map_err(io(&final_dir))?;
+    let all = list_checkpoints(run);
+    for (_, old) in all.iter().take(all.len().saturating_sub(keep)) {
+        let _ = std::fs::remove_dir_all(old);
+    }
+    Ok(final_dir)
+}

@@ -1,0 +1,75 @@
+//! `trainer finetune`: test-time finetuning on one video (DESIGN §1).
+
+use std::path::PathBuf;
+
+use tch::Device;
+
+use super::{PretrainConfig, RunSummary, StepMetrics, pretrain};
+use crate::error::{Error, Result};
+
+/// What `trainer finetune` trains.
+#[derive(Debug, Clone)]
+pub struct FinetuneRequest {
+    /// Checkpoint to start from.
+    pub init: PathBuf,
+    /// The test video's sequence folder.
+    pub sequence: PathBuf,
+    /// Run folder.
+    pub out: PathBuf,
+    /// Optimizer steps.
+    pub steps: u64,
+    /// Sampled trajectories per clip.
+    pub trajectories: u32,
+    /// Training TOML overriding the init run's settings.
+    pub config: Option<PathBuf>,
+}
+
+/// `trainer finetune`: test-time finetuning on one video (DESIGN §1). Its self-supervised pairs
+/// are built in-process with the `datagen` library (clips of the training length, back to back,
+/// `trajectories` sampled paths each) into `RUN/pairs/`, then the transformer of checkpoint
+/// `init` is trained on them for `steps` steps with the init run's settings (its `config.json`,
+/// or `config` when given) and the init run's VAE. Checkpoints and metrics go to `run`.
+pub fn finetune(request: &FinetuneRequest, device: Device, progress: impl FnMut(&StepMetrics)) -> Result<RunSummary> {
+    let FinetuneRequest { init, sequence: sequence_dir, out: run, steps, trajectories, config } = request;
+    let (steps, trajectories) = (*steps, *trajectories);
+    let mut config = match config {
+        Some(path) => PretrainConfig::from_toml_file(path)?,
+        None => {
+            let path = init.join("../../config.json");
+            let text = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), source })?;
+            serde_json::from_str(&text).map_err(|e| Error::InvalidConfig {
+                source_name: path.display().to_string(),
+                field: "(json)".to_string(),
+                reason: e.to_string(),
+            })?
+        }
+    };
+    if run.join("config.json").exists() {
+        return Err(Error::InvalidArgument {
+            name: "out".to_string(),
+            reason: format!("{} already holds a run; choose another folder", run.display()),
+        });
+    }
+    config.model.transformer = crate::sampling::transformer_dir(init).display().to_string();
+    config.model.vae = crate::sampling::find_vae(init, None)?.display().to_string();
+    config.train.steps = steps;
+    config.train.checkpoint_every = config.train.checkpoint_every.min(steps.max(1));
+
+    let sequence = datagen::sequence::read_sequence(sequence_dir)?;
+    let frames = config.data.frames as u32;
+    let pairs_config = datagen::pairs::PairsConfig {
+        clip: datagen::pairs::ClipConfig { length: frames, stride: frames, max_clips: 0 },
+        ..Default::default()
+    };
+    let request = datagen::pairs::TrajectoryRequest { sampled: trajectories, explicit: Vec::new() };
+    let records = datagen::pairs::generate_clips(&sequence, "finetune", &pairs_config, &request, config.data.seed)?;
+    let digest = schemas::InputDigest {
+        source_path: sequence_dir.display().to_string(),
+        content_hash: datagen::corpus::build::hash_tree(sequence_dir)?,
+    };
+    let pairs_dir = run.join("pairs");
+    datagen::pairs::write_shard(&pairs_dir, &sequence.source_id, &records, digest)?;
+    // Small test videos have few clips: never ask for more per batch than there are.
+    config.data.batch_size = config.data.batch_size.min(records.len()).max(1);
+    pretrain(&config, &[pairs_dir], run, false, device, progress)
+}

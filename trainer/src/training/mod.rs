@@ -1,0 +1,43 @@
+//! Pretraining the CogNVS transformer on shard pairs (DESIGN §6): the objective, AdamW, the
+//! learning-rate schedule, gradient clipping and accumulation, checkpoints that resume exactly,
+//! and the `trainer pretrain` loop.
+//!
+//! Objective (the public CogNVS code): the target clip is VAE-encoded (a posterior sample ×
+//! `scaling_factor`); the conditioning clip is noise-augmented with σ = exp(N(μ, s)) per sample
+//! (μ = −3, s = 0.5) before encoding; the noisy target latent at a uniform timestep t and the
+//! condition latent are concatenated on channels; the transformer predicts v, from which
+//! x̂₀ = √ᾱ_t·x_t − √(1−ᾱ_t)·v̂; the loss is mean((x̂₀ − x₀)² / (1−ᾱ_t)). The VAE is frozen.
+//! The text input is a fixed embedding of the empty prompt: loaded from a safetensors file
+//! (`encoder_hidden_states` `[S, D]`, e.g. T5-XXL's encoding of "" for the real model) or zeros.
+//!
+//! Determinism: every random draw of step k comes from tch's generator seeded with
+//! (seed, k), and batches are a pure function of the data position, so a run resumed from a
+//! checkpoint reproduces the uninterrupted run's losses exactly (fp32, same machine and threads).
+//!
+//! Checkpoints: `RUN_DIR/checkpoints/step-NNNNNNNN/` holds `transformer/` (diffusers layout,
+//! loadable by `from_pretrained`), `optimizer.safetensors` (AdamW moments) and `state.json`
+//! (step, data position); written under a temporary name and renamed, the oldest beyond
+//! `keep_last` removed. With `validate_every`, validation samples go to `RUN_DIR/samples/`. The frozen VAE is saved once as `RUN_DIR/vae/` and the run's config as
+//! `RUN_DIR/config.json`. `RUN_DIR/metrics.jsonl` has one line per step.
+//!
+//! One file per part: `config` (the TOML), `adamw` (optimizer), `lr_schedule`,
+//! `objective` (models and loss), `latent_cache`, `checkpoint`, `pretrain` (the loop) and
+//! `finetune`.
+
+mod adamw;
+mod checkpoint;
+mod config;
+mod finetune;
+mod latent_cache;
+mod lr_schedule;
+mod objective;
+mod pretrain;
+
+pub use adamw::AdamW;
+pub use checkpoint::{TrainState, list_checkpoints};
+pub use config::{LoopConfig, ModelConfig, OptimConfig, Precision, PretrainConfig};
+pub use finetune::{FinetuneRequest, finetune};
+pub use latent_cache::LatentCache;
+pub use lr_schedule::learning_rate;
+pub use objective::CogNvsModel;
+pub use pretrain::{RunSummary, StepMetrics, pretrain, read_metrics};

@@ -1,0 +1,163 @@
+//! The trained and frozen models and the CogNVS objective (DESIGN §6): noise-augmented
+//! condition, v-prediction, x̂₀ loss weighted by 1/(1−ᾱ_t).
+
+use std::path::Path;
+
+use tch::{Device, Kind, Tensor, nn};
+
+use super::{LatentCache, ModelConfig};
+use crate::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoX, AutoencoderKLCogVideoXConfig};
+use crate::cogvideox_transformer_3d::{
+    self as transformer, CogVideoXTransformer3DModel, CogVideoXTransformer3DModelConfig, TransformerInput,
+};
+use crate::data::Batch;
+use crate::diffusers_config::DiffusersConfig;
+use crate::error::Result;
+use crate::scheduling_ddim::{CogVideoXSchedulerConfig, NoiseSchedule};
+use crate::weights;
+
+/// The trained transformer, the frozen VAE, the noise schedule and the text input.
+pub struct CogNvsModel {
+    /// The transformer's variables.
+    pub vs: nn::VarStore,
+    /// The transformer.
+    pub transformer: CogVideoXTransformer3DModel,
+    /// The VAE's variables (frozen).
+    pub vae_vs: nn::VarStore,
+    /// The VAE.
+    pub vae: AutoencoderKLCogVideoX,
+    /// The training noise schedule (CogVideoX-5B scheduler).
+    pub schedule: NoiseSchedule,
+    /// `[1, S, D]` text embedding of the empty prompt (fp32).
+    pub text: Tensor,
+    /// Element type of both models' weights and of their inputs.
+    pub(super) kind: Kind,
+}
+
+impl CogNvsModel {
+    /// Builds (preset names, random init from `seed`) or loads (model folders) the models.
+    pub fn load(config: &ModelConfig, seed: u64, device: Device) -> Result<Self> {
+        tch::manual_seed(seed as i64);
+        let transformer_config = match Path::new(&config.transformer) {
+            p if p.is_dir() || p.is_file() => CogVideoXTransformer3DModelConfig::from_json_file(p)?,
+            _ => CogVideoXTransformer3DModelConfig::preset(&config.transformer)?,
+        };
+        let (vs, transformer) = transformer::build(&transformer_config, device, Kind::Float)?;
+        if Path::new(&config.transformer).is_dir() {
+            weights::load(&vs, Path::new(&config.transformer))?;
+        }
+        let vae_config = match Path::new(&config.vae) {
+            p if p.is_dir() => AutoencoderKLCogVideoXConfig::from_json_file(p)?,
+            _ => AutoencoderKLCogVideoXConfig::preset(&config.vae)?,
+        };
+        let (mut vae_vs, vae) = vae::build(&vae_config, device, Kind::Float)?;
+        if Path::new(&config.vae).is_dir() {
+            weights::load(&vae_vs, Path::new(&config.vae))?;
+        }
+        vae_vs.freeze();
+        let text = crate::sampling::load_text_embedding(config.text_embedding.as_deref(), &transformer_config, device)?;
+        let schedule = NoiseSchedule::new(&CogVideoXSchedulerConfig::cogvideox_5b())?;
+        Ok(Self { vs, transformer, vae_vs, vae, schedule, text, kind: Kind::Float })
+    }
+
+    /// Casts both models' weights to `kind` (fp32 as loaded; bf16 for mixed precision, after the
+    /// optimizer has taken its master copies).
+    pub fn set_kind(&mut self, kind: Kind) {
+        self.vs.set_kind(kind);
+        self.vae_vs.set_kind(kind);
+        self.kind = kind;
+    }
+
+    /// Element type of the models' weights.
+    pub fn kind(&self) -> Kind {
+        self.kind
+    }
+
+    /// Scaled fp32 latents `[B, F', C, h, w]` of a video batch `[B, 3, F, H, W]` (a posterior
+    /// sample).
+    pub fn encode(&self, video: &Tensor) -> Result<Tensor> {
+        let latent = tch::no_grad(|| -> Result<Tensor> {
+            Ok(self.vae.encode_posterior(&video.f_to_kind(self.kind)?)?.sample()?.f_to_kind(Kind::Float)?)
+        })?;
+        self.scale_latent(&latent)
+    }
+
+    /// A VAE latent `[B, C, F', h, w]` scaled and laid out for the transformer `[B, F', C, h, w]`.
+    pub(super) fn scale_latent(&self, latent: &Tensor) -> Result<Tensor> {
+        Ok(latent.f_mul_scalar(self.vae.config().scaling_factor)?.f_permute([0, 2, 1, 3, 4])?.f_contiguous()?)
+    }
+
+    /// The training loss of one batch (see the module docs); draws from tch's generator. With a
+    /// latent cache, the VAE runs only for samples not cached yet (see [`LatentCache`]).
+    pub fn loss(
+        &self,
+        batch: &Batch,
+        noise_log_mean: f64,
+        noise_log_std: f64,
+        cache: Option<&LatentCache>,
+    ) -> Result<Tensor> {
+        let device = self.text.device();
+        let b = batch.target.size()[0];
+        let (x0, cond) = match cache {
+            None => {
+                let target = batch.target.f_to_device(device)?;
+                let condition = batch.condition.f_to_device(device)?;
+                let sigma = (Tensor::f_randn([b, 1, 1, 1, 1], (Kind::Float, device))? * noise_log_std + noise_log_mean)
+                    .f_exp()?;
+                let noisy_condition = condition.f_add(&condition.f_randn_like()?.f_mul(&sigma)?)?;
+                (self.encode(&target)?, self.encode(&noisy_condition)?)
+            }
+            Some(cache) => {
+                // Cache look-ups and fills draw from their own seeds; the step's generator state is
+                // saved around them by reseeding with a draw taken before.
+                let resume_seed = Tensor::f_randint(i64::MAX, [1], (Kind::Int64, Device::Cpu))?.int64_value(&[0]);
+                let mut x0 = Vec::new();
+                let mut cond = Vec::new();
+                let mut posteriors = Vec::new();
+                for i in 0..b {
+                    let entry = cache.get_or_encode(self, batch, i, noise_log_mean, noise_log_std)?;
+                    posteriors.push(entry);
+                }
+                tch::manual_seed(resume_seed);
+                for (mean, logvar, condition) in posteriors {
+                    let (mean, logvar) = (mean.f_to_kind(Kind::Float)?, logvar.f_to_kind(Kind::Float)?);
+                    let std = logvar.f_mul_scalar(0.5)?.f_exp()?;
+                    let sample = mean.f_add(&std.f_mul(&mean.f_randn_like()?)?)?;
+                    x0.push(self.scale_latent(&sample)?);
+                    cond.push(condition.f_to_kind(Kind::Float)?);
+                }
+                (Tensor::f_cat(&x0, 0)?, Tensor::f_cat(&cond, 0)?)
+            }
+        };
+        let steps = self.schedule.alphas_cumprod().len() as i64;
+        let t = Tensor::f_randint(steps, [b], (Kind::Int64, device))?;
+        let noise = x0.f_randn_like()?;
+        let xt = self.schedule.add_noise(&x0, &noise, &t)?;
+        let input = Tensor::f_cat(&[&xt, &cond], 2)?.f_to_kind(self.kind)?;
+        let text = self.text.f_to_kind(self.kind)?.f_expand([b, -1, -1], false)?;
+        let v = self
+            .transformer
+            .forward(
+                &TransformerInput {
+                    hidden_states: &input,
+                    encoder_hidden_states: &text,
+                    timestep: &t,
+                    ofs: None,
+                    image_rotary_emb: None,
+                },
+                true,
+            )?
+            .f_to_kind(Kind::Float)?;
+        let alphas: Vec<f64> =
+            (0..b).map(|i| self.schedule.alpha_cumprod_at(t.int64_value(&[i]))).collect::<Result<_>>()?;
+        let per_sample = |f: fn(f64) -> f64| -> Result<Tensor> {
+            let values: Vec<f32> = alphas.iter().map(|&a| f(a) as f32).collect();
+            Ok(Tensor::from_slice(&values).f_view([b, 1, 1, 1, 1])?.f_to_device(device)?)
+        };
+        let sqrt_alpha = per_sample(f64::sqrt)?;
+        let sqrt_one_minus = per_sample(|a| (1.0 - a).sqrt())?;
+        let weight = per_sample(|a| 1.0 / (1.0 - a).max(1e-12))?;
+        let x0_hat = xt.f_mul(&sqrt_alpha)?.f_sub(&v.f_mul(&sqrt_one_minus)?)?;
+        Ok(x0_hat.f_sub(&x0)?.f_square()?.f_mul(&weight)?.f_mean(Kind::Float)?)
+    }
+}

@@ -1,0 +1,251 @@
+//! The `trainer pretrain` loop: per-step seeding, accumulation, clipping, metrics, validation
+//! samples and checkpoints, resuming exactly from the latest checkpoint.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+use tch::{Device, Kind};
+
+use super::checkpoint::{list_checkpoints, save_checkpoint};
+use super::{AdamW, CogNvsModel, LatentCache, PretrainConfig, TrainState, learning_rate};
+use crate::autoencoder_kl_cogvideox as vae;
+use crate::data::{Batch, DataConfig, DataPosition, ShardLoader};
+use crate::error::{Error, Result};
+use crate::weights;
+
+/// One line of `metrics.jsonl`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StepMetrics {
+    /// Optimizer step (1-based).
+    pub step: u64,
+    /// Mean loss over the step's micro-batches.
+    pub loss: f64,
+    /// Learning rate used.
+    pub lr: f64,
+    /// Gradient norm before clipping.
+    pub grad_norm: f64,
+    /// Wall seconds of the step.
+    pub seconds: f64,
+}
+
+/// What a pretraining run did.
+#[derive(Debug, Clone)]
+pub struct RunSummary {
+    /// The step the run started from (0, or a resumed checkpoint's).
+    pub resumed_from: u64,
+    /// Steps done at the end.
+    pub steps: u64,
+    /// The last checkpoint.
+    pub last_checkpoint: Option<PathBuf>,
+}
+
+/// `trainer pretrain`: trains up to `config.train.steps`, resuming from the run's latest
+/// checkpoint when `resume` is set. `progress(step, metrics)` is called after every step.
+pub fn pretrain(
+    config: &PretrainConfig,
+    shards: &[PathBuf],
+    run: &Path,
+    resume: bool,
+    device: Device,
+    mut progress: impl FnMut(&StepMetrics),
+) -> Result<RunSummary> {
+    // Bad shard folders fail before the run folder is touched.
+    crate::data::describe(shards, &config.data)?;
+    std::fs::create_dir_all(run).map_err(|source| Error::Io { path: run.to_path_buf(), source })?;
+    let run_config = run.join("config.json");
+    let text = serde_json::to_vec_pretty(config).expect("config serialises");
+    let latest = if resume { list_checkpoints(run).pop() } else { None };
+    if !resume && run_config.exists() {
+        return Err(Error::InvalidArgument {
+            name: "out".to_string(),
+            reason: format!(
+                "{} already holds a run; pass --resume to continue it or choose another folder",
+                run.display()
+            ),
+        });
+    }
+    std::fs::write(&run_config, text).map_err(|source| Error::Io { path: run_config.clone(), source })?;
+
+    let mut model = CogNvsModel::load(&config.model, config.train.seed, device)?;
+    // The frozen VAE goes with the run once (sampling and finetuning find it there).
+    let vae_dir = run.join("vae");
+    if !vae_dir.join("config.json").exists() {
+        weights::save(&model.vae_vs, model.vae.config(), vae::CLASS_NAME, &vae_dir, weights::DEFAULT_MAX_SHARD_BYTES)?;
+    }
+    let mut optimizer = AdamW::new(&model.vs, config.optim.clone());
+    let mut state = TrainState { step: 0, data_position: DataPosition::default(), seed: config.train.seed };
+    if let Some((_, dir)) = &latest {
+        weights::load(&model.vs, &dir.join("transformer"))?;
+        optimizer.load(&dir.join("optimizer.safetensors"))?;
+        let path = dir.join("state.json");
+        let text = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), source })?;
+        state = serde_json::from_str(&text).map_err(|e| Error::InvalidConfig {
+            source_name: path.display().to_string(),
+            field: "(json)".to_string(),
+            reason: e.to_string(),
+        })?;
+    }
+    let kind = config.train.precision.kind(device);
+    if kind != Kind::Float {
+        // Mixed precision: the optimizer keeps the fp32 weights (as initialised or resumed).
+        optimizer.keep_master_weights()?;
+        model.set_kind(kind);
+    }
+    let resumed_from = state.step;
+    rewrite_metrics(run, resumed_from)?;
+    let mut metrics_file = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(run.join("metrics.jsonl"))
+        .map_err(|source| Error::Io { path: run.join("metrics.jsonl"), source })?;
+    let mut loader = ShardLoader::open(shards, config.data.clone(), state.data_position)?;
+    let mut last_checkpoint = latest.map(|(_, d)| d);
+    let accumulation = config.optim.grad_accumulation;
+    let cache = match &config.train.latent_cache {
+        Some(dir) => Some(LatentCache::open(dir, &model, &config.data)?),
+        None => None,
+    };
+    let mut validation: Option<Result<Batch>> = None;
+    while state.step < config.train.steps {
+        let started = Instant::now();
+        // Every draw of this step comes from (seed, step): resumed runs repeat them exactly.
+        tch::manual_seed(step_seed(config.train.seed, state.step));
+        optimizer.zero_grad();
+        let mut loss_sum = 0.0;
+        for _ in 0..accumulation {
+            let batch = loader.next_batch()?;
+            let loss = model.loss(
+                &batch,
+                config.train.condition_noise_log_mean,
+                config.train.condition_noise_log_std,
+                cache.as_ref(),
+            )?;
+            let value = loss.double_value(&[]);
+            if !value.is_finite() {
+                return Err(Error::InvalidArgument {
+                    name: "loss".to_string(),
+                    reason: format!(
+                        "non-finite loss {value} at step {} on batch {:?}; last good checkpoint: {}",
+                        state.step + 1,
+                        batch.provenance,
+                        last_checkpoint.as_ref().map_or("none".to_string(), |p| p.display().to_string())
+                    ),
+                });
+            }
+            loss_sum += value;
+            (loss / accumulation as f64).f_backward()?;
+        }
+        let grad_norm = optimizer.clip_grad_norm(config.optim.max_grad_norm)?;
+        let lr = learning_rate(&config.optim, state.step, config.train.steps);
+        optimizer.step(lr)?;
+        state.step += 1;
+        state.data_position = loader.position();
+        let metrics = StepMetrics {
+            step: state.step,
+            loss: loss_sum / accumulation as f64,
+            lr,
+            grad_norm,
+            seconds: started.elapsed().as_secs_f64(),
+        };
+        writeln!(metrics_file, "{}", serde_json::to_string(&metrics).expect("metrics serialise"))
+            .map_err(|source| Error::Io { path: run.join("metrics.jsonl"), source })?;
+        progress(&metrics);
+        if config.train.validate_every > 0 && state.step.is_multiple_of(config.train.validate_every) {
+            let batch = validation.get_or_insert_with(|| {
+                ShardLoader::open(shards, DataConfig { batch_size: 1, ..config.data.clone() }, DataPosition::default())
+                    .and_then(|mut l| l.next_batch())
+            });
+            let batch = batch
+                .as_ref()
+                .map_err(|e| Error::InvalidArgument { name: "validation".to_string(), reason: e.to_string() })?;
+            write_validation_sample(run, state.step, &model, batch, config)?;
+        }
+        if state.step.is_multiple_of(config.train.checkpoint_every) || state.step == config.train.steps {
+            last_checkpoint = Some(save_checkpoint(run, &model, &optimizer, &state, config.train.keep_last)?);
+        }
+    }
+    Ok(RunSummary { resumed_from, steps: state.step, last_checkpoint })
+}
+
+/// Samples the validation pair's conditioning and writes the video and a contact sheet. Its
+/// random draws come from (seed, step) too, and every training step reseeds, so validation does
+/// not change the training run.
+fn write_validation_sample(
+    run: &Path,
+    step: u64,
+    model: &CogNvsModel,
+    batch: &Batch,
+    config: &PretrainConfig,
+) -> Result<()> {
+    let dir = run.join("samples").join(format!("step-{step:08}"));
+    std::fs::create_dir_all(&dir).map_err(|source| Error::Io { path: dir.clone(), source })?;
+    let device = model.text.device();
+    let condition = batch.condition.f_narrow(0, 0, 1)?.f_to_device(device)?;
+    tch::manual_seed(step_seed(config.train.seed ^ VALIDATION_SEED, step));
+    let video = crate::sampling::generate(
+        &model.transformer,
+        &model.vae,
+        &condition,
+        &model.text,
+        None,
+        config.train.validation_steps,
+        1.0,
+    )?;
+    let sample = crate::sampling::to_frames(&video)?;
+    let target = crate::sampling::to_frames(&batch.target.f_narrow(0, 0, 1)?)?;
+    let cond = crate::sampling::to_frames(&condition)?;
+    datagen::video::encode_video(&dir.join("sample.mp4"), &sample, VALIDATION_FPS)?;
+    let picked: Vec<usize> = (0..SHEET_ROWS).map(|k| k * (sample.len() - 1) / (SHEET_ROWS - 1)).collect();
+    let rows: Vec<Vec<image::RgbImage>> =
+        picked.iter().map(|&i| vec![target[i].clone(), cond[i].clone(), sample[i].clone()]).collect();
+    datagen::contact_sheet::write_contact_sheet(&dir.join("contact_sheet.png"), &rows)?;
+    let provenance = serde_json::json!({ "step": step, "pair": batch.provenance[0] });
+    std::fs::write(dir.join("pair.json"), provenance.to_string()).map_err(|source| Error::Io { path: dir, source })?;
+    Ok(())
+}
+
+/// Mixed into the seed of validation sampling (so it differs from the training draws).
+const VALIDATION_SEED: u64 = 0x5eed_0f5a_3b1e;
+/// Frame rate of validation videos (CogVideoX's 8 fps).
+const VALIDATION_FPS: f64 = 8.0;
+/// Frames shown on a validation contact sheet.
+const SHEET_ROWS: usize = 4;
+
+fn step_seed(seed: u64, step: u64) -> i64 {
+    let mut hasher = blake3::Hasher::new();
+    hasher.update(b"cognvs train step v1");
+    hasher.update(&seed.to_le_bytes());
+    hasher.update(&step.to_le_bytes());
+    let bytes = hasher.finalize();
+    i64::from_le_bytes(bytes.as_bytes()[..8].try_into().expect("8 bytes")) & i64::MAX
+}
+
+/// Keeps the metrics lines of steps up to `step` (a resumed run rewrites what followed).
+fn rewrite_metrics(run: &Path, step: u64) -> Result<()> {
+    let path = run.join("metrics.jsonl");
+    let Ok(text) = std::fs::read_to_string(&path) else { return Ok(()) };
+    let kept: String = text
+        .lines()
+        .filter(|line| serde_json::from_str::<StepMetrics>(line).is_ok_and(|m| m.step <= step))
+        .map(|line| format!("{line}\n"))
+        .collect();
+    schemas::write_atomic(&path, kept.as_bytes())?;
+    Ok(())
+}
+
+/// Reads a run's `metrics.jsonl`.
+pub fn read_metrics(run: &Path) -> Result<Vec<StepMetrics>> {
+    let path = run.join("metrics.jsonl");
+    let text = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), source })?;
+    text.lines()
+        .map(|line| {
+            serde_json::from_str(line).map_err(|e| Error::InvalidConfig {
+                source_name: path.display().to_string(),
+                field: "(jsonl)".to_string(),
+                reason: e.to_string(),
+            })
+        })
+        .collect()
+}

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # One-step, idempotent set-up of a fresh Debian machine for this workspace:
-#   1. Debian packages: FFmpeg development libraries and CLI, clang/libclang, pkg-config;
+#   1. Debian packages: FFmpeg development libraries and CLI, clang/libclang, pkg-config,
+#      chromium (headless, renders `datagen inspect --report` pages in a test);
 #   2. a project-local Python venv (.venv, git-ignored) with torch==2.13.0 (the libtorch that
 #      tch 0.26 links against) and the Python packages the tests use for interoperability checks;
 #   3. the `.venv/libtorch` link that `.cargo/config.toml` points LIBTORCH at.
@@ -18,6 +19,7 @@ APT_PACKAGES=(
   pkg-config clang libclang-dev ffmpeg
   libavcodec-dev libavformat-dev libavutil-dev libavfilter-dev libavdevice-dev
   libswscale-dev libswresample-dev
+  chromium
 )
 # torch: libtorch for tch; diffusers + safetensors: numerical reference for the model port;
 # numpy, pyarrow, duckdb, datasets, pillow: interoperability checks of the shards; pycocotools:

@@ -9,6 +9,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::camera::PinholeCamera;
+use crate::config_file::{Checked, Validate, check_float};
 use crate::depth_mesh::{DepthMesh, MeshConfig};
 
 /// Occlusion-test settings.
@@ -18,8 +19,20 @@ pub struct CovisibilityConfig {
     /// How the depth mesh is cut and how unobserved space behind edges is treated.
     pub mesh: MeshConfig,
     /// Relative length by which a visibility segment is shortened at the surface point, so
-    /// round-off on the point's own surface never counts as occlusion.
+    /// round-off on the point's own surface never counts as occlusion. Valid: finite, in
+    /// [0, [`MAX_EPSILON`]].
     pub epsilon: f64,
+}
+
+/// Largest `epsilon`: past 1 % of the segment the test starts to ignore real occluders just in
+/// front of a surface (a hand on a table), which is no longer round-off.
+pub const MAX_EPSILON: f64 = 0.01;
+
+impl Validate for CovisibilityConfig {
+    fn validate(&self) -> Checked {
+        self.mesh.validate().map_err(|e| e.under("mesh"))?;
+        check_float("epsilon", self.epsilon, 0.0..=MAX_EPSILON)
+    }
 }
 
 impl Default for CovisibilityConfig {

@@ -6,6 +6,10 @@
 //! the small single-channel ZIP writer below, which produces the same standard files at about
 //! 60 % of the exr crate's encoding time (its zlib level is not configurable): depth encoding is
 //! a visible share of `datagen pairs`.
+//!
+//! A header is checked before anything is decoded (the decoder allocates a whole data window up
+//! front): at most [`MAX_SIDE_PX`] a side, the size the caller expects where it knows one (the
+//! frames, the first map of a folder), and only the depth channel is ever allocated.
 
 use std::io::{Cursor, Write};
 
@@ -14,6 +18,7 @@ use flate2::Compression as ZlibLevel;
 use flate2::write::ZlibEncoder;
 
 use crate::error::{Error, Result};
+use crate::npy::MAX_SIDE_PX;
 
 /// Name of the depth channel written; also preferred when reading a multi-channel file.
 pub const DEPTH_CHANNEL: &str = "Z";
@@ -114,32 +119,126 @@ pub fn encode_depth_exr(depth: &DepthMap) -> Result<Vec<u8>> {
     Ok(out)
 }
 
-/// Decodes an EXR holding one float channel (or a `Z` channel among several). `context` names the
-/// source (a file path or a shard field) in errors.
-pub fn decode_depth_exr(bytes: &[u8], context: &str) -> Result<DepthMap> {
-    let image = read()
-        .no_deep_data()
-        .largest_resolution_level()
-        .all_channels()
-        .first_valid_layer()
-        .all_attributes()
-        .from_buffered(Cursor::new(bytes))
-        .map_err(|e| Error::Image { context: context.to_owned(), reason: e.to_string() })?;
-    let layer = &image.layer_data;
-    let channels = &layer.channel_data.list;
+/// Bytes each block of an EXR part needs at least: its entry in the offset table (a u64).
+const OFFSET_TABLE_ENTRY_BYTES: usize = 8;
+
+fn image_error(context: &str, reason: impl Into<String>) -> Error {
+    Error::Image { context: context.to_owned(), reason: reason.into() }
+}
+
+/// What an EXR header declares, checked before anything is decoded: the first part's size and
+/// the name of its depth channel.
+struct DepthHeader {
+    width: usize,
+    height: usize,
+    channel: Text,
+}
+
+/// Reads and checks the header: every part's data window within [`MAX_SIDE_PX`] a side (the
+/// decoder allocates the whole window up front, so a 200-byte file declaring 100000×100000
+/// pixels would otherwise ask for 40 GB), no more blocks than the file has room to index, and a
+/// depth channel in the first part.
+fn read_header(bytes: &[u8], context: &str) -> Result<DepthHeader> {
+    let meta = MetaData::read_from_buffered(Cursor::new(bytes), false)
+        .map_err(|e| image_error(context, format!("invalid EXR header: {e}")))?;
+    for header in meta.headers.iter() {
+        let Vec2(width, height) = header.layer_size;
+        if width > MAX_SIDE_PX || height > MAX_SIDE_PX {
+            return Err(image_error(
+                context,
+                format!(
+                    "header field `dataWindow` declares {width}x{height} pixels; depth maps are read up to {MAX_SIDE_PX} px a side"
+                ),
+            ));
+        }
+        if header.chunk_count.saturating_mul(OFFSET_TABLE_ENTRY_BYTES) > bytes.len() {
+            return Err(image_error(
+                context,
+                format!(
+                    "header declares {} blocks, more than the {}-byte file can hold (truncated?)",
+                    header.chunk_count,
+                    bytes.len()
+                ),
+            ));
+        }
+    }
+    let first = meta.headers.first().ok_or_else(|| image_error(context, "no image part in the file"))?;
+    let channels = &first.channels.list;
     let channel = channels
         .iter()
         .find(|c| c.name.eq(DEPTH_CHANNEL))
         .or_else(|| if channels.len() == 1 { channels.first() } else { None })
-        .ok_or_else(|| Error::Image {
-            context: context.to_owned(),
-            reason: format!(
-                "expected one float channel or a `{DEPTH_CHANNEL}` channel, found {} channels",
-                channels.len()
-            ),
+        .ok_or_else(|| {
+            image_error(
+                context,
+                format!("expected one float channel or a `{DEPTH_CHANNEL}` channel, found {} channels", channels.len()),
+            )
         })?;
-    let size = layer.size;
-    Ok(DepthMap { width: size.0, height: size.1, values: channel.sample_data.values_as_f32().collect() })
+    let Vec2(width, height) = first.layer_size;
+    Ok(DepthHeader { width, height, channel: channel.name.clone() })
+}
+
+/// The width and height an EXR depth map declares, from its header alone (checked as
+/// [`decode_depth_exr`] does), so that a folder of maps can be compared before any is decoded.
+pub fn depth_exr_size(bytes: &[u8], context: &str) -> Result<(usize, usize)> {
+    let header = read_header(bytes, context)?;
+    Ok((header.width, header.height))
+}
+
+/// Decodes an EXR holding one float channel (or a `Z` channel among several), of any size up to
+/// [`MAX_SIDE_PX`] a side. `context` names the source (a file path or a shard field) in errors.
+pub fn decode_depth_exr(bytes: &[u8], context: &str) -> Result<DepthMap> {
+    decode_checked(bytes, context, read_header(bytes, context)?)
+}
+
+/// Decodes an EXR depth map (see [`decode_depth_exr`]) that must be `width × height`, the size
+/// of the frames or sibling maps it belongs to; a header declaring another size is an error
+/// before anything is decoded.
+pub fn decode_depth_exr_of_size(bytes: &[u8], context: &str, width: usize, height: usize) -> Result<DepthMap> {
+    let header = read_header(bytes, context)?;
+    if (header.width, header.height) != (width, height) {
+        return Err(image_error(
+            context,
+            format!(
+                "header field `dataWindow` declares {}x{} pixels, expected {width}x{height}",
+                header.width, header.height
+            ),
+        ));
+    }
+    decode_checked(bytes, context, header)
+}
+
+/// Decodes only the depth channel, into a buffer of the checked size (other channels are never
+/// allocated, however many the file has).
+fn decode_checked(bytes: &[u8], context: &str, header: DepthHeader) -> Result<DepthMap> {
+    let DepthHeader { width, height, channel } = header;
+    let image = read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .specific_channels()
+        .required(channel)
+        .collect_pixels(
+            |resolution, _| DepthMap {
+                width: resolution.width(),
+                height: resolution.height(),
+                values: vec![0.0; resolution.area()],
+            },
+            |depth: &mut DepthMap, position, (z,): (f32,)| {
+                depth.values[position.y() * depth.width + position.x()] = z;
+            },
+        )
+        .first_valid_layer()
+        .all_attributes()
+        .from_buffered(Cursor::new(bytes))
+        .map_err(|e| image_error(context, e.to_string()))?;
+    let depth = image.layer_data.channel_data.pixels;
+    if (depth.width, depth.height) != (width, height) {
+        return Err(image_error(
+            context,
+            format!("decoded {}x{} pixels, the header declares {width}x{height}", depth.width, depth.height),
+        ));
+    }
+    Ok(depth)
 }
 
 #[cfg(test)]
@@ -229,6 +328,55 @@ mod tests {
         let ours = decode_depth_exr(&encode_depth_exr(&depth).unwrap(), "ours").unwrap();
         let theirs = decode_depth_exr(&encode_with_exr_crate(&depth), "exr crate").unwrap();
         assert_eq!(ours, theirs);
+    }
+
+    /// `depth` encoded, then its `dataWindow` rewritten to declare `width × height`.
+    fn declaring(depth: &DepthMap, width: i32, height: i32) -> Vec<u8> {
+        let mut bytes = encode_depth_exr(depth).unwrap();
+        let name = b"dataWindow\0box2i\0";
+        let value = bytes.windows(name.len()).position(|w| w == name).unwrap() + name.len() + 4;
+        bytes[value + 8..value + 12].copy_from_slice(&(width - 1).to_le_bytes());
+        bytes[value + 12..value + 16].copy_from_slice(&(height - 1).to_le_bytes());
+        bytes
+    }
+
+    #[test]
+    fn data_window_is_checked_before_decoding() {
+        let depth = smooth_depth(12, 5);
+        let huge = declaring(&depth, 100_000, 5);
+        let error = decode_depth_exr(&huge, "d.exr").unwrap_err().to_string();
+        assert!(error.contains("d.exr") && error.contains("dataWindow") && error.contains("100000x5"), "{error}");
+        let bytes = encode_depth_exr(&depth).unwrap();
+        assert_eq!(depth_exr_size(&bytes, "d.exr").unwrap(), (12, 5));
+        assert_eq!(decode_depth_exr_of_size(&bytes, "d.exr", 12, 5).unwrap(), depth);
+        let error = decode_depth_exr_of_size(&bytes, "d.exr", 12, 6).unwrap_err().to_string();
+        assert!(error.contains("12x5") && error.contains("expected 12x6"), "{error}");
+    }
+
+    #[test]
+    fn more_blocks_than_the_file_can_index_is_an_error() {
+        // 16384 rows need 1024 ZIP blocks, 8 KiB of offset table, in a file of a few hundred bytes.
+        let error = decode_depth_exr(&declaring(&smooth_depth(4, 4), 4, 16_384), "d.exr").unwrap_err().to_string();
+        assert!(error.contains("1024 blocks"), "{error}");
+    }
+
+    #[test]
+    fn only_the_depth_channel_is_read_from_a_multi_channel_file() {
+        let depth = smooth_depth(9, 7);
+        let channels = vec![
+            AnyChannel::new("G", FlatSamples::F32(vec![7.0; 63])),
+            AnyChannel::new(DEPTH_CHANNEL, FlatSamples::F32(depth.values.clone())),
+            AnyChannel::new("R", FlatSamples::F16(vec![f16::ONE; 63])),
+        ];
+        let layer = Layer::new(
+            (9, 7),
+            LayerAttributes::default(),
+            Encoding::FAST_LOSSLESS,
+            AnyChannels::sort(SmallVec::from_vec(channels)),
+        );
+        let mut bytes = Vec::new();
+        Image::from_layer(layer).write().to_buffered(Cursor::new(&mut bytes)).unwrap();
+        assert_eq!(decode_depth_exr(&bytes, "multi").unwrap(), depth);
     }
 
     #[test]

@@ -29,6 +29,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::camera::PinholeCamera;
+use crate::config_file::{Checked, Validate, check_float};
 use crate::depth_exr::DepthMap;
 use crate::depth_pyramid::DepthPyramid;
 use crate::view_bins::{self, ViewBins};
@@ -38,14 +39,28 @@ use crate::view_bins::{self, ViewBins};
 #[serde(default, deny_unknown_fields)]
 pub struct MeshConfig {
     /// A quad whose max/min depth exceeds this spans a discontinuity (the fixtures' README
-    /// baseline uses 1.05).
+    /// baseline uses 1.05). Valid: finite, ≥ 1 (max/min of positive depths is never below 1;
+    /// 1 cuts every quad that is not fronto-parallel).
     pub discontinuity_ratio: f64,
     /// Depth of the occluder skirt behind foreground edges, relative to the edge's depth
     /// (0: plain cut mesh, gaps behind every edge). Keep it small (≤ 1): skirts reaching far
-    /// behind the scene make degenerate triangles.
+    /// behind the scene make degenerate triangles. Valid: finite, in [0, [`MAX_OCCLUDER_THICKNESS`]].
     pub occluder_thickness: f64,
     /// The ray-query structure. Both give the same answers (the brute-force test checks each).
+    /// Valid: `image-grids` or `cwbvh`.
     pub accelerator: Accelerator,
+}
+
+/// Thickest skirt accepted: 100 × the edge's depth already reaches behind any scene a depth
+/// map can hold (depths in one frame rarely span two orders of magnitude); more only breeds
+/// degenerate triangles.
+pub const MAX_OCCLUDER_THICKNESS: f64 = 100.0;
+
+impl Validate for MeshConfig {
+    fn validate(&self) -> Checked {
+        check_float("discontinuity_ratio", self.discontinuity_ratio, 1.0..)?;
+        check_float("occluder_thickness", self.occluder_thickness, 0.0..=MAX_OCCLUDER_THICKNESS)
+    }
 }
 
 impl Default for MeshConfig {

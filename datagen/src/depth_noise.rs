@@ -28,6 +28,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::camera::PinholeCamera;
+use crate::config_file::{Checked, Validate, check_count, check_float, check_placeholders};
 use crate::depth_exr::DepthMap;
 
 /// Parametric noise settings and the optional second depth source.
@@ -36,21 +37,45 @@ use crate::depth_exr::DepthMap;
 pub struct DepthNoiseConfig {
     /// Off by default: pairs are then exactly the noise-free ones.
     pub enabled: bool,
-    /// σ away from depth edges, as a fraction of depth.
+    /// σ away from depth edges, as a fraction of depth. Valid: finite, in [0, 1] (σ equal to
+    /// the depth already throws points behind the camera).
     pub relative_sigma: f64,
     /// Extra σ at depth edges, as a fraction of depth, decaying with distance from the edge.
+    /// Valid: finite, in [0, 1].
     pub edge_relative_sigma: f64,
-    /// Decay length of the edge term, in pixels.
+    /// Decay length of the edge term, in pixels (0: no edge term). Valid: finite, ≥ 0.
     pub edge_width_px: f64,
     /// Grid spacing of the smooth noise field, in pixels (larger: smoother, blob-like smears).
+    /// Valid: at least 1.
     pub correlation_px: u32,
-    /// Offsets are clamped to ± this many σ.
+    /// Offsets are clamped to ± this many σ. Valid: finite, in [0, [`MAX_SIGMAS`]].
     pub max_sigmas: f64,
     /// A second depth source per video, as a path template with `{dataset}`, `{video_id}` and
     /// `{name}` (the sequence folder's or video's name): a folder of `*.exr` maps or an
     /// `(N, H, W)` `.npy`, one map per frame, any resolution (resampled). Videos whose path does
-    /// not exist use the parametric model.
+    /// not exist use the parametric model. Valid: non-empty, no other `{placeholder}`.
     pub second_depth: Option<String>,
+}
+
+/// Widest clamp: a unit Gaussian exceeds 10 σ with probability ~1e-23, so a larger clamp
+/// never binds and is a typo.
+pub const MAX_SIGMAS: f64 = 10.0;
+
+/// The placeholders of `second_depth`.
+const SECOND_DEPTH_PLACEHOLDERS: [&str; 3] = ["dataset", "video_id", "name"];
+
+impl Validate for DepthNoiseConfig {
+    fn validate(&self) -> Checked {
+        check_float("relative_sigma", self.relative_sigma, 0.0..=1.0)?;
+        check_float("edge_relative_sigma", self.edge_relative_sigma, 0.0..=1.0)?;
+        check_float("edge_width_px", self.edge_width_px, 0.0..)?;
+        check_count("correlation_px", self.correlation_px, 1, u64::MAX)?;
+        check_float("max_sigmas", self.max_sigmas, 0.0..=MAX_SIGMAS)?;
+        if let Some(template) = &self.second_depth {
+            check_placeholders("second_depth", template, &SECOND_DEPTH_PLACEHOLDERS)?;
+        }
+        Ok(())
+    }
 }
 
 impl Default for DepthNoiseConfig {

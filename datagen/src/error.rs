@@ -7,12 +7,13 @@ use std::path::PathBuf;
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// A file could not be opened, read, created or renamed.
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Io {
         /// The file or folder involved.
         path: PathBuf,
-        /// The operating-system error.
-        source: std::io::Error,
+        /// The operating-system error. Part of the message and deliberately not the error's
+        /// `source()`: a chain printed whole (anyhow's `{:#}`) would say it twice.
+        error: std::io::Error,
     },
     /// An input file exists but its content is wrong: bad shape, bad value, truncated data.
     #[error("{path}: field `{field}`: {reason}")]
@@ -24,12 +25,34 @@ pub enum Error {
         /// What is wrong, in words a user can act on.
         reason: String,
     },
+    /// A NumPy array (a `.npy` file or a member of an `.npz` archive) is unreadable, or is not
+    /// what its header, the archive's directory or the arrays beside it say it is.
+    #[error("{path}: {}{reason}", member_prefix(.member.as_deref()))]
+    InvalidArray {
+        /// The `.npy` or `.npz` file.
+        path: PathBuf,
+        /// The `.npz` member (`depths.npy`); `None` for a `.npy` file, which is the array.
+        member: Option<String>,
+        /// What is wrong, in words a user can act on.
+        reason: String,
+    },
     /// A command-line or configuration parameter has an impossible value.
     #[error("parameter `{name}`: {reason}")]
     InvalidParameter {
         /// The parameter as the user spells it.
         name: String,
         /// Why it is rejected.
+        reason: String,
+    },
+    /// A config file (TOML) does not parse, or holds a value outside its documented range.
+    #[error("{path}: key `{key}`: {reason}")]
+    Config {
+        /// The config file.
+        path: PathBuf,
+        /// The key as written in TOML, with its tables (`trajectory.azimuth_deg`,
+        /// `sources[1].root`).
+        key: String,
+        /// What is wrong, with the value and its line.
         reason: String,
     },
     /// FFmpeg failed to open, decode or encode a video.
@@ -59,7 +82,7 @@ pub type Result<T, E = Error> = std::result::Result<T, E>;
 impl Error {
     /// An [`Error::Io`] for `path`.
     pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
-        Self::Io { path: path.into(), source }
+        Self::Io { path: path.into(), error: source }
     }
 
     /// An [`Error::InvalidInput`] for `field` of `path`.
@@ -67,8 +90,18 @@ impl Error {
         Self::InvalidInput { path: path.into(), field: field.into(), reason: reason.into() }
     }
 
+    /// An [`Error::InvalidArray`] for the `.npy` at `path`, or its `.npz` member `member`.
+    pub fn array(path: impl Into<PathBuf>, member: Option<&str>, reason: impl Into<String>) -> Self {
+        Self::InvalidArray { path: path.into(), member: member.map(str::to_owned), reason: reason.into() }
+    }
+
     /// An [`Error::InvalidParameter`] for parameter `name`.
     pub fn parameter(name: impl Into<String>, reason: impl Into<String>) -> Self {
         Self::InvalidParameter { name: name.into(), reason: reason.into() }
     }
+}
+
+/// `member `NAME`: ` for an [`Error::InvalidArray`] in an archive, nothing for a plain `.npy`.
+fn member_prefix(member: Option<&str>) -> String {
+    member.map(|m| format!("member `{m}`: ")).unwrap_or_default()
 }

@@ -1,6 +1,8 @@
 //! `datagen inspect`: statistics of a shard or a whole corpus folder, and an export of each
 //! training pair as image folders plus a contact sheet a person can judge at a glance
-//! (target | mask | conditioning | novel-view render).
+//! (target | mask | conditioning | novel-view render, with a header naming the columns and the
+//! frame index on each row), or each clip as the public cog-nvs finetuning code reads a sequence
+//! (`gt_rgb.mp4` + `train_render{k}.mp4`).
 
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -18,6 +20,9 @@ use crate::static_background::{StackingConfig, StaticBackground};
 
 /// Frames shown per pair on the contact sheet.
 const SHEET_FRAMES: usize = 4;
+/// The contact sheet's columns, left to right, as its header names them (the last only when the
+/// novel view is rendered).
+pub const SHEET_COLUMNS: [&str; 4] = ["target", "co-visibility mask", "conditioning", "novel render"];
 
 /// Statistics of one trajectory (one training pair).
 #[derive(Debug, Clone, serde::Serialize)]
@@ -162,7 +167,7 @@ pub fn report(path: &Path) -> Result<String> {
 }
 
 /// The part of a failure message that is the same across inputs (drops the leading path).
-fn reason_kind(reason: &str) -> &str {
+pub(crate) fn reason_kind(reason: &str) -> &str {
     reason.split_once(": ").map_or(reason, |(_, rest)| rest)
 }
 
@@ -281,7 +286,9 @@ fn export_pair(
         })
         .collect::<Result<_>>()?;
     let sheet: Vec<Vec<RgbImage>> = rows.into_iter().flatten().collect();
-    crate::contact_sheet::write_contact_sheet(&folder.join("contact_sheet.png"), &sheet)?;
+    let columns = &SHEET_COLUMNS[..if render.is_some() { 4 } else { 3 }];
+    let labels: Vec<String> = sheet_frames.iter().map(|i| format!("frame {i}")).collect();
+    crate::contact_sheet::write_labelled_contact_sheet(&folder.join("contact_sheet.png"), columns, &labels, &sheet)?;
     let meta = serde_json::json!({
         "pair_id": pair_id(record, trajectory),
         "clip_id": record.clip_id,
@@ -308,7 +315,8 @@ fn export_pair(
             "covisible_fraction": trajectory.covisible_fraction,
             "world_from_camera": trajectory.world_from_camera,
         },
-        "contact_sheet_columns": if render.is_some() { vec!["target", "mask", "cond", "novel render"] } else { vec!["target", "mask", "cond"] },
+        "contact_sheet_columns": columns,
+        "contact_sheet_frames": sheet_frames,
     });
     let meta_path = folder.join("meta.json");
     std::fs::write(&meta_path, serde_json::to_vec_pretty(&meta).expect("json"))
@@ -323,4 +331,102 @@ fn camera(record: &ClipRecord, pose: &[f64; 16], frame: usize) -> PinholeCamera 
         intrinsics: mat3_from_row_major(&record.intrinsics[frame]),
         world_from_camera: mat4_from_row_major(pose),
     }
+}
+
+/// How `datagen inspect --export` lays out what it writes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ExportLayout {
+    /// One folder per pair: `target/`, `cond/`, `mask/` PNGs, `meta.json`, `contact_sheet.png`
+    /// ([`export`]).
+    #[default]
+    Pairs,
+    /// One folder per clip as the public cog-nvs finetuning code reads a sequence
+    /// ([`export_cog_nvs`]).
+    CogNvs,
+}
+
+/// Frame rate of the cog-nvs videos of a clip whose source rate is unknown (image-folder inputs):
+/// the 24 fps of SA-V and of the public code's own renders.
+pub const COG_NVS_DEFAULT_FPS: f64 = 24.0;
+
+/// Name of the cog-nvs target video of a clip (the public code's `gt_rgb.mp4`).
+pub const COG_NVS_TARGET: &str = "gt_rgb.mp4";
+
+/// Name of the cog-nvs conditioning video of the clip's `k`-th trajectory (k from 1), the
+/// public code's `train_render{k}.mp4`.
+pub fn cog_nvs_render_name(k: usize) -> String {
+    format!("train_render{k}.mp4")
+}
+
+/// Exports every clip of every shard under `path` into `out/<clip id, / as __>/` in the layout
+/// the public cog-nvs finetuning code reads: `gt_rgb.mp4` (the clip's frames) and
+/// `train_render{k}.mp4` for its k-th trajectory (k from 1; the masked conditioning, stored or
+/// frames × mask), H.264 at the clip's frame rate ([`COG_NVS_DEFAULT_FPS`] when unknown), plus
+/// `meta.json` mapping each k to its trajectory. Returns the clip folders. Clips of odd width
+/// or height cannot be H.264 4:2:0 and are an error naming the clip.
+pub fn export_cog_nvs(path: &Path, out: &Path) -> Result<Vec<PathBuf>> {
+    let mut folders = Vec::new();
+    for shard in shard_paths(path)? {
+        for record in ShardReader::open(&shard)? {
+            folders.push(export_clip_cog_nvs(&record?, out)?);
+        }
+    }
+    Ok(folders)
+}
+
+fn export_clip_cog_nvs(record: &ClipRecord, out: &Path) -> Result<PathBuf> {
+    let folder = out.join(record.clip_id.replace('/', "__"));
+    std::fs::create_dir_all(&folder).map_err(|e| Error::io(&folder, e))?;
+    let fps = if record.fps.is_finite() && record.fps > 0.0 { record.fps } else { COG_NVS_DEFAULT_FPS };
+    let in_clip = |e: Error| match e {
+        Error::InvalidParameter { name, reason } => {
+            Error::invalid(&folder, name, format!("clip `{}`: {reason}", record.clip_id))
+        }
+        other => other,
+    };
+    let targets: Vec<RgbImage> = (0..record.num_frames())
+        .into_par_iter()
+        .map(|i| Ok(decode_png(&record.frames[i], &format!("{}: frames[{i}]", record.clip_id))?.to_rgb8()))
+        .collect::<Result<_>>()?;
+    crate::video::encode_video(&folder.join(COG_NVS_TARGET), &targets, fps).map_err(in_clip)?;
+    let mut renders = Vec::new();
+    for (position, trajectory) in record.trajectories.iter().enumerate() {
+        let conditioning: Vec<RgbImage> = (0..record.num_frames())
+            .into_par_iter()
+            .map(|i| -> Result<RgbImage> {
+                match &trajectory.condition {
+                    Some(stored) => {
+                        Ok(decode_png(&stored[i], &format!("{}: condition[{i}]", record.clip_id))?.to_rgb8())
+                    }
+                    None => {
+                        let context = format!("{}: covisible_mask[{i}]", record.clip_id);
+                        Ok(condition_frame(
+                            &targets[i],
+                            &decode_png(&trajectory.covisible_mask[i], &context)?.to_luma8(),
+                        ))
+                    }
+                }
+            })
+            .collect::<Result<_>>()?;
+        let name = cog_nvs_render_name(position + 1);
+        crate::video::encode_video(&folder.join(&name), &conditioning, fps).map_err(in_clip)?;
+        renders.push(serde_json::json!({
+            "file": name,
+            "trajectory_index": trajectory.index,
+            "kind": trajectory.kind.as_str(),
+            "covisible_fraction": trajectory.covisible_fraction,
+        }));
+    }
+    let meta = serde_json::json!({
+        "clip_id": record.clip_id,
+        "source_path": record.source_path,
+        "fps": fps,
+        "frames": record.num_frames(),
+        "target": COG_NVS_TARGET,
+        "renders": renders,
+    });
+    let meta_path = folder.join("meta.json");
+    std::fs::write(&meta_path, serde_json::to_vec_pretty(&meta).expect("json"))
+        .map_err(|e| Error::io(&meta_path, e))?;
+    Ok(folder)
 }

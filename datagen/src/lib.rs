@@ -5,6 +5,7 @@
 //! Modules are named after the method's components; the `datagen` binary is a thin layer over them.
 
 pub mod camera;
+pub mod config_file;
 pub mod contact_sheet;
 pub mod corpus;
 pub mod covisibility;
@@ -17,10 +18,12 @@ pub mod inspect;
 pub mod npy;
 pub mod pairs;
 pub mod render;
+pub mod report;
 pub mod sequence;
 pub mod static_background;
 pub mod synth;
 pub mod trajectory;
+pub mod trajectory_bank;
 pub mod video;
 pub mod view_bins;
 

@@ -3,8 +3,8 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use anyhow::Context;
 use clap::{Args, Parser, Subcommand};
+use datagen::config_file::Validate;
 use datagen::corpus::build::{BuildConfig, Progress};
 use datagen::corpus::partition::Worker;
 use datagen::pairs::PairsConfig;
@@ -47,6 +47,53 @@ enum Command {
     /// DAVIS, sequence folders) with reconstructions, annotations and a corpus.toml, to try or
     /// benchmark `datagen build`.
     SynthCorpus(SynthCorpusArgs),
+    /// Trajectory banks: real camera motion harvested from reconstructions, for
+    /// `[trajectory] sampler = "bank" | "mixed"`.
+    Trajectories {
+        #[command(subcommand)]
+        command: TrajectoriesCommand,
+    },
+}
+
+#[derive(Debug, Subcommand)]
+enum TrajectoriesCommand {
+    /// Harvest the source cameras' own motion over every clip window of a corpus (--config) or of
+    /// one sequence folder into a trajectory bank (Parquet, schema in schemas/SCHEMA.md); static
+    /// and degenerate windows are skipped and counted.
+    Collect(CollectArgs),
+    /// Print the distributions of trajectory parameters (azimuth/elevation span, radial change,
+    /// path length) and of the co-visible fraction of one or more corpora side by side, and
+    /// plot them as SVG histograms.
+    Stats(StatsArgs),
+}
+
+#[derive(Debug, Args)]
+struct CollectArgs {
+    /// A sequence folder (instead of --config).
+    seq_dir: Option<PathBuf>,
+    /// Corpus TOML (as for `datagen build`): every video of its sources, windows from its
+    /// [pairs.clip], R from its [pairs.trajectory] pivot_scale.
+    #[arg(long, conflicts_with = "seq_dir")]
+    config: Option<PathBuf>,
+    /// For a sequence folder: TOML with [clip] and [trajectory] (as for `datagen pairs`).
+    #[arg(long, requires = "seq_dir")]
+    pairs_config: Option<PathBuf>,
+    /// For a sequence folder: dataset name recorded with its entries.
+    #[arg(long, default_value = "sequence")]
+    dataset: String,
+    /// The bank file to write.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+#[derive(Debug, Args)]
+struct StatsArgs {
+    /// LABEL=DIR pairs: a corpus folder (or shard) and the name it gets in the table and plots.
+    #[arg(required = true)]
+    corpora: Vec<String>,
+    /// Write one SVG histogram per quantity into this folder.
+    #[arg(long)]
+    plots: Option<PathBuf>,
 }
 
 #[derive(Debug, Args)]
@@ -131,6 +178,21 @@ struct InspectArgs {
     /// background stacked over each clip's frames.
     #[arg(long)]
     stack_background: bool,
+    /// With --export: `pairs` (a folder per pair: PNGs, meta.json, contact sheet) or `cog-nvs`
+    /// (a folder per clip as the public cog-nvs finetuning code reads it: gt_rgb.mp4 and
+    /// train_render{k}.mp4, k from 1).
+    #[arg(long, value_enum, default_value_t = LayoutArg::Pairs, requires = "export")]
+    layout: LayoutArg,
+    /// Write a self-contained HTML report (counts, failures by reason, histograms, thumbnails
+    /// linked to the --export folders) to this file.
+    #[arg(long)]
+    report: Option<PathBuf>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum LayoutArg {
+    Pairs,
+    CogNvs,
 }
 
 #[derive(Debug, Args)]
@@ -150,6 +212,10 @@ struct BuildArgs {
     /// List what would be built, write nothing.
     #[arg(long)]
     dry_run: bool,
+    /// Retry every input whose latest attempt failed, even if its files are unchanged (inputs
+    /// whose files changed since they failed or were skipped are always retried).
+    #[arg(long)]
+    retry_failed: bool,
     /// Print where the time went (hashing, loading, mesh builds, rays, encoding, writing).
     #[arg(long)]
     timings: bool,
@@ -252,7 +318,10 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
 
 fn inspect(args: InspectArgs) -> anyhow::Result<()> {
     print!("{}", datagen::inspect::report(&args.path)?);
-    if let Some(export) = &args.export {
+    if let (Some(export), LayoutArg::CogNvs) = (&args.export, args.layout) {
+        let folders = datagen::inspect::export_cog_nvs(&args.path, export)?;
+        println!("exported {} clips in the cog-nvs layout to {}", folders.len(), export.display());
+    } else if let Some(export) = &args.export {
         let render = datagen::inspect::ExportRender {
             covisibility: Default::default(),
             stacking: args.stack_background.then(Default::default),
@@ -261,6 +330,88 @@ fn inspect(args: InspectArgs) -> anyhow::Result<()> {
         println!("exported {} pairs to {}", folders.len(), export.display());
         if let Some(first) = folders.first() {
             println!("  look at: {}", first.join("contact_sheet.png").display());
+        }
+    }
+    if let Some(out) = &args.report {
+        let options = datagen::report::ReportOptions {
+            export_dir: args.export.clone().filter(|_| args.layout == LayoutArg::Pairs),
+            ..Default::default()
+        };
+        let summary = datagen::report::write_report(&args.path, out, &options)?;
+        println!(
+            "wrote {} ({} shards, {} clips, {} pairs, {} thumbnails, {} failed or skipped inputs)",
+            out.display(),
+            summary.shards,
+            summary.clips,
+            summary.pairs,
+            summary.thumbnails,
+            summary.failures
+        );
+    }
+    Ok(())
+}
+
+fn trajectories(command: TrajectoriesCommand) -> anyhow::Result<()> {
+    match command {
+        TrajectoriesCommand::Collect(args) => {
+            let summary = match (&args.config, &args.seq_dir) {
+                (Some(config), _) => {
+                    datagen::trajectory_bank::collect_from_corpus(&BuildConfig::from_toml_file(config)?)?
+                }
+                (None, Some(seq_dir)) => {
+                    let config = match &args.pairs_config {
+                        Some(path) => PairsConfig::from_toml_file(path)?,
+                        None => PairsConfig::default(),
+                    };
+                    let sequence = datagen::sequence::read_sequence(seq_dir)?;
+                    let mut summary = datagen::trajectory_bank::CollectSummary::default();
+                    datagen::trajectory_bank::collect_from_sequence(
+                        &sequence,
+                        &args.dataset,
+                        &config.clip,
+                        config.trajectory.pivot_scale,
+                        &mut summary,
+                    );
+                    summary
+                }
+                (None, None) => anyhow::bail!("parameter `config`: give --config CORPUS.toml or a sequence folder"),
+            };
+            for (input, reason) in &summary.failed_inputs {
+                println!("failed: {input}: {reason}");
+            }
+            if summary.entries.is_empty() {
+                anyhow::bail!(
+                    "{}: no moving windows found ({} windows: {} static, {} degenerate); no bank written",
+                    args.out.display(),
+                    summary.windows,
+                    summary.static_windows,
+                    summary.degenerate_windows
+                );
+            }
+            schemas::write_bank(&args.out, &summary.entries)?;
+            println!(
+                "wrote {}: {} entries from {} windows ({} static and {} degenerate skipped, {} inputs failed)",
+                args.out.display(),
+                summary.entries.len(),
+                summary.windows,
+                summary.static_windows,
+                summary.degenerate_windows,
+                summary.failed_inputs.len()
+            );
+        }
+        TrajectoriesCommand::Stats(args) => {
+            let corpora = args
+                .corpora
+                .iter()
+                .map(|pair| match pair.split_once('=') {
+                    Some((label, dir)) if !label.is_empty() => Ok((label.to_owned(), PathBuf::from(dir))),
+                    _ => anyhow::bail!("parameter `corpora`: `{pair}` is not LABEL=DIR"),
+                })
+                .collect::<anyhow::Result<Vec<_>>>()?;
+            print!("{}", datagen::report::compare_corpora(&corpora, args.plots.as_deref())?);
+            if let Some(plots) = &args.plots {
+                println!("plots in {}", plots.display());
+            }
         }
     }
     Ok(())
@@ -273,7 +424,8 @@ fn build(args: BuildArgs) -> anyhow::Result<()> {
     }
     let worker = Worker::from_flags_or_env(args.num_workers, args.worker_index, |name| std::env::var(name).ok())?;
     if args.dry_run {
-        let planned = datagen::corpus::build::plan(&config.sources, &config.output.dir, worker)?;
+        let options = datagen::corpus::build::BuildOptions { retry_failed: args.retry_failed };
+        let planned = datagen::corpus::build::plan(&config.sources, &config.output.dir, worker, options)?;
         for input in &planned {
             println!("{}\t{}", input.plan, input.key);
         }
@@ -287,8 +439,14 @@ fn build(args: BuildArgs) -> anyhow::Result<()> {
     );
     let (mut pairs, mut failures) = (0u64, 0u64);
     let started = std::time::Instant::now();
-    let summary =
-        datagen::corpus::build::build(&config.sources, &config.output, worker, &processor, |event| match event {
+    let options = datagen::corpus::build::BuildOptions { retry_failed: args.retry_failed };
+    let summary = datagen::corpus::build::build_with_options(
+        &config.sources,
+        &config.output,
+        worker,
+        options,
+        &processor,
+        |event| match event {
             Progress::Start { pending } => bar.set_length(pending),
             Progress::Input { status, pairs: n } => {
                 pairs += n;
@@ -297,8 +455,12 @@ fn build(args: BuildArgs) -> anyhow::Result<()> {
                 bar.set_message(format!("{pairs} pairs ({rate:.1}/s), {failures} failed"));
                 bar.inc(1);
             }
-        })?;
+        },
+    )?;
     bar.finish_and_clear();
+    for repair in &summary.repairs {
+        println!("resume: {repair}");
+    }
     println!(
         "worker {}/{}: {} ok, {} skipped, {} failed ({} already done); {} pairs in {} shards, {:.1} MB, {:.1} s",
         worker.index,
@@ -336,13 +498,9 @@ fn build(args: BuildArgs) -> anyhow::Result<()> {
 
 fn synth_corpus(args: SynthCorpusArgs) -> anyhow::Result<()> {
     let config = match &args.config {
-        Some(path) => {
-            let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-            toml::from_str(&text).with_context(|| format!("{}: invalid synth config", path.display()))?
-        }
+        Some(path) => datagen::config_file::load_toml(path)?,
         None => SynthConfig::default(),
     };
-    config.validate()?;
     let out = args.corpus_out.unwrap_or_else(|| args.out.join("corpus"));
     let corpus = datagen::corpus::synthetic::write_synthetic_corpus(&args.out, &out, args.videos_per_layout, &config)?;
     println!(
@@ -399,10 +557,7 @@ struct SynthArgs {
 
 fn synth(args: SynthArgs) -> anyhow::Result<()> {
     let mut config = match &args.config {
-        Some(path) => {
-            let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-            toml::from_str(&text).with_context(|| format!("{}: invalid synth config", path.display()))?
-        }
+        Some(path) => datagen::config_file::load_toml(path)?,
         None => SynthConfig::default(),
     };
     let overrides = [
@@ -463,6 +618,7 @@ fn main() -> ExitCode {
         Command::Build(args) => build(args),
         Command::Validate(args) => validate(args),
         Command::SynthCorpus(args) => synth_corpus(args),
+        Command::Trajectories { command } => trajectories(command),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -13,29 +13,43 @@ use schemas::{ClipRecord, InputDigest, ShardStats, ShardWriter, ShardWriterOptio
 use serde::{Deserialize, Serialize};
 
 use crate::camera::{PinholeCamera, mat3_to_row_major, mat4_to_row_major};
+use crate::config_file::{Checked, Validate, check_count};
 use crate::covisibility::CovisibilityConfig;
 use crate::depth_exr::encode_depth_exr;
 use crate::depth_noise::{DepthNoiseConfig, NoiseKey, SourceFrame};
 use crate::error::{Error, Result};
 use crate::sequence::Sequence;
 use crate::static_background::{StackingConfig, StaticBackground};
-use crate::trajectory::TrajectoryConfig;
+use crate::trajectory::{NovelTrajectory, Sampler, TrajectoryConfig};
+use crate::trajectory_bank::TrajectoryBank;
 
 /// Paper value: clips of 49 frames (DESIGN §1).
 pub const PAPER_CLIP_FRAMES: u32 = 49;
 /// Paper value: N = 2 trajectories per video during pretraining (DESIGN §1).
 pub const PAPER_TRAJECTORIES: u32 = 2;
 
+/// Most trajectories per clip: every one adds a mask per frame to the clip's record, and the
+/// paper uses at most 9 (DESIGN §1); this bounds a record's size, not the method.
+pub const MAX_TRAJECTORIES: u32 = 256;
+
 /// How a video is cut into clips.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct ClipConfig {
-    /// Frames per clip; shorter videos are kept whole as one clip.
+    /// Frames per clip; shorter videos are kept whole as one clip. Valid: at least 1.
     pub length: u32,
     /// Frames between the starts of consecutive clips (equal to `length`: back to back).
+    /// Valid: at least 1.
     pub stride: u32,
-    /// At most this many clips per video (0: all).
+    /// At most this many clips per video (0: all). Valid: any.
     pub max_clips: u32,
+}
+
+impl Validate for ClipConfig {
+    fn validate(&self) -> Checked {
+        check_count("length", self.length, 1, u64::MAX)?;
+        check_count("stride", self.stride, 1, u64::MAX)
+    }
 }
 
 impl Default for ClipConfig {
@@ -59,7 +73,9 @@ impl ClipConfig {
     }
 }
 
-/// Everything `datagen pairs` can be configured with (a TOML file via `--config`).
+/// Everything `datagen pairs` can be configured with (a TOML file via `--config`). Every field
+/// of every section has a documented valid range, checked when the file is loaded and by each
+/// library function that takes a config ([`Validate`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
 #[serde(default, deny_unknown_fields)]
 pub struct PairsConfig {
@@ -76,33 +92,20 @@ pub struct PairsConfig {
 }
 
 impl PairsConfig {
-    /// Reads a TOML config, naming the file and field on error.
+    /// Reads a TOML config and checks every field; errors name the file and the key
+    /// ([`crate::config_file::load_toml`]).
     pub fn from_toml_file(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-        let config: Self = toml::from_str(&text).map_err(|e| Error::invalid(path, "config", e.to_string()))?;
-        config.validate(path)?;
-        Ok(config)
+        crate::config_file::load_toml(path)
     }
+}
 
-    pub(crate) fn validate(&self, path: &Path) -> Result<()> {
-        if self.clip.length == 0 {
-            return Err(Error::invalid(path, "clip.length", "must be at least 1"));
-        }
-        if self.clip.stride == 0 {
-            return Err(Error::invalid(path, "clip.stride", "must be at least 1"));
-        }
-        let noise = &self.depth_noise;
-        for (field, value) in [
-            ("depth_noise.relative_sigma", noise.relative_sigma),
-            ("depth_noise.edge_relative_sigma", noise.edge_relative_sigma),
-            ("depth_noise.edge_width_px", noise.edge_width_px),
-            ("depth_noise.max_sigmas", noise.max_sigmas),
-        ] {
-            if !(value.is_finite() && value >= 0.0) {
-                return Err(Error::invalid(path, field, format!("must be finite and ≥ 0, got {value}")));
-            }
-        }
-        Ok(())
+impl Validate for PairsConfig {
+    fn validate(&self) -> Checked {
+        self.clip.validate().map_err(|e| e.under("clip"))?;
+        self.trajectory.validate().map_err(|e| e.under("trajectory"))?;
+        self.covisibility.validate().map_err(|e| e.under("covisibility"))?;
+        self.depth_noise.validate().map_err(|e| e.under("depth_noise"))?;
+        self.static_background.validate().map_err(|e| e.under("static_background"))
     }
 }
 
@@ -119,6 +122,9 @@ pub struct TrajectoryRequest {
 /// Which trajectories `datagen pairs` uses given its flags: explicit files alone unless
 /// `--trajectories N` is also given; otherwise N (default 2) sampled ones.
 pub fn trajectory_request(sequence: &Sequence, files: &[PathBuf], count: Option<u32>) -> Result<TrajectoryRequest> {
+    if let Some(count) = count {
+        check_count("trajectories", count, 0, MAX_TRAJECTORIES.into())?;
+    }
     let explicit = files
         .iter()
         .map(|path| {
@@ -176,6 +182,7 @@ struct PlannedTrajectory {
     controls: [Vec<f64>; 3],
     rejected: u32,
     poses: Vec<DMat4>,
+    bank_entry: Option<schemas::BankProvenance>,
 }
 
 /// Where the time of [`generate_clips_timed`] went (for the benchmark's split).
@@ -220,15 +227,32 @@ pub fn generate_clips_timed(
     request: &TrajectoryRequest,
     seed: u64,
 ) -> Result<(Vec<ClipRecord>, PhaseTimes)> {
+    config.validate()?;
+    check_count("trajectories", request.sampled, 0, MAX_TRAJECTORIES.into())?;
     let frames = sequence.len() as u32;
+    // Only bank-sampled trajectories need it; explicit-only runs never open the file.
+    let bank = if request.sampled > 0 { sampler_bank(&config.trajectory)? } else { None };
     let mut times = PhaseTimes::default();
     let mut records = Vec::new();
     for (start, length) in config.clip.windows(frames) {
-        let (record, clip_times) = generate_clip(sequence, dataset, config, request, seed, start, length)?;
+        let (record, clip_times) =
+            generate_clip(sequence, dataset, config, request, bank.as_deref(), seed, (start, length))?;
         records.push(record);
         times.add(&clip_times);
     }
     Ok((records, times))
+}
+
+/// The trajectory bank `config` samples from, if its sampler uses one (loaded once per file).
+fn sampler_bank(config: &TrajectoryConfig) -> Result<Option<std::sync::Arc<TrajectoryBank>>> {
+    match (config.sampler, &config.bank) {
+        (Sampler::Spherical, _) => Ok(None),
+        (_, Some(path)) => TrajectoryBank::load_cached(path).map(Some),
+        (sampler, None) => Err(Error::parameter(
+            "trajectory.bank",
+            format!("sampler = \"{}\" needs a trajectory bank file", sampler.as_str()),
+        )),
+    }
 }
 
 fn generate_clip(
@@ -236,9 +260,9 @@ fn generate_clip(
     dataset: &str,
     config: &PairsConfig,
     request: &TrajectoryRequest,
+    bank: Option<&TrajectoryBank>,
     seed: u64,
-    start: u32,
-    length: u32,
+    (start, length): (u32, u32),
 ) -> Result<(ClipRecord, PhaseTimes)> {
     let mut times = PhaseTimes::default();
     let range = start as usize..(start + length) as usize;
@@ -253,23 +277,42 @@ fn generate_clip(
 
     let mut planned = Vec::new();
     for index in 0..request.sampled {
-        let sampled = crate::trajectory::sample_trajectory(
+        let novel = crate::trajectory::sample_novel_trajectory(
             cameras,
             &sequence.depth[start as usize],
             &config.trajectory,
+            bank,
             seed,
             &sequence.source_id,
             start,
             index,
             Some(&crossing),
-        );
-        planned.push(PlannedTrajectory {
-            index,
-            kind: TrajectoryKind::Sampled,
-            pivot_distance: sampled.pivot_distance,
-            controls: [sampled.azimuth_deg.to_vec(), sampled.elevation_deg.to_vec(), sampled.radius_frac.to_vec()],
-            rejected: sampled.rejected_samples,
-            poses: sampled.world_from_camera,
+        )?;
+        planned.push(match novel {
+            NovelTrajectory::Spherical(sampled) => PlannedTrajectory {
+                index,
+                kind: TrajectoryKind::Sampled,
+                pivot_distance: sampled.pivot_distance,
+                controls: [sampled.azimuth_deg.to_vec(), sampled.elevation_deg.to_vec(), sampled.radius_frac.to_vec()],
+                rejected: sampled.rejected_samples,
+                poses: sampled.world_from_camera,
+                bank_entry: None,
+            },
+            NovelTrajectory::Bank(drawn) => PlannedTrajectory {
+                index,
+                kind: TrajectoryKind::Bank,
+                pivot_distance: drawn.pivot_distance,
+                controls: [Vec::new(), Vec::new(), Vec::new()],
+                rejected: drawn.rejected_samples,
+                poses: drawn.world_from_camera,
+                bank_entry: bank.map(|bank| schemas::BankProvenance {
+                    entry_id: drawn.entry_id,
+                    entry_row: drawn.row as u32,
+                    bank_digest: bank.digest.clone(),
+                    mirrored: drawn.mirrored,
+                    roll_deg: drawn.roll_deg,
+                }),
+            },
         });
     }
     for (offset, (_, poses)) in request.explicit.iter().enumerate() {
@@ -280,6 +323,7 @@ fn generate_clip(
             controls: [Vec::new(), Vec::new(), Vec::new()],
             rejected: 0,
             poses: poses[range.clone()].to_vec(),
+            bank_entry: None,
         });
     }
 
@@ -358,6 +402,7 @@ fn generate_clip(
         .map(|(t, plan)| TrajectoryRecord {
             index: plan.index,
             kind: plan.kind,
+            bank_entry: plan.bank_entry.clone(),
             pivot_distance: plan.pivot_distance,
             azimuth_deg: plan.controls[0].clone(),
             elevation_deg: plan.controls[1].clone(),
@@ -450,6 +495,7 @@ pub fn render_sequence(
     config: &PairsConfig,
     stacking: bool,
 ) -> Result<RenderSummary> {
+    config.validate()?;
     let poses = crate::trajectory::read_trajectory_file(
         trajectory_file,
         sequence.len(),

@@ -21,16 +21,14 @@ use glam::{DMat3, DMat4, DVec3};
 use image::{GrayImage, RgbImage};
 use rayon::prelude::*;
 
-use crate::camera::{PinholeCamera, mat3_from_row_major, mat4_from_row_major};
+use crate::camera::{PinholeCamera, checked_intrinsics, checked_pose};
 use crate::depth_exr::DepthMap;
 use crate::error::{Error, Result};
-use crate::npy::{NdArray, read_array_f64, read_npy_f64};
+use crate::npy::{Axis, NdArray, NpzReader, read_npy_f64, read_npy_f64_shaped};
 
 /// Focal length in pixels (at the depth resolution) assumed when intrinsics are missing: the
 /// public cog-nvs code's fallback.
 pub const FALLBACK_FOCAL_PX: f64 = 500.0;
-/// Tolerance on `RᵀR = I` and `det R = 1` for a pose to count as rigid.
-const RIGIDITY_TOLERANCE: f64 = 1e-3;
 
 /// A video with its reconstruction, all at the video's resolution.
 #[derive(Debug, Clone)]
@@ -81,7 +79,10 @@ impl Sequence {
             .depth
             .par_iter()
             .enumerate()
-            .map(|(i, exr)| crate::depth_exr::decode_depth_exr(exr, &format!("{id}: depth[{i}]")))
+            .map(|(i, exr)| {
+                let (width, height) = (record.width as usize, record.height as usize);
+                crate::depth_exr::decode_depth_exr_of_size(exr, &format!("{id}: depth[{i}]"), width, height)
+            })
             .collect::<Result<Vec<_>>>()?;
         let dynamic_masks = match &record.dynamic_mask {
             Some(masks) => Some(
@@ -93,17 +94,22 @@ impl Sequence {
             ),
             None => None,
         };
+        // Stored cameras pass the same checks as read ones: a shard is user input too.
+        let clip = Path::new(id);
         let cameras = record
             .intrinsics
             .iter()
             .zip(&record.world_from_camera)
-            .map(|(k, pose)| PinholeCamera {
-                width: record.width,
-                height: record.height,
-                intrinsics: mat3_from_row_major(k),
-                world_from_camera: mat4_from_row_major(pose),
+            .enumerate()
+            .map(|(i, (k, pose))| {
+                Ok(PinholeCamera {
+                    width: record.width,
+                    height: record.height,
+                    intrinsics: checked_intrinsics(clip, &format!("intrinsics[{i}]"), k)?,
+                    world_from_camera: checked_pose(clip, &format!("world_from_camera[{i}]"), pose)?,
+                })
             })
-            .collect();
+            .collect::<Result<_>>()?;
         Ok(Self {
             source_id: record.source_id.clone(),
             path: PathBuf::from(&record.source_path),
@@ -184,7 +190,27 @@ fn with_extension(dir: &Path, extensions: &[&str]) -> Result<Vec<PathBuf>> {
 }
 
 /// Decodes image files (PNG, JPEG) as RGB frames, in parallel, in the given order.
+/// Every frame must have the first one's size: the error names the first file that differs and
+/// both sizes (checked from the image headers, before anything is decoded). Shared by the generic
+/// layout's `frames/` and the corpus image datasets (DAVIS, YouTube-VOS, TAO).
 pub fn read_frames(paths: &[PathBuf]) -> Result<Vec<RgbImage>> {
+    let sizes = paths
+        .par_iter()
+        .map(|p| image::image_dimensions(p).map_err(|e| Error::invalid(p, "frame", format!("unreadable image: {e}"))))
+        .collect::<Result<Vec<_>>>()?;
+    if let (Some(first), Some(&(width, height))) = (paths.first(), sizes.first())
+        && let Some(i) = sizes.iter().position(|&size| size != (width, height))
+    {
+        let (found_w, found_h) = sizes[i];
+        return Err(Error::invalid(
+            &paths[i],
+            "frame",
+            format!(
+                "size {found_w}x{found_h} differs from the first frame's {width}x{height} ({}): every frame of a sequence must have one size",
+                first.display()
+            ),
+        ));
+    }
     paths
         .par_iter()
         .map(|p| {
@@ -246,11 +272,11 @@ pub fn read_with_frames(
     frames_path: &Path,
 ) -> Result<Sequence> {
     let parts = if reconstruction.is_file() {
-        megasam_reconstruction(reconstruction)?.1
+        megasam_reconstruction(reconstruction, false)?.1
     } else {
         match detect_layout(reconstruction)? {
             Layout::CogNvs => cog_nvs_reconstruction(reconstruction)?,
-            Layout::MegaSam(npz) => megasam_reconstruction(&npz)?.1,
+            Layout::MegaSam(npz) => megasam_reconstruction(&npz, false)?.1,
             Layout::Generic => generic_reconstruction(reconstruction)?,
         }
     };
@@ -271,12 +297,10 @@ pub fn read_with_frames(
 fn cog_nvs_reconstruction(dir: &Path) -> Result<Reconstruction> {
     let cam = dir.join("cam_info");
     let depth_path = cam.join("megasam_depth.npy");
-    let depth = read_npy_f64(&depth_path)?;
-    depth.expect_shape(&depth_path, "megasam_depth", &[None, None, None])?;
+    let depth = read_npy_f64_shaped(&depth_path, &[Axis::Any, Axis::Pixels, Axis::Pixels])?;
     let intrinsics_path = cam.join("megasam_intrinsics.npy");
     let intrinsics = if intrinsics_path.is_file() {
-        let k = read_npy_f64(&intrinsics_path)?;
-        k.expect_shape(&intrinsics_path, "megasam_intrinsics", &[Some(3), Some(3)])?;
+        let k = read_npy_f64_shaped(&intrinsics_path, &[Axis::Is(3), Axis::Is(3)])?;
         Some((intrinsics_path, k))
     } else {
         None
@@ -286,45 +310,77 @@ fn cog_nvs_reconstruction(dir: &Path) -> Result<Reconstruction> {
     Ok(Reconstruction { depth_path, depth, intrinsics, poses })
 }
 
-fn read_npz_member(
-    archive: &mut npyz::npz::NpzArchive<std::io::BufReader<std::fs::File>>,
-    path: &Path,
-    name: &str,
-) -> Result<Option<NdArray<f64>>> {
-    let npy =
-        archive.by_name(name).map_err(|e| Error::invalid(path, name, format!("unreadable archive member: {e}")))?;
-    npy.map(|npy| read_array_f64(npy, path, name)).transpose()
+/// The NumPy dtype (`<f4`, `|u1`, `|b1`, ...) of member `name` of the `.npz` at `path`, from the
+/// member's header only; `None` if the archive has no such member.
+fn npz_member_dtype(path: &Path, name: &str) -> Result<Option<String>> {
+    let mut archive = NpzReader::open(path)?;
+    if !archive.contains(name) {
+        return Ok(None);
+    }
+    Ok(Some(archive.header(name, None)?.dtype))
+}
+
+/// MegaSAM stores `images` as uint8 0–255. A bool array is a mask, and a float array may hold 0–1
+/// or 0–255 values: guessing would silently give black or saturated frames, so both are errors
+/// (integer arrays are accepted when every value is in 0–255, checked when they are converted).
+fn check_image_dtype(path: &Path, field: &str, dtype: &str) -> Result<()> {
+    let kind = dtype.trim_start_matches(['<', '>', '|', '=']).chars().next();
+    let reason = match kind {
+        Some('b') => "is a boolean array (a mask?), not RGB images",
+        Some('f') => {
+            "is a float array: ambiguous (0–1 or 0–255?); store uint8 0–255, e.g. (images * 255).round().astype(np.uint8) for 0–1 values"
+        }
+        Some('u' | 'i') => return Ok(()),
+        _ => "is not an integer array",
+    };
+    Err(Error::invalid(path, field, format!("dtype `{dtype}` {reason}")))
 }
 
 fn read_megasam(path: &Path) -> Result<Parts> {
-    let (images, reconstruction) = megasam_reconstruction(path)?;
+    if let Some(dtype) = npz_member_dtype(path, "images")? {
+        check_image_dtype(path, "images", &dtype)?;
+    }
+    let (images, reconstruction) = megasam_reconstruction(path, true)?;
+    let images = images.ok_or_else(|| Error::array(path, Some("images.npy"), "missing from the archive"))?;
     let (n, h, w) = (images.shape[0], images.shape[1], images.shape[2]);
     if n == 0 || h == 0 || w == 0 {
         return Err(Error::invalid(path, "images", format!("zero-size frames: shape {:?}", images.shape)));
     }
+    if let Some(i) = images.data.iter().position(|&v| !(0.0..=f64::from(u8::MAX)).contains(&v)) {
+        return Err(Error::invalid(
+            path,
+            "images",
+            format!("value {} in frame {} is outside 0–255 (RGB u8 expected)", images.data[i], i / (h * w * 3)),
+        ));
+    }
     let frames = images
         .data
         .chunks_exact(h * w * 3)
-        .map(|frame| {
-            RgbImage::from_raw(w as u32, h as u32, frame.iter().map(|&v| v.clamp(0.0, 255.0) as u8).collect())
-                .expect("sized")
-        })
+        .map(|frame| RgbImage::from_raw(w as u32, h as u32, frame.iter().map(|&v| v as u8).collect()).expect("sized"))
         .collect();
     // The MegaSAM depth is at the image resolution; `assemble` resamples if it is not.
     assemble(0.0, frames, path, reconstruction)
 }
 
-/// The arrays of a MegaSAM archive: the images, and the reconstruction.
-fn megasam_reconstruction(path: &Path) -> Result<(NdArray<f64>, Reconstruction)> {
-    let mut archive = npyz::npz::NpzArchive::open(path)
-        .map_err(|e| Error::invalid(path, "archive", format!("not a readable .npz: {e}")))?;
-    let missing = |name: &str| Error::invalid(path, name, "array missing from the archive");
-    let images = read_npz_member(&mut archive, path, "images")?.ok_or_else(|| missing("images"))?;
-    images.expect_shape(path, "images", &[None, None, None, Some(3)])?;
-    let depth = read_npz_member(&mut archive, path, "depths")?.ok_or_else(|| missing("depths"))?;
-    let intrinsic = read_npz_member(&mut archive, path, "intrinsic")?.ok_or_else(|| missing("intrinsic"))?;
-    intrinsic.expect_shape(path, "intrinsic", &[Some(3), Some(3)])?;
-    let poses = read_npz_member(&mut archive, path, "cam_c2w")?.ok_or_else(|| missing("cam_c2w"))?;
+/// The arrays of a MegaSAM archive: the images (read only `with_images`: frames decoded
+/// elsewhere replace them), and the reconstruction. Every member's header is checked against
+/// the frame count of `images` first, so no member is inflated before its shape agrees with
+/// its siblings'.
+fn megasam_reconstruction(path: &Path, with_images: bool) -> Result<(Option<NdArray<f64>>, Reconstruction)> {
+    let mut archive = NpzReader::open(path)?;
+    let images_shape = archive.header("images", Some(&[Axis::Any, Axis::Pixels, Axis::Pixels, Axis::Is(3)]))?.shape;
+    let images_spec: Vec<Axis> = images_shape.iter().map(|&n| Axis::Is(n)).collect();
+    let frames = images_spec[0];
+    let depth_spec = [frames, Axis::Pixels, Axis::Pixels];
+    let intrinsic_spec = [Axis::Is(3), Axis::Is(3)];
+    let poses_spec = [frames, Axis::Is(4), Axis::Is(4)];
+    for (name, spec) in [("depths", &depth_spec[..]), ("intrinsic", &intrinsic_spec), ("cam_c2w", &poses_spec)] {
+        archive.header(name, Some(spec))?;
+    }
+    let images = if with_images { Some(archive.read_f64("images", &images_spec)?) } else { None };
+    let depth = archive.read_f64("depths", &depth_spec)?;
+    let intrinsic = archive.read_f64("intrinsic", &intrinsic_spec)?;
+    let poses = archive.read_f64("cam_c2w", &poses_spec)?;
     let reconstruction = Reconstruction {
         depth_path: path.to_owned(),
         depth,
@@ -334,33 +390,56 @@ fn megasam_reconstruction(path: &Path) -> Result<(NdArray<f64>, Reconstruction)>
     Ok((images, reconstruction))
 }
 
-#[derive(serde::Deserialize)]
-#[serde(untagged)]
-enum JsonMatrix {
-    Nested(Vec<Vec<f64>>),
-    Flat(Vec<f64>),
-}
-
-impl JsonMatrix {
-    fn flatten(self) -> Vec<f64> {
-        match self {
-            Self::Nested(rows) => rows.into_iter().flatten().collect(),
-            Self::Flat(values) => values,
-        }
+/// The `intrinsics` of `cameras.json` as an `(3, 3)` (one K for all frames) or `(N, 3, 3)`
+/// array. A single K is 9 numbers or 3 rows of 3; a per-frame list holds one such K per frame.
+/// A list of 3 lists of 3 numbers is therefore one nested K, never 3 frames' K (a flat K has 9).
+fn json_intrinsics(path: &Path, value: &serde_json::Value) -> Result<NdArray<f64>> {
+    let field = "intrinsics";
+    let single = |value| crate::camera::json_matrix(value, 3, 3).map_err(|reason| Error::invalid(path, field, reason));
+    let serde_json::Value::Array(items) = value else {
+        return Err(single(value).unwrap_err());
+    };
+    let is_number_list =
+        |v: &serde_json::Value| v.as_array().is_some_and(|r| r.iter().all(serde_json::Value::is_number));
+    let one_k = items.iter().all(serde_json::Value::is_number)
+        || (items.len() == 3 && items.iter().all(|r| is_number_list(r) && r.as_array().is_some_and(|r| r.len() == 3)));
+    if one_k {
+        return Ok(NdArray { shape: vec![3, 3], data: single(value)? });
     }
+    let mut data = Vec::with_capacity(items.len() * 9);
+    for (i, k) in items.iter().enumerate() {
+        let values = crate::camera::json_matrix(k, 3, 3)
+            .map_err(|reason| Error::invalid(path, format!("{field}[{i}]"), reason))?;
+        data.extend(values);
+    }
+    Ok(NdArray { shape: vec![items.len(), 3, 3], data })
 }
 
-#[derive(serde::Deserialize)]
-#[serde(untagged)]
-enum JsonIntrinsics {
-    PerFrame(Vec<JsonMatrix>),
-    Shared(JsonMatrix),
-}
-
-#[derive(serde::Deserialize)]
-struct CamerasJson {
-    intrinsics: JsonIntrinsics,
-    world_from_camera: Vec<JsonMatrix>,
+/// The `world_from_camera` of `cameras.json`: one 4×4 pose per frame (nested rows or 16 values).
+fn json_poses(path: &Path, value: &serde_json::Value) -> Result<NdArray<f64>> {
+    let field = "world_from_camera";
+    let Some(items) = value.as_array() else {
+        return Err(Error::invalid(path, field, "expected a list of per-frame 4×4 matrices"));
+    };
+    let is_row = |v: &serde_json::Value| {
+        v.as_array().is_some_and(|r| r.len() == 4 && r.iter().all(serde_json::Value::is_number))
+    };
+    if !items.is_empty()
+        && (items.iter().all(serde_json::Value::is_number) || (items.len() == 4 && items.iter().all(is_row)))
+    {
+        return Err(Error::invalid(
+            path,
+            field,
+            "a single matrix: expected a list of per-frame 4×4 matrices, one per frame",
+        ));
+    }
+    let mut data = Vec::with_capacity(items.len() * 16);
+    for (i, pose) in items.iter().enumerate() {
+        let values = crate::camera::json_matrix(pose, 4, 4)
+            .map_err(|reason| Error::invalid(path, format!("{field}[{i}]"), reason))?;
+        data.extend(values);
+    }
+    Ok(NdArray { shape: vec![items.len(), 4, 4], data })
 }
 
 fn read_generic(dir: &Path) -> Result<Parts> {
@@ -388,29 +467,22 @@ fn generic_reconstruction(dir: &Path) -> Result<Reconstruction> {
     let depth = read_exr_folder(&depth_dir)?;
     let cameras_path = dir.join("cameras.json");
     let text = std::fs::read_to_string(&cameras_path).map_err(|e| Error::io(&cameras_path, e))?;
-    let cameras: CamerasJson = serde_json::from_str(&text)
+    let cameras: serde_json::Value = serde_json::from_str(&text)
         .map_err(|e| Error::invalid(&cameras_path, "cameras", format!("invalid JSON: {e}")))?;
-    let intrinsics = match cameras.intrinsics {
-        JsonIntrinsics::Shared(k) => NdArray { shape: vec![3, 3], data: k.flatten() },
-        JsonIntrinsics::PerFrame(list) => {
-            let count = list.len();
-            NdArray { shape: vec![count, 3, 3], data: list.into_iter().flat_map(JsonMatrix::flatten).collect() }
-        }
-    };
-    let pose_count = cameras.world_from_camera.len();
-    let poses = NdArray {
-        shape: vec![pose_count, 4, 4],
-        data: cameras.world_from_camera.into_iter().flat_map(JsonMatrix::flatten).collect(),
-    };
-    for (field, array) in [("intrinsics", &intrinsics), ("world_from_camera", &poses)] {
-        if array.data.len() != array.shape.iter().product::<usize>() {
-            return Err(Error::invalid(
-                &cameras_path,
-                field,
-                "every matrix must have 3×3 (intrinsics) or 4×4 (poses) values",
-            ));
-        }
+    if !cameras.is_object() {
+        return Err(Error::invalid(
+            &cameras_path,
+            "cameras",
+            "expected an object with `intrinsics` and `world_from_camera`",
+        ));
     }
+    let key = |name: &str| {
+        cameras.get(name).ok_or_else(|| {
+            Error::invalid(&cameras_path, name, "missing: cameras.json needs `intrinsics` and `world_from_camera`")
+        })
+    };
+    let intrinsics = json_intrinsics(&cameras_path, key("intrinsics")?)?;
+    let poses = json_poses(&cameras_path, key("world_from_camera")?)?;
     let intrinsics = Some((cameras_path.clone(), intrinsics));
     Ok(Reconstruction { depth_path: depth_dir, depth, intrinsics, poses: Some((cameras_path, poses)) })
 }
@@ -424,17 +496,30 @@ fn assemble(fps: f64, frames: Vec<RgbImage>, frames_path: &Path, reconstruction:
     if n == 0 || width == 0 || height == 0 {
         return Err(Error::invalid(frames_path, "frames", "no frames or zero-size frames"));
     }
+    if let Some(i) = frames.iter().position(|f| f.dimensions() != (width, height)) {
+        let (found_w, found_h) = frames[i].dimensions();
+        return Err(Error::invalid(
+            frames_path,
+            format!("frames[{i}]"),
+            format!("size {found_w}x{found_h} differs from frame 0's {width}x{height}"),
+        ));
+    }
     if depth.shape.len() != 3 || depth.shape[0] != n {
         return Err(Error::invalid(
             depth_path,
             "depth",
-            format!("shape {:?} does not hold {n} frames (the video has {n})", depth.shape),
+            format!(
+                "shape {:?} does not hold one (H, W) map per frame: {} has {n} frames",
+                depth.shape,
+                frames_path.display()
+            ),
         ));
     }
     let (depth_h, depth_w) = (depth.shape[1], depth.shape[2]);
     if depth_h == 0 || depth_w == 0 {
         return Err(Error::invalid(depth_path, "depth", "zero-size depth maps"));
     }
+    check_depth_orientation(depth_path, "depth", depth_w, depth_h, width, height)?;
 
     // Intrinsics at the depth resolution (the reconstruction's), then scaled to the frames.
     let at_depth_resolution = |k: DMat3| PinholeCamera {
@@ -484,7 +569,11 @@ fn assemble(fps: f64, frames: Vec<RgbImage>, frames_path: &Path, reconstruction:
             if p.shape[0] != n {
                 return Err(Error::invalid(path, "world_from_camera", format!("{} poses for {n} frames", p.shape[0])));
             }
-            p.data.chunks_exact(16).enumerate().map(|(i, v)| checked_pose(path, i, v)).collect::<Result<_>>()?
+            p.data
+                .chunks_exact(16)
+                .enumerate()
+                .map(|(i, v)| checked_pose(path, &format!("world_from_camera[{i}]"), v))
+                .collect::<Result<_>>()?
         }
     };
     let cameras: Vec<PinholeCamera> = intrinsics_per_frame
@@ -506,56 +595,70 @@ fn assemble(fps: f64, frames: Vec<RgbImage>, frames_path: &Path, reconstruction:
     Ok((fps, frames, depth_maps, cameras))
 }
 
-fn checked_intrinsics(path: &Path, field: &str, values: &[f64]) -> Result<DMat3> {
-    let k = mat3_from_row_major(values);
-    let finite = values.iter().all(|v| v.is_finite());
-    if !finite || k.x_axis.x <= 0.0 || k.y_axis.y <= 0.0 {
-        return Err(Error::invalid(path, field, format!("not a valid K (finite, positive focal lengths): {values:?}")));
-    }
-    Ok(k)
-}
+/// Relative tolerance when comparing a depth map's aspect ratio with the frames': depth computed
+/// at a reduced size rounds each side to a multiple of 8 or so (480×854 → 288×512 differs by
+/// 0.1 %), far below the gap between a non-square aspect and its transpose.
+const ASPECT_TOLERANCE: f64 = 0.01;
 
-fn checked_pose(path: &Path, index: usize, values: &[f64]) -> Result<DMat4> {
-    let field = format!("world_from_camera[{index}]");
-    if !values.iter().all(|v| v.is_finite()) {
-        return Err(Error::invalid(path, field, "non-finite values"));
-    }
-    let pose = mat4_from_row_major(values);
-    let rotation = DMat3::from_mat4(pose);
-    let orthonormal = (rotation.transpose() * rotation).abs_diff_eq(DMat3::IDENTITY, RIGIDITY_TOLERANCE);
-    let bottom = [values[12], values[13], values[14], values[15]];
-    if !orthonormal || (rotation.determinant() - 1.0).abs() > RIGIDITY_TOLERANCE || bottom != [0.0, 0.0, 0.0, 1.0] {
+/// Depth at another resolution than the frames is legal (it is resampled, K scaled per axis), but
+/// depth whose aspect ratio is the frames' transposed (and not also the frames' own, as for
+/// near-square frames) was stored as (N, W, H): resampling it would silently stretch a rotated
+/// depth map over the frames, so it is an error naming both shapes.
+fn check_depth_orientation(
+    path: &Path,
+    field: &str,
+    depth_w: usize,
+    depth_h: usize,
+    width: u32,
+    height: u32,
+) -> Result<()> {
+    let aspect = |w: f64, h: f64| w / h;
+    let frames_aspect = aspect(f64::from(width), f64::from(height));
+    let close = |a: f64| (a / frames_aspect - 1.0).abs() <= ASPECT_TOLERANCE;
+    let (depth_w, depth_h) = (depth_w as f64, depth_h as f64);
+    if close(aspect(depth_h, depth_w)) && !close(aspect(depth_w, depth_h)) {
         return Err(Error::invalid(
             path,
             field,
-            "not a rigid transform (rotation must be orthonormal with det 1, last row 0 0 0 1)",
+            format!(
+                "depth maps are {depth_h}x{depth_w} (H×W) but the frames are {height}x{width} (H×W): the depth looks \
+                 stored transposed as (N, W, H); save it as (N, H, W) (e.g. depth.transpose(0, 2, 1))"
+            ),
         ));
     }
-    Ok(pose)
+    Ok(())
 }
 
 /// A folder of per-frame `*.exr` depth maps (sorted by name) as an `[N, H, W]` array; every map
 /// must have the first one's size.
 pub fn read_exr_folder(depth_dir: &Path) -> Result<NdArray<f64>> {
     let depth_files = with_extension(depth_dir, &["exr"])?;
-    let depth_maps = depth_files
+    let contents =
+        depth_files.par_iter().map(|p| std::fs::read(p).map_err(|e| Error::io(p, e))).collect::<Result<Vec<_>>>()?;
+    let context = |i: usize| depth_files[i].display().to_string();
+    // Every header first: a map declaring another size fails before any is decoded.
+    let sizes = contents
         .par_iter()
-        .map(|p| {
-            let bytes = std::fs::read(p).map_err(|e| Error::io(p, e))?;
-            crate::depth_exr::decode_depth_exr(&bytes, &p.display().to_string())
-        })
+        .enumerate()
+        .map(|(i, bytes)| crate::depth_exr::depth_exr_size(bytes, &context(i)))
         .collect::<Result<Vec<_>>>()?;
-    let (n, h, w) = match depth_maps.first() {
-        Some(first) => (depth_maps.len(), first.height, first.width),
-        None => return Err(Error::invalid(depth_dir, "depth", "no .exr files")),
+    let Some(&(w, h)) = sizes.first() else {
+        return Err(Error::invalid(depth_dir, "depth", "no .exr files"));
     };
-    if let Some((i, map)) = depth_maps.iter().enumerate().find(|(_, m)| (m.width, m.height) != (w, h)) {
+    if let Some(i) = sizes.iter().position(|&size| size != (w, h)) {
+        let (found_w, found_h) = sizes[i];
         return Err(Error::invalid(
             &depth_files[i],
             "depth",
-            format!("{}x{} differs from the first map's {w}x{h}", map.width, map.height),
+            format!("{found_w}x{found_h} differs from the first map's {w}x{h}"),
         ));
     }
+    let depth_maps = contents
+        .par_iter()
+        .enumerate()
+        .map(|(i, bytes)| crate::depth_exr::decode_depth_exr_of_size(bytes, &context(i), w, h))
+        .collect::<Result<Vec<_>>>()?;
+    let n = depth_maps.len();
     Ok(NdArray {
         shape: vec![n, h, w],
         data: depth_maps.iter().flat_map(|m| m.values.iter().map(|&v| f64::from(v))).collect(),
@@ -568,14 +671,16 @@ pub fn read_depth_stack(path: &Path, frames: usize, width: u32, height: u32) -> 
     let array = if path.is_dir() {
         read_exr_folder(path)?
     } else {
-        let array = crate::npy::read_npy_f64(path)?;
-        array.expect_shape(path, "depth", &[None, None, None])?;
-        array
+        read_npy_f64_shaped(path, &[Axis::Any, Axis::Pixels, Axis::Pixels])?
     };
     let (n, h, w) = (array.shape[0], array.shape[1], array.shape[2]);
     if n != frames {
         return Err(Error::invalid(path, "depth", format!("{n} depth maps for {frames} frames")));
     }
+    if h == 0 || w == 0 {
+        return Err(Error::invalid(path, "depth", "zero-size depth maps"));
+    }
+    check_depth_orientation(path, "depth", w, h, width, height)?;
     Ok(array.data.chunks(h * w).map(|map| resample_nearest(map, w, h, width as usize, height as usize)).collect())
 }
 

@@ -14,12 +14,14 @@
 //! projected size, nearest point winning.
 
 use std::collections::HashMap;
+use std::ops::Bound;
 
 use glam::DVec3;
 use image::{GrayImage, Luma, Rgb, RgbImage};
 use serde::{Deserialize, Serialize};
 
 use crate::camera::PinholeCamera;
+use crate::config_file::{Checked, Validate, check_count, check_float};
 use crate::depth_exr::DepthMap;
 use crate::sequence::Sequence;
 
@@ -27,12 +29,26 @@ use crate::sequence::Sequence;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct StackingConfig {
-    /// Voxel edge as a fraction of the first frame's median depth.
+    /// Voxel edge as a fraction of the first frame's median depth. Valid: finite, in (0, 1]
+    /// (a voxel as large as the scene's depth already fuses it into a few blobs).
     pub voxel_relative: f64,
-    /// Use every n-th frame (1: all).
+    /// Use every n-th frame (1: all). Valid: at least 1.
     pub frame_step: u32,
-    /// Pixels this close to a dynamic-object pixel are not static.
+    /// Pixels this close to a dynamic-object pixel are not static. Valid: 0 to
+    /// [`MAX_DYNAMIC_MARGIN_PX`].
     pub dynamic_margin_px: u32,
+}
+
+/// Widest dilation of the dynamic masks: the dilation costs (2 × margin + 1)² per dynamic
+/// pixel, and 64 px already covers the motion blur and mask slop of any annotated video.
+pub const MAX_DYNAMIC_MARGIN_PX: u32 = 64;
+
+impl Validate for StackingConfig {
+    fn validate(&self) -> Checked {
+        check_float("voxel_relative", self.voxel_relative, (Bound::Excluded(0.0), Bound::Included(1.0)))?;
+        check_count("frame_step", self.frame_step, 1, u64::MAX)?;
+        check_count("dynamic_margin_px", self.dynamic_margin_px, 0, MAX_DYNAMIC_MARGIN_PX.into())
+    }
 }
 
 impl Default for StackingConfig {

@@ -8,6 +8,7 @@
 //! Blender fixtures. Shading is Lambertian with a fixed light, so a surface point has the same
 //! colour from every viewpoint.
 
+use std::ops::Bound;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
@@ -23,29 +24,47 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use crate::config_file::{Checked, KeyError, Validate, check_count, check_float};
 use crate::error::{Error, Result};
 
-/// Parameters of a synthetic scene. Defaults give the quickstart's small scene.
+/// Parameters of a synthetic scene. Defaults give the quickstart's small scene. Every field is
+/// checked ([`Validate`]) when a file is loaded, after command-line flags are applied, and by
+/// [`SynthScene::new`].
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct SynthConfig {
-    /// Frame width in pixels (even: the video is H.264 4:2:0).
+    /// Frame width in pixels. Valid: even (the video is H.264 4:2:0), 2 to [`MAX_SIDE`].
     pub width: u32,
-    /// Frame height in pixels (even).
+    /// Frame height in pixels. Valid: even, 2 to [`MAX_SIDE`].
     pub height: u32,
-    /// Number of frames.
+    /// Number of frames. Valid: at least 1, and frames × width × height at most
+    /// [`MAX_SCENE_PIXELS`].
     pub frames: u32,
-    /// Frame rate of the written video.
+    /// Frame rate of the written video. Valid: finite, in (0, [`MAX_FPS`]].
     pub fps: f64,
     /// Number of moving objects (alternating spheres and boxes); their mask ids are 1..=n.
+    /// Valid: 0 to 254.
     pub moving_objects: u32,
-    /// Number of static boxes standing on the floor.
+    /// Number of static boxes standing on the floor. Valid: 0 to [`MAX_STATIC_OBJECTS`].
     pub static_objects: u32,
-    /// Seed of every random choice (object layout, colours, motion, camera path).
+    /// Seed of every random choice (object layout, colours, motion, camera path). Valid: any.
     pub seed: u64,
-    /// Horizontal field of view in degrees.
+    /// Horizontal field of view in degrees. Valid: in (1, 170).
     pub fov_deg: f64,
 }
+
+/// Widest and tallest frame: 8192 is the wide side of DCI 8K, the largest frame H.264's top
+/// level (6.2) encodes; far above the paper's 720×480 (DESIGN §1).
+pub const MAX_SIDE: u32 = 8192;
+/// Most pixels of a whole scene (frames × width × height): the writer holds every frame's
+/// colour, depth and ids (8 bytes a pixel) until the video is encoded, so this bounds it to
+/// 4 GiB; the paper's clip size (49 × 720 × 480) is 1/30 of it.
+pub const MAX_SCENE_PIXELS: u64 = 1 << 29;
+/// Fastest frame rate: high-speed cameras' 1000 fps; above that it is a typo.
+pub const MAX_FPS: f64 = 1000.0;
+/// Most static boxes: they stand in a 5 m × 7 m play area, where a few hundred already fill
+/// every spot; the cap bounds the scene's triangle count.
+pub const MAX_STATIC_OBJECTS: u32 = 256;
 
 impl Default for SynthConfig {
     fn default() -> Self {
@@ -65,38 +84,36 @@ impl Default for SynthConfig {
 /// Most moving objects a mask can label (ids 1..=254; 255 is "void" in the mask convention).
 const MAX_MOVING_OBJECTS: u32 = 254;
 
-impl SynthConfig {
-    /// Rejects impossible parameters, naming the parameter.
-    pub fn validate(&self) -> Result<()> {
-        let positive_even = |name: &str, value: u32| {
-            if value == 0 {
-                Err(Error::parameter(name, "must be at least 2"))
-            } else if !value.is_multiple_of(2) {
-                Err(Error::parameter(name, format!("must be even (H.264 4:2:0 video), got {value}")))
-            } else {
-                Ok(())
+impl Validate for SynthConfig {
+    /// Rejects impossible or unallocatable parameters, naming the key (the flag's name with
+    /// `_` for `-`).
+    fn validate(&self) -> Checked {
+        for (key, value) in [("width", self.width), ("height", self.height)] {
+            check_count(key, value, 2, MAX_SIDE.into())?;
+            if !value.is_multiple_of(2) {
+                return Err(KeyError::new(key, format!("must be even (H.264 4:2:0 video), got {value}")));
             }
-        };
-        positive_even("width", self.width)?;
-        positive_even("height", self.height)?;
-        if self.frames == 0 {
-            return Err(Error::parameter("frames", "must be at least 1"));
         }
-        if !(self.fps.is_finite() && self.fps > 0.0) {
-            return Err(Error::parameter("fps", format!("must be a positive number, got {}", self.fps)));
-        }
-        if self.moving_objects > MAX_MOVING_OBJECTS {
-            return Err(Error::parameter(
-                "moving-objects",
-                format!("at most {MAX_MOVING_OBJECTS}, got {}", self.moving_objects),
+        check_count("frames", self.frames, 1, u64::MAX)?;
+        let pixels = u64::from(self.frames) * u64::from(self.width) * u64::from(self.height);
+        if pixels > MAX_SCENE_PIXELS {
+            return Err(KeyError::new(
+                "frames",
+                format!(
+                    "{} frames of {}x{} are {pixels} pixels, more than the {MAX_SCENE_PIXELS} a scene may hold \
+                     in memory; use fewer frames or smaller ones",
+                    self.frames, self.width, self.height
+                ),
             ));
         }
-        if !(self.fov_deg > 1.0 && self.fov_deg < 170.0) {
-            return Err(Error::parameter("fov-deg", format!("must be in (1, 170), got {}", self.fov_deg)));
-        }
-        Ok(())
+        check_float("fps", self.fps, (Bound::Excluded(0.0), Bound::Included(MAX_FPS)))?;
+        check_count("moving_objects", self.moving_objects, 0, MAX_MOVING_OBJECTS.into())?;
+        check_count("static_objects", self.static_objects, 0, MAX_STATIC_OBJECTS.into())?;
+        check_float("fov_deg", self.fov_deg, (Bound::Excluded(1.0), Bound::Excluded(170.0)))
     }
+}
 
+impl SynthConfig {
     /// Intrinsics K in pixels: square pixels, centred principal point at `W/2 − 0.5`.
     pub fn intrinsics(&self) -> DMat3 {
         let focal = 0.5 * self.width as f64 / (0.5 * self.fov_deg.to_radians()).tan();
@@ -255,7 +272,7 @@ pub struct FrameGeometry {
 }
 
 impl SynthScene {
-    /// Lays out the scene from `config` (validated).
+    /// Lays out the scene from `config`, after checking it ([`Validate`]).
     pub fn new(config: &SynthConfig) -> Result<Self> {
         config.validate()?;
         let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
@@ -673,6 +690,12 @@ mod tests {
             (SynthConfig { width: 0, ..small() }, "width"),
             (SynthConfig { height: 47, ..small() }, "height"),
             (SynthConfig { fps: 0.0, ..small() }, "fps"),
+            (SynthConfig { width: 2_000_000, ..small() }, "width"),
+            (SynthConfig { height: 4_000_000, ..small() }, "height"),
+            (SynthConfig { width: 8192, height: 8192, frames: 100, ..small() }, "frames"),
+            (SynthConfig { fps: f64::NAN, ..small() }, "fps"),
+            (SynthConfig { static_objects: u32::MAX, ..small() }, "static_objects"),
+            (SynthConfig { fov_deg: f64::INFINITY, ..small() }, "fov_deg"),
         ] {
             let error = SynthScene::new(&config).unwrap_err().to_string();
             assert!(error.contains(&format!("`{name}`")), "{error}");

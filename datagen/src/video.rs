@@ -40,13 +40,29 @@ fn video_error(path: &Path, what: &str, error: impl std::fmt::Display) -> Error 
     Error::Video { path: path.to_owned(), reason: format!("{what}: {error}") }
 }
 
-/// Decodes every frame of the best video stream of `path` to RGB.
+/// Whether FFmpeg's demuxer `name` reads single images: `image2` (files by pattern) and the
+/// `*_pipe` family (`png_pipe`, `jpeg_pipe`, `webp_pipe`, ...), which it picks by content when a
+/// still image is given any name, e.g. a PNG renamed to `.mp4`.
+fn is_still_image_demuxer(name: &str) -> bool {
+    name.split(',').any(|n| n == "image2" || n.ends_with("_pipe"))
+}
+
+/// Decodes every frame of the best video stream of `path` to RGB. A still image (whatever its
+/// extension) or a stream whose frame size changes is an error naming the file.
 pub fn decode_video(path: &Path) -> Result<Video> {
     init();
     if !path.is_file() {
         return Err(Error::io(path, std::io::Error::new(std::io::ErrorKind::NotFound, "video file not found")));
     }
     let mut input = ffmpeg::format::input(path).map_err(|e| video_error(path, "cannot open container", e))?;
+    let demuxer = input.format().name().to_owned();
+    if is_still_image_demuxer(&demuxer) {
+        return Err(video_error(
+            path,
+            "not a video",
+            format!("FFmpeg reads this file as a still image (demuxer `{demuxer}`), whatever its extension"),
+        ));
+    }
     let stream = input
         .streams()
         .best(ffmpeg::media::Type::Video)
@@ -71,6 +87,17 @@ pub fn decode_video(path: &Path) -> Result<Video> {
             let (width, height) = (decoded.width(), decoded.height());
             if width == 0 || height == 0 {
                 return Err(video_error(path, "decoded frame", "zero-size frame"));
+            }
+            // A stream whose size changes mid-way would give frames that no depth map or K fits.
+            if let Some(first) = frames.first() {
+                let (first_w, first_h) = first.dimensions();
+                if (width, height) != (first_w, first_h) {
+                    return Err(video_error(
+                        path,
+                        &format!("frame {}", frames.len()),
+                        format!("size {width}x{height} differs from frame 0's {first_w}x{first_h}"),
+                    ));
+                }
             }
             if scaler.is_none() {
                 let created =

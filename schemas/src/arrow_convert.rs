@@ -4,14 +4,17 @@ use std::path::Path;
 use std::sync::Arc;
 
 use arrow::array::{
-    Array, ArrayRef, AsArray, FixedSizeListArray, Float64Array, LargeBinaryBuilder, ListArray, RecordBatch,
-    StringArray, StructArray, UInt32Array, UInt64Array,
+    Array, ArrayRef, AsArray, BooleanArray, FixedSizeListArray, Float64Array, LargeBinaryBuilder, ListArray,
+    RecordBatch, StringArray, StructArray, UInt32Array, UInt64Array,
 };
 use arrow::buffer::{NullBuffer, OffsetBuffer};
 use arrow::datatypes::{DataType, FieldRef, Float64Type, SchemaRef, UInt32Type, UInt64Type};
 
 use crate::error::{Error, Result};
-use crate::pairs::{ClipRecord, TrajectoryKind, TrajectoryRecord, pair_schema, trajectory_fields};
+use crate::pairs::{
+    BankProvenance, ClipRecord, TrajectoryKind, TrajectoryRecord, bank_provenance_fields, pair_schema,
+    trajectory_fields,
+};
 
 /// The item field of a list data type (the schema defines it; this just reads it back).
 fn item_field(data_type: &DataType) -> FieldRef {
@@ -38,7 +41,7 @@ fn bytes_list(data_type: &DataType, rows: &[Option<&[Vec<u8>]>]) -> Result<ListA
 }
 
 /// `list<fixed_size_list<float64, N>>` from per-row matrix lists.
-fn matrix_list<const N: usize>(
+pub(crate) fn matrix_list<const N: usize>(
     data_type: &DataType,
     rows: &[&[[f64; N]]],
 ) -> Result<ListArray, arrow::error::ArrowError> {
@@ -154,6 +157,7 @@ fn trajectories_column(data_type: &DataType, records: &[ClipRecord]) -> Result<L
         Arc::new(bytes_list(&dt("covisible_mask"), &masks)?),
         Arc::new(bytes_list(&dt("condition"), &condition)?),
         Arc::new(Float64Array::from_iter_values(all.iter().map(|t| t.covisible_fraction))),
+        Arc::new(bank_entry_column(&all)?),
     ];
     let structs = StructArray::try_new(fields, columns, None)?;
     ListArray::try_new(
@@ -162,6 +166,21 @@ fn trajectories_column(data_type: &DataType, records: &[ClipRecord]) -> Result<L
         Arc::new(structs),
         None,
     )
+}
+
+/// The nullable `bank_entry` struct column: one element per trajectory, null unless drawn from a bank.
+fn bank_entry_column(all: &[&TrajectoryRecord]) -> Result<StructArray, arrow::error::ArrowError> {
+    // Null rows still need a value in each child; they hold defaults nobody reads.
+    let entries: Vec<Option<&BankProvenance>> = all.iter().map(|t| t.bank_entry.as_ref()).collect();
+    let nulls = entries.iter().any(Option::is_none).then(|| NullBuffer::from_iter(entries.iter().map(Option::is_some)));
+    let columns: Vec<ArrayRef> = vec![
+        Arc::new(StringArray::from_iter_values(entries.iter().map(|e| e.map_or("", |e| e.entry_id.as_str())))),
+        Arc::new(UInt32Array::from_iter_values(entries.iter().map(|e| e.map_or(0, |e| e.entry_row)))),
+        Arc::new(StringArray::from_iter_values(entries.iter().map(|e| e.map_or("", |e| e.bank_digest.as_str())))),
+        Arc::new(BooleanArray::from_iter(entries.iter().map(|e| Some(e.is_some_and(|e| e.mirrored))))),
+        Arc::new(Float64Array::from_iter_values(entries.iter().map(|e| e.map_or(0.0, |e| e.roll_deg)))),
+    ];
+    StructArray::try_new(bank_provenance_fields(), columns, nulls)
 }
 
 /// Reads a batch of the [`pair_schema`] back into records. `path` names the file in errors.
@@ -271,7 +290,7 @@ fn read_f64s(values: &ArrayRef, path: &Path, field: &str) -> Result<Vec<f64>> {
     Ok(values.values().to_vec())
 }
 
-fn read_matrices<const N: usize>(values: &ArrayRef, path: &Path, field: &str) -> Result<Vec<[f64; N]>> {
+pub(crate) fn read_matrices<const N: usize>(values: &ArrayRef, path: &Path, field: &str) -> Result<Vec<[f64; N]>> {
     let matrices = values.as_fixed_size_list_opt().filter(|m| m.value_length() as usize == N).ok_or_else(|| {
         Error::mismatch(path, field, format!("expected fixed_size_list<float64, {N}>, found {}", values.data_type()))
     })?;
@@ -305,6 +324,11 @@ fn read_trajectories(values: &ArrayRef, path: &Path) -> Result<Vec<TrajectoryRec
     let condition = column("condition")?.as_list_opt::<i32>().ok_or_else(|| typed("condition"))?;
     let fraction =
         column("covisible_fraction")?.as_primitive_opt::<Float64Type>().ok_or_else(|| typed("covisible_fraction"))?;
+    // Absent in v1 shards: every trajectory then reads as not drawn from a bank.
+    let bank = match structs.column_by_name("bank_entry") {
+        Some(column) => Some(BankColumns::new(column, path)?),
+        None => None,
+    };
     (0..structs.len())
         .map(|i| {
             Ok(TrajectoryRecord {
@@ -325,7 +349,45 @@ fn read_trajectories(values: &ArrayRef, path: &Path) -> Result<Vec<TrajectoryRec
                     Some(read_bytes(&condition.value(i), path, "trajectories.condition")?)
                 },
                 covisible_fraction: fraction.value(i),
+                bank_entry: bank.as_ref().and_then(|b| b.get(i)),
             })
         })
         .collect()
+}
+
+/// Typed children of the `trajectories.bank_entry` struct column.
+struct BankColumns<'a> {
+    column: &'a StructArray,
+    entry_id: &'a StringArray,
+    entry_row: &'a UInt32Array,
+    bank_digest: &'a StringArray,
+    mirrored: &'a BooleanArray,
+    roll_deg: &'a Float64Array,
+}
+
+impl<'a> BankColumns<'a> {
+    fn new(column: &'a ArrayRef, path: &Path) -> Result<Self> {
+        let typed =
+            |name: &str| Error::mismatch(path, format!("trajectories.bank_entry.{name}"), "missing or wrong type");
+        let column = column.as_struct_opt().ok_or_else(|| typed(""))?;
+        let child = |name: &str| column.column_by_name(name).ok_or_else(|| typed(name));
+        Ok(Self {
+            column,
+            entry_id: child("entry_id")?.as_string_opt::<i32>().ok_or_else(|| typed("entry_id"))?,
+            entry_row: child("entry_row")?.as_primitive_opt::<UInt32Type>().ok_or_else(|| typed("entry_row"))?,
+            bank_digest: child("bank_digest")?.as_string_opt::<i32>().ok_or_else(|| typed("bank_digest"))?,
+            mirrored: child("mirrored")?.as_boolean_opt().ok_or_else(|| typed("mirrored"))?,
+            roll_deg: child("roll_deg")?.as_primitive_opt::<Float64Type>().ok_or_else(|| typed("roll_deg"))?,
+        })
+    }
+
+    fn get(&self, i: usize) -> Option<BankProvenance> {
+        (!self.column.is_null(i)).then(|| BankProvenance {
+            entry_id: self.entry_id.value(i).to_owned(),
+            entry_row: self.entry_row.value(i),
+            bank_digest: self.bank_digest.value(i).to_owned(),
+            mirrored: self.mirrored.value(i),
+            roll_deg: self.roll_deg.value(i),
+        })
+    }
 }

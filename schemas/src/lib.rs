@@ -9,18 +9,20 @@ pub mod error;
 pub mod pairs;
 pub mod shard;
 pub mod status;
+pub mod trajectory_bank;
 
 pub use arrow_convert::{batch_to_records, records_to_batch};
 pub use error::{Error, Result};
 pub use pairs::{
-    ClipRecord, DOC_KEY, SCHEMA_NAME, SCHEMA_NAME_KEY, SCHEMA_VERSION, SCHEMA_VERSION_KEY, TrajectoryKind,
-    TrajectoryRecord, pair_schema,
+    BankProvenance, ClipRecord, DOC_KEY, OLDEST_READABLE_SCHEMA_VERSION, SCHEMA_NAME, SCHEMA_NAME_KEY, SCHEMA_VERSION,
+    SCHEMA_VERSION_KEY, TrajectoryKind, TrajectoryRecord, pair_schema,
 };
 pub use shard::{
     InputDigest, ShardReader, ShardStats, ShardWriter, ShardWriterOptions, clip_count, is_finished, read_clip,
     read_shard, read_stats, stats_path, write_atomic,
 };
 pub use status::{InputStatus, StatusRecord, read_status_table, status_schema, write_status_table};
+pub use trajectory_bank::{BANK_SCHEMA_NAME, BANK_SCHEMA_VERSION, BankEntry, bank_schema, read_bank, write_bank};
 
 use arrow::datatypes::{DataType, Field};
 
@@ -41,6 +43,21 @@ pub fn reference_markdown() -> String {
     for field in schema.fields() {
         push_field(&mut out, "", field);
     }
+    out.push_str(&format!(
+        "\nShards of versions {OLDEST_READABLE_SCHEMA_VERSION} to {SCHEMA_VERSION} are read; columns added since a shard's\n\
+         version read as null (v2 added `trajectories[].bank_entry` and the kind `bank`).\n\n\
+         # Trajectory bank schema `{BANK_SCHEMA_NAME}` v{BANK_SCHEMA_VERSION}\n\n\
+         Generated from `schemas/src/trajectory_bank.rs`. Written by `datagen trajectories collect`, read by the\n\
+         `bank` and `mixed` trajectory samplers. One Parquet file, one row per clip window of a source video's\n\
+         own camera path; the key-value metadata holds `{SCHEMA_NAME_KEY}` = `{BANK_SCHEMA_NAME}` and\n\
+         `{SCHEMA_VERSION_KEY}` = `{BANK_SCHEMA_VERSION}`. Translations are in units of the window's pivot distance R\n\
+         (DESIGN §4), so paths from scenes of different scale compare. Static windows (no motion) and\n\
+         degenerate ones (non-finite poses, no valid depth) are not stored.\n\n\
+         | column | type | nullable | meaning |\n|---|---|---|---|\n"
+    ));
+    for field in bank_schema().fields() {
+        push_field(&mut out, "", field);
+    }
     out
 }
 
@@ -57,6 +74,11 @@ fn push_field(out: &mut String, prefix: &str, field: &Field) {
     {
         for child in children {
             push_field(out, &format!("{name}[]."), child);
+        }
+    }
+    if let DataType::Struct(children) = field.data_type() {
+        for child in children {
+            push_field(out, &format!("{name}."), child);
         }
     }
 }

@@ -17,8 +17,14 @@ pub const SCHEMA_NAME_KEY: &str = "cognvs.schema";
 pub const SCHEMA_NAME: &str = "cognvs.pairs";
 /// Parquet key-value metadata key holding the schema version (a decimal integer).
 pub const SCHEMA_VERSION_KEY: &str = "cognvs.schema_version";
-/// The version this code writes and reads. Bump on any change a reader could notice.
-pub const SCHEMA_VERSION: u32 = 1;
+/// The version this code writes. Bump on any change a reader could notice. Version 2 added
+/// `trajectories[].bank_entry` and the trajectory kind `bank`.
+pub const SCHEMA_VERSION: u32 = 2;
+/// The oldest version this code still reads (older shards lack the columns added since, which
+/// read as null).
+pub const OLDEST_READABLE_SCHEMA_VERSION: u32 = 1;
+/// The first version with `trajectories[].bank_entry`.
+const BANK_ENTRY_SINCE: u32 = 2;
 /// Arrow field metadata key holding a field's documentation.
 pub const DOC_KEY: &str = "doc";
 
@@ -30,6 +36,8 @@ pub enum TrajectoryKind {
     Sampled,
     /// Given by the user as per-frame cameras or a `trajs/*.txt` file.
     Explicit,
+    /// The source path composed with a trajectory bank entry's real camera motion (schema v2+).
+    Bank,
 }
 
 impl TrajectoryKind {
@@ -38,6 +46,7 @@ impl TrajectoryKind {
         match self {
             Self::Sampled => "sampled",
             Self::Explicit => "explicit",
+            Self::Bank => "bank",
         }
     }
 
@@ -46,9 +55,25 @@ impl TrajectoryKind {
         match value {
             "sampled" => Some(Self::Sampled),
             "explicit" => Some(Self::Explicit),
+            "bank" => Some(Self::Bank),
             _ => None,
         }
     }
+}
+
+/// Which trajectory bank entry a `bank` trajectory was drawn from, and how it was varied.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct BankProvenance {
+    /// The entry's `entry_id` in the bank (`{dataset}/{video_id}/{window_start}`).
+    pub entry_id: String,
+    /// The entry's row in the bank file (0-based).
+    pub entry_row: u32,
+    /// BLAKE3 hex digest of the bank file.
+    pub bank_digest: String,
+    /// Whether the motion was mirrored left/right.
+    pub mirrored: bool,
+    /// Rotation of the motion about the viewing axis, in degrees.
+    pub roll_deg: f64,
 }
 
 /// One novel camera path for a clip, with its co-visibility masks.
@@ -78,6 +103,8 @@ pub struct TrajectoryRecord {
     pub condition: Option<Vec<Vec<u8>>>,
     /// Fraction of the clip's valid pixels that are co-visible, over all frames.
     pub covisible_fraction: f64,
+    /// For `bank` trajectories, the bank entry they came from; `None` otherwise (and in v1 shards).
+    pub bank_entry: Option<BankProvenance>,
 }
 
 /// One clip of a source video with everything needed to train on it.
@@ -143,16 +170,38 @@ pub(crate) fn per_frame_bytes() -> DataType {
     list_of(DataType::LargeBinary)
 }
 
-/// The fields of one element of the `trajectories` column.
-pub fn trajectory_fields() -> Fields {
+/// The fields of one element of the `trajectories` column's `bank_entry` struct.
+pub fn bank_provenance_fields() -> Fields {
     Fields::from(vec![
+        doc(
+            Field::new("entry_id", DataType::Utf8, false),
+            "The bank entry's `entry_id` (`{dataset}/{video_id}/{window_start}`).",
+        ),
+        doc(Field::new("entry_row", DataType::UInt32, false), "The entry's row in the bank file (0-based)."),
+        doc(Field::new("bank_digest", DataType::Utf8, false), "BLAKE3 hex digest of the bank file."),
+        doc(Field::new("mirrored", DataType::Boolean, false), "Whether the motion was mirrored left/right."),
+        doc(
+            Field::new("roll_deg", DataType::Float64, false),
+            "Rotation of the motion about the viewing axis, in degrees.",
+        ),
+    ])
+}
+
+/// The fields of one element of the `trajectories` column (this code's version).
+pub fn trajectory_fields() -> Fields {
+    trajectory_fields_of_version(SCHEMA_VERSION)
+}
+
+/// The fields of one element of the `trajectories` column as schema `version` has them.
+pub fn trajectory_fields_of_version(version: u32) -> Fields {
+    let mut fields = vec![
         doc(
             Field::new("index", DataType::UInt32, false),
             "Position of the trajectory within the clip (0-based); part of its seed.",
         ),
         doc(
             Field::new("kind", DataType::Utf8, false),
-            "`sampled` (spherical offsets drawn by the generator) or `explicit` (given by the user).",
+            "`sampled` (spherical offsets drawn by the generator), `explicit` (given by the user) or `bank` (the source path composed with a trajectory bank entry's motion; v2+).",
         ),
         doc(
             Field::new("pivot_distance", DataType::Float64, false),
@@ -190,11 +239,23 @@ pub fn trajectory_fields() -> Fields {
             Field::new("covisible_fraction", DataType::Float64, false),
             "Fraction of the clip's pixels that are co-visible, over all frames.",
         ),
-    ])
+    ];
+    if version >= BANK_ENTRY_SINCE {
+        fields.push(doc(
+            Field::new("bank_entry", DataType::Struct(bank_provenance_fields()), true),
+            "For `bank` trajectories: the trajectory bank entry drawn and how it was varied; null otherwise (added in v2).",
+        ));
+    }
+    Fields::from(fields)
 }
 
 /// The Arrow schema of a training-pair shard, with the schema name and version in its metadata.
 pub fn pair_schema() -> Schema {
+    pair_schema_of_version(SCHEMA_VERSION)
+}
+
+/// The Arrow schema of a training-pair shard of schema `version` (for reading older shards).
+pub fn pair_schema_of_version(version: u32) -> Schema {
     let fields = vec![
         doc(
             Field::new("clip_id", DataType::Utf8, false),
@@ -249,12 +310,12 @@ pub fn pair_schema() -> Schema {
             "Per-frame dynamic-object masks, 8-bit greyscale PNG: 0 static, >0 object id, 255 void; null when the input has none.",
         ),
         doc(
-            Field::new("trajectories", list_of(DataType::Struct(trajectory_fields())), false),
+            Field::new("trajectories", list_of(DataType::Struct(trajectory_fields_of_version(version))), false),
             "The clip's novel camera paths; each element is one training pair (conditioning → `frames`).",
         ),
     ];
     Schema::new(fields).with_metadata(HashMap::from([
         (SCHEMA_NAME_KEY.to_owned(), SCHEMA_NAME.to_owned()),
-        (SCHEMA_VERSION_KEY.to_owned(), SCHEMA_VERSION.to_string()),
+        (SCHEMA_VERSION_KEY.to_owned(), version.to_string()),
     ]))
 }

@@ -19,7 +19,10 @@ use parquet::schema::types::ColumnPath;
 
 use crate::arrow_convert::{batch_to_records, records_to_batch};
 use crate::error::{Error, Result};
-use crate::pairs::{ClipRecord, SCHEMA_NAME, SCHEMA_NAME_KEY, SCHEMA_VERSION, SCHEMA_VERSION_KEY, pair_schema};
+use crate::pairs::{
+    ClipRecord, OLDEST_READABLE_SCHEMA_VERSION, SCHEMA_NAME, SCHEMA_NAME_KEY, SCHEMA_VERSION, SCHEMA_VERSION_KEY,
+    pair_schema, pair_schema_of_version,
+};
 
 /// Suffix of a shard's stats marker file, appended to the shard's file name.
 pub const STATS_SUFFIX: &str = ".stats.json";
@@ -310,14 +313,17 @@ fn open_checked(path: &Path) -> Result<ParquetRecordBatchReaderBuilder<File>> {
         None => return Err(Error::mismatch(path, SCHEMA_NAME_KEY, "missing: not a cognvs training-pair shard")),
     }
     let version = lookup(SCHEMA_VERSION_KEY).unwrap_or_default();
-    if version != SCHEMA_VERSION.to_string() {
+    let readable = OLDEST_READABLE_SCHEMA_VERSION..=SCHEMA_VERSION;
+    let Some(version) = version.parse::<u32>().ok().filter(|v| readable.contains(v)) else {
         return Err(Error::mismatch(
             path,
             SCHEMA_VERSION_KEY,
-            format!("shard has version `{version}`, this reader reads version {SCHEMA_VERSION}"),
+            format!(
+                "shard has version `{version}`, this reader reads versions {OLDEST_READABLE_SCHEMA_VERSION} to {SCHEMA_VERSION}"
+            ),
         ));
-    }
-    let expected = pair_schema();
+    };
+    let expected = pair_schema_of_version(version);
     for field in expected.fields() {
         let found = builder
             .schema()
@@ -387,5 +393,80 @@ mod tests {
         let names: Vec<&str> =
             columns.iter().map(|c| c.trim_end_matches(".list.item").rsplit('.').next().unwrap()).collect();
         assert_eq!(names, ["frames", "depth", "dynamic_mask", "covisible_mask", "condition"], "{columns:?}");
+    }
+
+    /// A v1 shard of `records` (no `trajectories[].bank_entry`), written as a v1 writer did.
+    fn write_v1(path: &Path, records: &[ClipRecord], version: &str) {
+        use arrow::array::{Array, ArrayRef, AsArray, ListArray, RecordBatch, StructArray};
+        use std::sync::Arc;
+        let batch = records_to_batch(records).unwrap();
+        let index = batch.schema().index_of("trajectories").unwrap();
+        let list = batch.column(index).as_list::<i32>();
+        let structs = list.values().as_struct();
+        let v1 = pair_schema_of_version(1);
+        let arrow::datatypes::DataType::List(item) = v1.field_with_name("trajectories").unwrap().data_type().clone()
+        else {
+            unreachable!()
+        };
+        let arrow::datatypes::DataType::Struct(fields) = item.data_type().clone() else { unreachable!() };
+        let children: Vec<ArrayRef> = structs.columns()[..fields.len()].to_vec();
+        let structs = StructArray::try_new(fields, children, None).unwrap();
+        let list = ListArray::try_new(item, list.offsets().clone(), Arc::new(structs), list.nulls().cloned()).unwrap();
+        let mut columns = batch.columns().to_vec();
+        columns[index] = Arc::new(list);
+        let batch = RecordBatch::try_new(Arc::new(v1), columns).unwrap();
+        let properties = WriterProperties::builder()
+            .set_key_value_metadata(Some(vec![
+                KeyValue::new(SCHEMA_NAME_KEY.to_owned(), SCHEMA_NAME.to_owned()),
+                KeyValue::new(SCHEMA_VERSION_KEY.to_owned(), version.to_owned()),
+            ]))
+            .build();
+        let mut writer = ArrowWriter::try_new(File::create(path).unwrap(), batch.schema(), Some(properties)).unwrap();
+        writer.write(&batch).unwrap();
+        writer.close().unwrap();
+    }
+
+    #[test]
+    fn version_1_shards_still_read_and_unknown_versions_do_not() {
+        let dir = tempfile::tempdir().unwrap();
+        let record = ClipRecord {
+            clip_id: "synth/a/0".into(),
+            source_id: "a".into(),
+            dataset: "synth".into(),
+            source_path: "/a".into(),
+            clip_start: 0,
+            fps: 24.0,
+            width: 2,
+            height: 2,
+            seed: 1,
+            tool_version: "datagen 0.1.0".into(),
+            frames: vec![vec![1, 2, 3]],
+            depth: vec![vec![4]],
+            intrinsics: vec![[1.0; 9]],
+            world_from_camera: vec![[2.0; 16]],
+            dynamic_mask: None,
+            trajectories: vec![crate::TrajectoryRecord {
+                index: 0,
+                kind: crate::TrajectoryKind::Sampled,
+                pivot_distance: 2.0,
+                azimuth_deg: vec![1.0; 4],
+                elevation_deg: vec![2.0; 4],
+                radius_frac: vec![0.1; 4],
+                rejected_samples: 1,
+                world_from_camera: vec![[3.0; 16]],
+                covisible_mask: vec![vec![5]],
+                condition: None,
+                covisible_fraction: 0.5,
+                bank_entry: None,
+            }],
+        };
+        let old = dir.path().join("v1.parquet");
+        write_v1(&old, std::slice::from_ref(&record), "1");
+        assert_eq!(read_shard(&old).unwrap(), vec![record.clone()]);
+        assert_eq!(read_clip(&old, 0).unwrap(), record);
+        let future = dir.path().join("v9.parquet");
+        write_v1(&future, std::slice::from_ref(&record), "9");
+        let error = read_shard(&future).err().unwrap().to_string();
+        assert!(error.contains("v9.parquet") && error.contains(SCHEMA_VERSION_KEY) && error.contains("`9`"), "{error}");
     }
 }

@@ -26,7 +26,11 @@ fn sample_record(clip_start: u32, frames: usize, trajectories: usize) -> ClipRec
         trajectories: (0..trajectories)
             .map(|t| TrajectoryRecord {
                 index: t as u32,
-                kind: if t % 2 == 0 { TrajectoryKind::Sampled } else { TrajectoryKind::Explicit },
+                kind: match t {
+                    2 => TrajectoryKind::Bank,
+                    _ if t % 2 == 0 => TrajectoryKind::Sampled,
+                    _ => TrajectoryKind::Explicit,
+                },
                 pivot_distance: 3.5 + t as f64,
                 azimuth_deg: vec![1.0, -2.0, 3.0, t as f64],
                 elevation_deg: vec![0.5; t],
@@ -36,6 +40,13 @@ fn sample_record(clip_start: u32, frames: usize, trajectories: usize) -> ClipRec
                 covisible_mask: (0..frames).map(|i| bytes(4 + t as u8, i)).collect(),
                 condition: (t == 1).then(|| (0..frames).map(|i| bytes(9, i)).collect()),
                 covisible_fraction: 0.25 * t as f64,
+                bank_entry: (t == 2).then(|| schemas::BankProvenance {
+                    entry_id: format!("sav/v{clip_start}/48"),
+                    entry_row: 3 + clip_start,
+                    bank_digest: "ab".repeat(32),
+                    mirrored: clip_start % 2 == 1,
+                    roll_deg: -12.5,
+                }),
             })
             .collect(),
     }

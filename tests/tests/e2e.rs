@@ -62,6 +62,7 @@ mod shards_in_python {
                 covisible_mask: rendered.iter().map(|r| png_bytes(&r.mask_ids)).collect(),
                 condition: None,
                 covisible_fraction: 1.0,
+                bank_entry: None,
             }],
         }
     }

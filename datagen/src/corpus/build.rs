@@ -4,24 +4,33 @@
 //!
 //! Crash safety, by construction:
 //! - a shard is written under a temporary name, renamed, and only then gets its stats marker;
-//!   an input counts as done once it is listed in a finished shard's stats, or recorded as
-//!   skipped/failed in a status table (written atomically, each time a shard finishes and at the
-//!   end);
-//! - on start, this worker's temporary files and any shard without a stats marker (a crash
-//!   between rename and marker) are removed, and their inputs are simply redone;
+//!   an input counts as done once it is listed in a finished shard's stats, or once its latest
+//!   attempt is recorded as skipped/failed in a status table (written atomically, each time a
+//!   shard finishes and at the end) on files whose content hash is still the same: an input
+//!   whose files changed is retried, and `--retry-failed` retries every failed one;
+//! - a build holds an OS lock on `build-wXXXXofYYYY.lock` for its whole run ([`lock_output`]),
+//!   so a second build of the same folder and worker refuses to start rather than delete the
+//!   first one's files; the OS releases it when the process dies;
+//! - on start, under that lock, this worker's temporary files, any shard without a stats marker
+//!   (a crash between rename and marker) and any stats marker without its shard are removed, and
+//!   their inputs are simply redone, as is any input whose status says ok but whose shard is
+//!   gone; each repair is listed in [`BuildSummary::repairs`];
 //! - shard names carry the worker and a sequence number past every existing one, so workers and
-//!   resumed runs never collide and nothing is duplicated.
+//!   resumed runs never collide and nothing is duplicated;
+//! - input keys are unique within a build ([`crawl_all`]), so no input is built twice.
 
 use std::collections::{BTreeMap, BTreeSet};
-use std::io::Read;
+use std::fs::{File, OpenOptions, TryLockError};
+use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use schemas::{ClipRecord, InputDigest, InputStatus, ShardWriter, ShardWriterOptions, StatusRecord};
 use serde::{Deserialize, Serialize};
 
-use super::crawl::{FrameSource, MaskSource, SourceConfig, VideoEntry, crawl};
+use super::crawl::{FrameSource, MaskSource, SourceConfig, VideoEntry, crawl_all, sorted_dir};
 use super::partition::Worker;
+use crate::config_file::{Checked, KeyError, Validate, check_count};
 use crate::error::{Error, Result};
 
 /// Default shard size target: a few hundred MB, as readers stream row groups anyway.
@@ -31,14 +40,25 @@ pub const DEFAULT_SHARD_BYTES: u64 = 256 << 20;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct OutputConfig {
-    /// Output folder, shared by all workers.
+    /// Output folder, shared by all workers. Valid: a non-empty path.
     pub dir: PathBuf,
     /// Start a new shard once the current one holds this many bytes (encoded, before compression).
+    /// Valid: at least 1.
     #[serde(default = "default_shard_bytes")]
     pub shard_bytes: u64,
-    /// Parquet row-group size target in bytes.
+    /// Parquet row-group size target in bytes. Valid: at least 1.
     #[serde(default = "default_row_group_bytes")]
     pub row_group_bytes: u64,
+}
+
+impl Validate for OutputConfig {
+    fn validate(&self) -> Checked {
+        if self.dir.as_os_str().is_empty() {
+            return Err(KeyError::new("dir", "is empty; name the output folder"));
+        }
+        check_count("shard_bytes", self.shard_bytes, 1, u64::MAX)?;
+        check_count("row_group_bytes", self.row_group_bytes, 1, usize::MAX as u64)
+    }
 }
 
 fn default_shard_bytes() -> u64 {
@@ -60,10 +80,11 @@ pub struct BuildConfig {
     /// Seed of every random choice (combined with stable ids).
     #[serde(default)]
     pub seed: u64,
-    /// Sampled trajectories per clip (the paper's pretraining N = 2).
+    /// Sampled trajectories per clip (the paper's pretraining N = 2). Valid: 1 to
+    /// [`crate::pairs::MAX_TRAJECTORIES`].
     #[serde(default = "default_trajectories")]
     pub trajectories: u32,
-    /// Clip windows, trajectory ranges, occlusion test.
+    /// Clip windows, trajectory ranges, occlusion test (every field checked at load).
     #[serde(default)]
     pub pairs: crate::pairs::PairsConfig,
 }
@@ -73,18 +94,24 @@ fn default_trajectories() -> u32 {
 }
 
 impl BuildConfig {
-    /// Reads a corpus TOML, naming the file and field on error.
+    /// Reads a corpus TOML and checks every field ([`Validate`]); errors name the file and the
+    /// key (`pairs.trajectory.azimuth_deg`, `sources[1].root`) on their first line.
     pub fn from_toml_file(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-        let config: Self = toml::from_str(&text).map_err(|e| Error::invalid(path, "config", e.to_string()))?;
-        if config.sources.is_empty() {
-            return Err(Error::invalid(path, "sources", "at least one [[sources]] table is needed"));
+        crate::config_file::load_toml(path)
+    }
+}
+
+impl Validate for BuildConfig {
+    fn validate(&self) -> Checked {
+        if self.sources.is_empty() {
+            return Err(KeyError::new("sources", "at least one [[sources]] table is needed"));
         }
-        if config.trajectories == 0 {
-            return Err(Error::invalid(path, "trajectories", "must be at least 1"));
+        for (i, source) in self.sources.iter().enumerate() {
+            source.validate().map_err(|e| e.under(&format!("sources[{i}]")))?;
         }
-        config.pairs.validate(path)?;
-        Ok(config)
+        self.output.validate().map_err(|e| e.under("output"))?;
+        check_count("trajectories", self.trajectories, 1, crate::pairs::MAX_TRAJECTORIES.into())?;
+        self.pairs.validate().map_err(|e| e.under("pairs"))
     }
 }
 
@@ -135,6 +162,11 @@ pub struct BuildSummary {
     pub process_seconds: f64,
     /// Of which writing shards, stats markers and status tables.
     pub write_seconds: f64,
+    /// Leftovers of interrupted runs found on start and what was done about each (temporary
+    /// files, unmarked shards and stats markers without a shard removed; inputs whose status
+    /// says ok but whose shard is gone rebuilt), and other workers' leftovers, reported.
+    #[serde(default)]
+    pub repairs: Vec<String>,
 }
 
 /// Progress callback events, for a progress bar.
@@ -154,9 +186,25 @@ pub enum Progress {
     },
 }
 
+/// How a build treats the outcomes of earlier runs.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct BuildOptions {
+    /// Retry every input whose latest attempt failed even if its files are unchanged
+    /// (`datagen build --retry-failed`: after fixing the code or freeing memory). A failed or
+    /// skipped input whose files changed since (its content hash differs) is retried anyway.
+    pub retry_failed: bool,
+}
+
 /// File name prefix of this worker's shards and status tables.
 fn worker_prefix(worker: Worker) -> String {
     format!("w{:04}of{:04}", worker.index, worker.count)
+}
+
+/// Whether `name` (a shard, marker, status table, manifest or their temporary files) belongs to
+/// `worker`: its prefix delimited on both sides, so `w0001of1000` never matches `w0001of10000`.
+fn is_mine(name: &str, worker: Worker) -> bool {
+    let prefix = worker_prefix(worker);
+    name.contains(&format!("-{prefix}-")) || name.contains(&format!("-{prefix}."))
 }
 
 fn shard_name(worker: Worker, sequence: u64) -> String {
@@ -167,76 +215,217 @@ fn status_dir(out: &Path) -> PathBuf {
     out.join("status")
 }
 
-/// Inputs already accounted for in `out` (by any worker): done keys from finished shards' stats
-/// and from status tables, and the next free shard sequence number of `worker`.
+/// File name of the lock a build of `worker` holds on its output folder for the whole run.
+fn lock_name(worker: Worker) -> String {
+    format!("build-{}.lock", worker_prefix(worker))
+}
+
+/// An exclusive OS advisory lock (`flock`) on `<out>/build-wXXXXofYYYY.lock`, held for a build's
+/// whole run: a second `datagen build` for the same output folder and worker refuses to start
+/// instead of deleting the first one's temporary files and overwriting its status tables. The OS
+/// drops it when the process ends however it ends, so a crash or `kill -9` leaves no stale lock.
+#[derive(Debug)]
+pub struct BuildLock {
+    _file: File,
+}
+
+/// Takes the build lock of `worker` on the folder `out` (which must exist), or fails naming the
+/// lock file and the process holding it. Also refuses while a build with another worker count
+/// holds its lock on `out`: partitions of different counts overlap, so both would build (and
+/// write twice) the same inputs.
+pub fn lock_output(out: &Path, worker: Worker) -> Result<BuildLock> {
+    let path = out.join(lock_name(worker));
+    let file = OpenOptions::new()
+        .read(true)
+        .write(true)
+        .create(true)
+        .truncate(false)
+        .open(&path)
+        .map_err(|e| Error::io(&path, e))?;
+    match file.try_lock() {
+        Ok(()) => {}
+        Err(TryLockError::WouldBlock) => {
+            return Err(busy(&path, format!("is writing worker {}/{} into this folder", worker.index, worker.count)));
+        }
+        Err(TryLockError::Error(e)) => return Err(Error::io(&path, e)),
+    }
+    for entry in std::fs::read_dir(out).map_err(|e| Error::io(out, e))?.filter_map(|e| e.ok()) {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let count = name.strip_prefix("build-w").and_then(|r| r.strip_suffix(".lock")).and_then(|r| r.split_once("of"));
+        let Some(count) = count.and_then(|(_, count)| count.parse::<u32>().ok()) else { continue };
+        if count == worker.count {
+            continue; // Another index of the same partition: disjoint inputs, meant to run together.
+        }
+        let other = entry.path();
+        let Ok(handle) = File::open(&other) else { continue };
+        if let Err(TryLockError::WouldBlock) = handle.try_lock() {
+            return Err(busy(
+                &other,
+                format!(
+                    "builds with --num-workers {count}, whose partition overlaps this run's --num-workers {}",
+                    worker.count
+                ),
+            ));
+        }
+        // Dropping `handle` closes it, which releases the probe's lock.
+    }
+    // Say who holds the lock, for the message a second process prints.
+    let mut writer = &file;
+    writer
+        .set_len(0)
+        .and_then(|()| writer.write_all(format!("pid {}\n", std::process::id()).as_bytes()))
+        .map_err(|e| Error::io(&path, e))?;
+    Ok(BuildLock { _file: file })
+}
+
+fn busy(lock: &Path, doing: String) -> Error {
+    let holder = std::fs::read_to_string(lock).ok().map(|t| t.trim().to_owned()).filter(|t| !t.is_empty());
+    let holder = holder.map(|h| format!(" ({h})")).unwrap_or_default();
+    Error::io(
+        lock,
+        std::io::Error::new(
+            std::io::ErrorKind::WouldBlock,
+            format!(
+                "another `datagen build`{holder} {doing}; wait for it to finish (a crashed build releases \
+                 the lock by itself), or build into another --out"
+            ),
+        ),
+    )
+}
+
+/// What an output folder already holds: keys done in finished shards (any worker), the latest
+/// status row per key, this worker's next free shard and status numbers, and what recovery
+/// repaired or found.
+#[derive(Default)]
 struct ExistingState {
-    done: BTreeSet<String>,
+    in_shards: BTreeSet<String>,
+    latest: BTreeMap<String, StatusRecord>,
     next_sequence: u64,
     next_status: u64,
+    repairs: Vec<String>,
 }
 
 fn is_temp(name: &str) -> bool {
     name.contains(schemas::shard::TEMP_MARKER)
 }
 
-/// Removes this worker's temporary files and unfinished shards, then reads what is done.
-fn recover(out: &Path, worker: Worker) -> Result<ExistingState> {
+/// Reads what `out` holds. With `repair` (under this worker's lock only), removes this worker's
+/// leftovers of an interrupted run: temporary files, shards renamed but never marked, and stats
+/// markers whose shard is gone (their inputs are then simply rebuilt). Other workers' leftovers
+/// are reported, never touched: that worker may be running.
+fn read_state(out: &Path, worker: Worker, repair: bool) -> Result<ExistingState> {
+    let mut state = ExistingState::default();
+    if !out.is_dir() {
+        return Ok(state);
+    }
     let prefix = format!("shard-{}-", worker_prefix(worker));
-    let mut done = BTreeSet::new();
-    let mut next_sequence = 0;
-    let entries = std::fs::read_dir(out).map_err(|e| Error::io(out, e))?;
-    for entry in entries.filter_map(|e| e.ok()) {
-        let path = entry.path();
-        let name = entry.file_name().to_string_lossy().into_owned();
-        let mine = name.trim_start_matches('.').starts_with(&prefix);
-        if mine && is_temp(&name) {
-            std::fs::remove_file(&path).map_err(|e| Error::io(&path, e))?;
+    let remove = |path: &Path, note: String, state: &mut ExistingState| -> Result<()> {
+        std::fs::remove_file(path).map_err(|e| Error::io(path, e))?;
+        state.repairs.push(note);
+        Ok(())
+    };
+    for path in sorted_dir(out)? {
+        let name = path.file_name().unwrap_or_default().to_string_lossy().into_owned();
+        if is_temp(&name) {
+            if repair && is_mine(&name, worker) {
+                remove(
+                    &path,
+                    format!("removed {}, a temporary file of an interrupted run", path.display()),
+                    &mut state,
+                )?;
+            }
+            continue;
+        }
+        if let Some(shard) = name.strip_suffix(schemas::shard::STATS_SUFFIX) {
+            if shard.starts_with("shard-") && !out.join(shard).is_file() {
+                if repair && shard.starts_with(&prefix) {
+                    let note = format!(
+                        "removed {}, a stats marker whose shard is gone; its inputs are rebuilt",
+                        path.display()
+                    );
+                    remove(&path, note, &mut state)?;
+                } else {
+                    state
+                        .repairs
+                        .push(format!("{}: stats marker whose shard is gone (left to its worker)", path.display()));
+                }
+            }
             continue;
         }
         if !name.ends_with(".parquet") || !name.starts_with("shard-") {
             continue;
         }
+        let mine = name.starts_with(&prefix);
         if mine {
             let sequence = name.trim_start_matches(&prefix).trim_end_matches(".parquet").parse::<u64>().unwrap_or(0);
-            next_sequence = next_sequence.max(sequence + 1);
+            state.next_sequence = state.next_sequence.max(sequence + 1);
         }
         if schemas::is_finished(&path) {
-            done.extend(schemas::read_stats(&path)?.inputs.into_iter().map(|i| i.source_path));
-        } else if mine {
-            // Renamed but never marked: its inputs are redone into a new shard.
-            std::fs::remove_file(&path).map_err(|e| Error::io(&path, e))?;
+            state.in_shards.extend(schemas::read_stats(&path)?.inputs.into_iter().map(|i| i.source_path));
+        } else if repair && mine {
+            let note = format!("removed {}, a shard never marked finished; its inputs are rebuilt", path.display());
+            remove(&path, note, &mut state)?;
         }
     }
     let status = status_dir(out);
-    let mut next_status = 0;
     if status.is_dir() {
         let status_prefix = format!("status-{}-", worker_prefix(worker));
-        for entry in std::fs::read_dir(&status).map_err(|e| Error::io(&status, e))?.filter_map(|e| e.ok()) {
-            let path = entry.path();
-            let name = entry.file_name().to_string_lossy().into_owned();
+        for path in sorted_dir(&status)? {
+            let name = path.file_name().unwrap_or_default().to_string_lossy().into_owned();
             if is_temp(&name) {
-                if name.trim_start_matches('.').starts_with(&status_prefix) {
-                    std::fs::remove_file(&path).map_err(|e| Error::io(&path, e))?;
+                if repair && is_mine(&name, worker) {
+                    remove(
+                        &path,
+                        format!("removed {}, a temporary file of an interrupted run", path.display()),
+                        &mut state,
+                    )?;
                 }
-                continue;
-            }
-            if let Some(rest) = name.strip_prefix(&status_prefix) {
+            } else if let Some(rest) = name.strip_prefix(&status_prefix) {
                 let number = rest.trim_end_matches(".parquet").parse::<u64>().unwrap_or(0);
-                next_status = next_status.max(number + 1);
-            }
-            if name.ends_with(".parquet") {
-                for record in schemas::read_status_table(&path)? {
-                    if record.status != InputStatus::Ok {
-                        done.insert(record.input_key);
-                    }
-                }
+                state.next_status = state.next_status.max(number + 1);
             }
         }
+        state.latest = read_corpus_status(out)?;
     }
-    Ok(ExistingState { done, next_sequence, next_status })
+    Ok(state)
 }
 
-/// BLAKE3 over an input's files (frames or video, annotations, reconstruction), in a stable order.
+/// What a run does with one owned input, given what the folder holds.
+enum Decision {
+    /// In a finished shard, or its latest attempt failed or skipped on these very files.
+    Done,
+    /// To process; `hash` if already computed, `plan` saying why (for dry runs).
+    Todo { hash: Option<String>, plan: &'static str, note: Option<String> },
+}
+
+/// Decides one input: done if a finished shard lists it; rebuilt if its status says ok but that
+/// shard is gone; retried if its latest attempt failed or was skipped and its content hash has
+/// changed since (or it failed and `retry_failed`); processed if never attempted.
+fn decide(state: &ExistingState, entry: &VideoEntry, options: BuildOptions) -> Decision {
+    let key = entry.key();
+    if state.in_shards.contains(&key) {
+        return Decision::Done;
+    }
+    let Some(latest) = state.latest.get(&key) else {
+        return Decision::Todo { hash: None, plan: "build", note: None };
+    };
+    if latest.status == InputStatus::Ok {
+        let note = format!("`{key}`: status says ok in {}, which is gone or unfinished; rebuilding it", latest.shard);
+        return Decision::Todo { hash: None, plan: "redo: shard lost", note: Some(note) };
+    }
+    if options.retry_failed && latest.status == InputStatus::Failed {
+        return Decision::Todo { hash: None, plan: "retry: --retry-failed", note: None };
+    }
+    let hash = content_hash(entry).unwrap_or_default();
+    if hash == latest.content_hash {
+        Decision::Done
+    } else {
+        Decision::Todo { hash: Some(hash), plan: "retry: inputs changed", note: None }
+    }
+}
+
+/// BLAKE3 over an input's files (frames or video, annotations, reconstruction, and shared files
+/// such as a TAO split's JSON), in a stable order.
 pub fn content_hash(entry: &VideoEntry) -> Result<String> {
     let mut files: Vec<PathBuf> = Vec::new();
     match &entry.frames {
@@ -252,6 +441,9 @@ pub fn content_hash(entry: &VideoEntry) -> Result<String> {
     if let Some(reconstruction) = &entry.reconstruction {
         files_under(reconstruction, &mut files)?;
     }
+    // A missing shared file (a split list not there yet) changes the hash by appearing, rather
+    // than making it unreadable.
+    files.extend(entry.shared_files.iter().filter(|p| p.is_file()).cloned());
     hash_files(files)
 }
 
@@ -299,54 +491,25 @@ fn hash_files(mut files: Vec<PathBuf>) -> Result<String> {
 pub struct PlannedInput {
     /// Its key.
     pub key: String,
-    /// Already done (resume), to be processed, or to be skipped for lack of a reconstruction.
+    /// `done` (resume), `build`, `retry: ...`, `redo: shard lost`, `skip: no reconstruction`, or
+    /// `fail: ...` (a shared annotation file it depends on is malformed).
     pub plan: &'static str,
 }
 
-/// Lists this worker's inputs and what a build would do with each, writing nothing.
-pub fn plan(sources: &[SourceConfig], out: &Path, worker: Worker) -> Result<Vec<PlannedInput>> {
-    let done = if out.is_dir() { read_done(out)? } else { BTreeSet::new() };
+/// Lists this worker's inputs and what a build with `options` would do with each, writing nothing.
+pub fn plan(sources: &[SourceConfig], out: &Path, worker: Worker, options: BuildOptions) -> Result<Vec<PlannedInput>> {
+    let state = read_state(out, worker, false)?;
     let mut planned = Vec::new();
-    for source in sources {
-        for entry in crawl(source)?.into_iter().filter(|e| worker.owns(&e.key())) {
-            let plan = if done.contains(&entry.key()) {
-                "done"
-            } else if entry.reconstruction.is_none() {
-                "skip: no reconstruction"
-            } else {
-                "build"
-            };
-            planned.push(PlannedInput { key: entry.key(), plan });
-        }
+    for entry in crawl_all(sources)?.into_iter().filter(|e| worker.owns(&e.key())) {
+        let plan = match decide(&state, &entry, options) {
+            Decision::Done => "done",
+            Decision::Todo { .. } if entry.crawl_error.is_some() => "fail: a shared annotation file is malformed",
+            Decision::Todo { .. } if entry.reconstruction.is_none() => "skip: no reconstruction",
+            Decision::Todo { plan, .. } => plan,
+        };
+        planned.push(PlannedInput { key: entry.key(), plan });
     }
     Ok(planned)
-}
-
-/// Done keys without touching anything (for dry runs and inspection).
-fn read_done(out: &Path) -> Result<BTreeSet<String>> {
-    let mut done = BTreeSet::new();
-    for entry in std::fs::read_dir(out).map_err(|e| Error::io(out, e))?.filter_map(|e| e.ok()) {
-        let path = entry.path();
-        let name = entry.file_name().to_string_lossy().into_owned();
-        if name.starts_with("shard-") && name.ends_with(".parquet") && schemas::is_finished(&path) {
-            done.extend(schemas::read_stats(&path)?.inputs.into_iter().map(|i| i.source_path));
-        }
-    }
-    let status = status_dir(out);
-    if status.is_dir() {
-        for entry in std::fs::read_dir(&status).map_err(|e| Error::io(&status, e))?.filter_map(|e| e.ok()) {
-            let name = entry.file_name().to_string_lossy().into_owned();
-            if name.ends_with(".parquet") && !is_temp(&name) {
-                done.extend(
-                    schemas::read_status_table(&entry.path())?
-                        .into_iter()
-                        .filter(|r| r.status != InputStatus::Ok)
-                        .map(|r| r.input_key),
-                );
-            }
-        }
-    }
-    Ok(done)
 }
 
 /// The shard being filled and the inputs whose clips it holds.
@@ -357,32 +520,51 @@ struct OpenShard {
     inputs: Vec<StatusRecord>,
 }
 
-/// Runs (or resumes) the build of `sources` into `output.dir` for `worker`.
+/// Runs (or resumes) the build of `sources` into `output.dir` for `worker`, with the default
+/// [`BuildOptions`].
 pub fn build(
     sources: &[SourceConfig],
     output: &OutputConfig,
     worker: Worker,
     processor: &dyn InputProcessor,
+    progress: impl FnMut(Progress),
+) -> Result<BuildSummary> {
+    build_with_options(sources, output, worker, BuildOptions::default(), processor, progress)
+}
+
+/// Runs (or resumes) the build of `sources` into `output.dir` for `worker`. Fails before
+/// writing anything if two inputs share a key, or if another build holds this worker's lock.
+pub fn build_with_options(
+    sources: &[SourceConfig],
+    output: &OutputConfig,
+    worker: Worker,
+    options: BuildOptions,
+    processor: &dyn InputProcessor,
     mut progress: impl FnMut(Progress),
 ) -> Result<BuildSummary> {
     let started = Instant::now();
     let out = &output.dir;
+    let entries = crawl_all(sources)?;
     std::fs::create_dir_all(status_dir(out)).map_err(|e| Error::io(status_dir(out), e))?;
-    let mut state = recover(out, worker)?;
+    let _lock = lock_output(out, worker)?;
+    let mut state = read_state(out, worker, true)?;
 
-    let mut summary = BuildSummary::default();
+    let mut summary = BuildSummary { repairs: std::mem::take(&mut state.repairs), ..BuildSummary::default() };
     let mut pending = Vec::new();
-    for source in sources {
-        for entry in crawl(source)? {
-            summary.inputs_total += 1;
-            if !worker.owns(&entry.key()) {
-                continue;
-            }
-            summary.inputs_owned += 1;
-            if state.done.contains(&entry.key()) {
-                summary.inputs_already_done += 1;
-            } else {
-                pending.push(entry);
+    for entry in entries {
+        summary.inputs_total += 1;
+        if !worker.owns(&entry.key()) {
+            continue;
+        }
+        summary.inputs_owned += 1;
+        let hash_started = Instant::now();
+        let decision = decide(&state, &entry, options);
+        summary.hash_seconds += hash_started.elapsed().as_secs_f64();
+        match decision {
+            Decision::Done => summary.inputs_already_done += 1,
+            Decision::Todo { hash, note, .. } => {
+                summary.repairs.extend(note);
+                pending.push((entry, hash));
             }
         }
     }
@@ -404,15 +586,20 @@ pub fn build(
         worker_count: worker.count,
     };
 
-    for entry in &pending {
+    for (entry, hash) in &pending {
         let input_started = Instant::now();
-        let hash = content_hash(entry).unwrap_or_default();
+        let hash = match hash {
+            Some(hash) => hash.clone(),
+            None => content_hash(entry).unwrap_or_default(),
+        };
         summary.hash_seconds += input_started.elapsed().as_secs_f64();
         let process_started = Instant::now();
-        let outcome = if entry.reconstruction.is_none() {
+        let outcome = if let Some(reason) = &entry.crawl_error {
+            Err(reason.clone())
+        } else if entry.reconstruction.is_none() {
             Ok(Outcome::Skipped("no reconstruction found for this video".to_owned()))
         } else {
-            processor.process(entry)
+            processor.process(entry).map_err(|error| error.to_string())
         };
         summary.process_seconds += process_started.elapsed().as_secs_f64();
         let seconds = input_started.elapsed().as_secs_f64();
@@ -450,10 +637,10 @@ pub fn build(
                 summary.skipped += 1;
                 unflushed.push(record(entry, InputStatus::Skipped, reason, hash, seconds));
             }
-            Err(error) => {
+            Err(reason) => {
                 progress(Progress::Input { status: InputStatus::Failed, pairs: 0 });
                 summary.failed += 1;
-                unflushed.push(record(entry, InputStatus::Failed, error.to_string(), hash, seconds));
+                unflushed.push(record(entry, InputStatus::Failed, reason, hash, seconds));
             }
         }
         summary.write_seconds += write_started.elapsed().as_secs_f64();
@@ -513,17 +700,22 @@ fn write_status(out: &Path, worker: Worker, state: &mut ExistingState, records: 
     Ok(schemas::write_status_table(&path, records)?)
 }
 
-/// Every status row of a corpus folder (all workers), latest attempt per input.
+/// Every status row of a corpus folder (all workers), latest attempt per input. Tables are read
+/// oldest first (by modification time, then name: a worker's numbers count up), so a retry's
+/// row replaces the attempt before it, whichever worker count wrote either.
 pub fn read_corpus_status(out: &Path) -> Result<BTreeMap<String, StatusRecord>> {
     let status = status_dir(out);
-    let mut files: Vec<PathBuf> = std::fs::read_dir(&status)
-        .map_err(|e| Error::io(&status, e))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.extension().is_some_and(|e| e == "parquet") && !is_temp(&p.to_string_lossy()))
-        .collect();
+    let mut files: Vec<(std::time::SystemTime, PathBuf)> = Vec::new();
+    for path in sorted_dir(&status)? {
+        let name = path.file_name().unwrap_or_default().to_string_lossy().into_owned();
+        if name.ends_with(".parquet") && !is_temp(&name) {
+            let modified = std::fs::metadata(&path).and_then(|m| m.modified()).map_err(|e| Error::io(&path, e))?;
+            files.push((modified, path));
+        }
+    }
     files.sort();
     let mut latest = BTreeMap::new();
-    for file in files {
+    for (_, file) in files {
         for record in schemas::read_status_table(&file)? {
             latest.insert(record.input_key.clone(), record);
         }

@@ -1,6 +1,18 @@
 //! Finding the videos of a dataset tree (DESIGN §3): SA-V, TAO, YouTube-VOS, DAVIS 2017, and a
 //! plain tree of sequence folders, each with where its frames, dynamic-object annotations and
 //! reconstruction are. Listing is deterministic (sorted by key) and reads no pixels.
+//!
+//! Input keys must be unique within a build ([`crawl_all`]): two sources listing the same key is
+//! an error at start naming both, not a guess. Silently qualifying every key by its source's
+//! position would make keys (and so resume, worker partition and seeds) depend on the order of
+//! `[[sources]]`, and would quietly double the corpus when the same tree is listed twice (the
+//! usual cause); a source that really holds other videos under the same ids gets an explicit
+//! `id_prefix` instead.
+//!
+//! A malformed file that lists or annotates many videos at once (a TAO split's JSON, a DAVIS
+//! split list) does not stop the crawl: every video that depends on it is listed with the
+//! reason in [`VideoEntry::crawl_error`], so the build records them as failed and builds the
+//! rest, and retries them once the file changes (it is part of their content hash).
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -48,9 +60,10 @@ pub struct SourceConfig {
     /// Root folder of the tree.
     pub root: PathBuf,
     /// Where each video's reconstruction is: a path template with `{root}`, `{dataset}`,
-    /// `{video_id}` and `{name}` (the last component of the video id), naming a sequence folder
-    /// (cog-nvs or generic layout) or a MegaSAM `.npz`. Unset: no reconstructions (every video
-    /// is reported as skipped) except for `sequences`, whose folders hold their own.
+    /// `{video_id}` (the dataset's own id, without `id_prefix`) and `{name}` (the last component
+    /// of the video id), naming a sequence folder (cog-nvs or generic layout) or a MegaSAM
+    /// `.npz`; any other `{...}` is rejected when the config loads. Unset: no reconstructions
+    /// (every video is reported as skipped) except for `sequences`, whose folders hold their own.
     #[serde(default)]
     pub reconstructions: Option<String>,
     /// TAO: the annotation JSON (default `{root}/annotations/{split}.json`).
@@ -60,6 +73,58 @@ pub struct SourceConfig {
     /// list (default: every sequence).
     #[serde(default)]
     pub split: Option<String>,
+    /// Prepended to this source's video ids (`{id_prefix}/{video_id}`, so keys read
+    /// `{dataset}/{id_prefix}/{video_id}`): set it when two sources hold different videos under
+    /// the same ids, which is otherwise an error at start (see the module docs).
+    #[serde(default)]
+    pub id_prefix: Option<String>,
+}
+
+/// The placeholders a reconstruction template may use (see [`SourceConfig::reconstructions`]).
+pub const RECONSTRUCTION_PLACEHOLDERS: [&str; 4] = ["root", "dataset", "video_id", "name"];
+
+/// Checks the string fields of a source that would otherwise fail silently at crawl time (the
+/// reconstruction template, the id prefix), naming the offending key.
+pub fn check_source_strings(source: &SourceConfig) -> crate::config_file::Checked {
+    use crate::config_file::{KeyError, check_placeholders};
+    if let Some(template) = &source.reconstructions {
+        check_placeholders("reconstructions", template, &RECONSTRUCTION_PLACEHOLDERS)?;
+    }
+    if let Some(prefix) = &source.id_prefix {
+        let bad = prefix.is_empty()
+            || prefix.starts_with('/')
+            || prefix.ends_with('/')
+            || prefix.split('/').any(|part| part.is_empty() || part == "." || part == "..");
+        if bad {
+            return Err(KeyError::new(
+                "id_prefix",
+                format!(
+                    "`{prefix}` must be non-empty path components (like `mirror` or `a/b`), no empty, `.` or `..` part"
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
+impl crate::config_file::Validate for SourceConfig {
+    /// Valid: a non-empty `root` and `annotations`; `split` one non-empty name (it becomes a
+    /// file name); the template and prefix as [`check_source_strings`] says.
+    fn validate(&self) -> crate::config_file::Checked {
+        use crate::config_file::KeyError;
+        if self.root.as_os_str().is_empty() {
+            return Err(KeyError::new("root", "is empty; name the dataset's root folder"));
+        }
+        if self.annotations.as_ref().is_some_and(|a| a.as_os_str().is_empty()) {
+            return Err(KeyError::new("annotations", "is empty (leave the key out for the default)"));
+        }
+        if let Some(split) = &self.split
+            && (split.trim().is_empty() || split.contains(['/', '\\']) || split == "." || split == "..")
+        {
+            return Err(KeyError::new("split", format!("`{split}` must be one split name, like `train`")));
+        }
+        check_source_strings(self)
+    }
 }
 
 /// Where a video's frames are.
@@ -98,24 +163,62 @@ pub enum MaskSource {
 pub struct VideoEntry {
     /// Dataset layout it came from.
     pub dataset: DatasetKind,
-    /// Id within the dataset (a path-like string for TAO).
+    /// Id within the build: the dataset's own id (a path-like string for TAO), after the
+    /// source's `id_prefix` if it has one. Keys, clip ids and seeds derive from it.
     pub video_id: String,
+    /// The dataset's own id, without `id_prefix` (what path templates expand `{video_id}` to).
+    pub dataset_id: String,
     /// Its frames.
     pub frames: FrameSource,
     /// Its dynamic-object annotations.
     pub masks: MaskSource,
     /// Its reconstruction, if one was found.
     pub reconstruction: Option<PathBuf>,
+    /// Files listing or annotating many videos at once that this one depends on (a TAO split's
+    /// JSON, a DAVIS split list): part of its content hash, so fixing them retries it.
+    pub shared_files: Vec<PathBuf>,
+    /// Why this video cannot be built, found while listing it (a malformed shared annotation
+    /// file, naming the file and field): the build records it as failed without processing.
+    pub crawl_error: Option<String>,
 }
 
 impl VideoEntry {
+    /// An entry with no shared files and no crawl error.
+    fn new(
+        dataset: DatasetKind,
+        id: String,
+        frames: FrameSource,
+        masks: MaskSource,
+        reconstruction: Option<PathBuf>,
+    ) -> Self {
+        Self {
+            dataset,
+            dataset_id: id.clone(),
+            video_id: id,
+            frames,
+            masks,
+            reconstruction,
+            shared_files: Vec::new(),
+            crawl_error: None,
+        }
+    }
+
+    /// Where its frames are (a video file or a folder), for messages.
+    pub fn frames_path(&self) -> &Path {
+        match &self.frames {
+            FrameSource::Video(path) | FrameSource::Sequence(path) => path,
+            FrameSource::Images(paths) => paths.first().and_then(|p| p.parent()).unwrap_or(Path::new("")),
+        }
+    }
+
     /// Stable key of the input across runs and machines: `{dataset}/{video_id}`.
     pub fn key(&self) -> String {
         format!("{}/{}", self.dataset.name(), self.video_id)
     }
 }
 
-fn sorted_dir(path: &Path) -> Result<Vec<PathBuf>> {
+/// The entries of folder `path`, sorted by name.
+pub(crate) fn sorted_dir(path: &Path) -> Result<Vec<PathBuf>> {
     let entries = std::fs::read_dir(path).map_err(|e| Error::io(path, e))?;
     let mut paths: Vec<PathBuf> = entries.filter_map(|e| e.ok().map(|e| e.path())).collect();
     paths.sort();
@@ -149,6 +252,7 @@ fn locate_reconstruction(source: &SourceConfig, video_id: &str) -> Option<PathBu
 
 /// Lists the videos of `source`, sorted by key.
 pub fn crawl(source: &SourceConfig) -> Result<Vec<VideoEntry>> {
+    check_source_strings(source).map_err(|e| Error::invalid(&source.root, e.key, e.reason))?;
     if !source.root.is_dir() {
         return Err(Error::io(
             &source.root,
@@ -161,25 +265,79 @@ pub fn crawl(source: &SourceConfig) -> Result<Vec<VideoEntry>> {
         DatasetKind::Ytvos => {
             crawl_palette_dataset(source, &source.root.join("JPEGImages"), &source.root.join("Annotations"), None)?
         }
-        DatasetKind::Davis => {
-            let list = match &source.split {
-                Some(split) => {
-                    let path = source.root.join("ImageSets/2017").join(format!("{split}.txt"));
-                    let text = std::fs::read_to_string(&path).map_err(|e| Error::io(&path, e))?;
-                    Some(text.lines().map(str::trim).filter(|l| !l.is_empty()).map(str::to_owned).collect())
-                }
-                None => None,
-            };
-            crawl_palette_dataset(
-                source,
-                &source.root.join("JPEGImages/480p"),
-                &source.root.join("Annotations/480p"),
-                list,
-            )?
-        }
+        DatasetKind::Davis => crawl_davis(source)?,
         DatasetKind::Sequences => crawl_sequences(source)?,
     };
+    if let Some(prefix) = &source.id_prefix {
+        for entry in &mut entries {
+            entry.video_id = format!("{prefix}/{}", entry.dataset_id);
+        }
+    }
     entries.sort_by_key(VideoEntry::key);
+    Ok(entries)
+}
+
+/// Lists the videos of every source, in source order, checking that keys are unique within the
+/// build: a key listed twice (by two sources, or twice by one) is an error naming both places.
+pub fn crawl_all(sources: &[SourceConfig]) -> Result<Vec<VideoEntry>> {
+    let mut seen: BTreeMap<String, (usize, PathBuf)> = BTreeMap::new();
+    let mut all = Vec::new();
+    for (index, source) in sources.iter().enumerate() {
+        for entry in crawl(source)? {
+            let key = entry.key();
+            if let Some((first, first_path)) = seen.get(&key) {
+                let which =
+                    if *first == index { "twice by this source".to_owned() } else { format!("by sources[{first}]") };
+                return Err(Error::invalid(
+                    entry.frames_path(),
+                    format!("sources[{index}]"),
+                    format!(
+                        "input key `{key}` is also listed {which} (root {}, at {}); keys must be unique \
+                         within a build: remove the duplicate tree, or set `id_prefix` on one of the sources",
+                        sources[*first].root.display(),
+                        first_path.display()
+                    ),
+                ));
+            }
+            seen.insert(key, (index, entry.frames_path().to_owned()));
+            all.push(entry);
+        }
+    }
+    Ok(all)
+}
+
+/// DAVIS 2017: every sequence, or those of the split's `ImageSets/2017/{split}.txt`. An
+/// unreadable list fails every sequence (each depends on it to know whether it is included).
+fn crawl_davis(source: &SourceConfig) -> Result<Vec<VideoEntry>> {
+    let images = source.root.join("JPEGImages/480p");
+    let annotations = source.root.join("Annotations/480p");
+    let Some(split) = &source.split else {
+        return crawl_palette_dataset(source, &images, &annotations, None);
+    };
+    let path = source.root.join("ImageSets/2017").join(format!("{split}.txt"));
+    let (list, error) = match std::fs::read_to_string(&path) {
+        Ok(text) => (Some(text.lines().map(str::trim).filter(|l| !l.is_empty()).map(str::to_owned).collect()), None),
+        Err(e) => (None, Some(Error::io(&path, e))),
+    };
+    depend_on_shared_file(crawl_palette_dataset(source, &images, &annotations, list)?, &path, error)
+}
+
+/// Makes every entry depend on the shared file `path` (a split list or annotation JSON, so it is
+/// part of their content hash) and, if reading that file failed with `error`, marks every entry
+/// failed with it instead of stopping the crawl; with no entry to carry it, the error stops it.
+fn depend_on_shared_file(mut entries: Vec<VideoEntry>, path: &Path, error: Option<Error>) -> Result<Vec<VideoEntry>> {
+    if let Some(error) = error {
+        if entries.is_empty() {
+            return Err(error);
+        }
+        let reason = error.to_string();
+        for entry in &mut entries {
+            entry.crawl_error = Some(reason.clone());
+        }
+    }
+    for entry in &mut entries {
+        entry.shared_files.push(path.to_owned());
+    }
     Ok(entries)
 }
 
@@ -201,13 +359,7 @@ fn crawl_sav(source: &SourceConfig) -> Result<Vec<VideoEntry>> {
                 MaskSource::None
             };
             let reconstruction = locate_reconstruction(source, &id);
-            entries.push(VideoEntry {
-                dataset: DatasetKind::Sav,
-                video_id: id,
-                frames: FrameSource::Video(video),
-                masks,
-                reconstruction,
-            });
+            entries.push(VideoEntry::new(DatasetKind::Sav, id, FrameSource::Video(video), masks, reconstruction));
         }
     }
     Ok(entries)
@@ -232,13 +384,7 @@ fn crawl_palette_dataset(
         let mask_dir = annotations.join(&id);
         let masks = if mask_dir.is_dir() { MaskSource::IdPngs(mask_dir) } else { MaskSource::None };
         let reconstruction = locate_reconstruction(source, &id);
-        entries.push(VideoEntry {
-            dataset: source.dataset,
-            video_id: id,
-            frames: FrameSource::Images(frames),
-            masks,
-            reconstruction,
-        });
+        entries.push(VideoEntry::new(source.dataset, id, FrameSource::Images(frames), masks, reconstruction));
     }
     Ok(entries)
 }
@@ -290,17 +436,30 @@ fn crawl_tao(source: &SourceConfig) -> Result<Vec<VideoEntry>> {
     let split = source.split.as_deref().unwrap_or("train");
     let path =
         source.annotations.clone().unwrap_or_else(|| source.root.join("annotations").join(format!("{split}.json")));
-    let text = std::fs::read_to_string(&path).map_err(|e| Error::io(&path, e))?;
+    match read_tao(&path) {
+        Ok((file, boxes)) => depend_on_shared_file(tao_entries(source, &file, boxes)?, &path, None),
+        // Every video of the split depends on this file: fail them all, build other sources.
+        Err(error) => depend_on_shared_file(tao_frame_folders(source, split)?, &path, Some(error)),
+    }
+}
+
+/// Parses a TAO split JSON and groups its boxes by video id.
+fn read_tao(path: &Path) -> Result<(TaoFile, BTreeMap<u64, Vec<TrackBox>>)> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
     let file: TaoFile =
-        serde_json::from_str(&text).map_err(|e| Error::invalid(&path, "videos", format!("invalid TAO JSON: {e}")))?;
+        serde_json::from_str(&text).map_err(|e| Error::invalid(path, "videos", format!("invalid TAO JSON: {e}")))?;
     let images: BTreeMap<u64, &TaoImage> = file.images.iter().map(|i| (i.id, i)).collect();
     let mut boxes: BTreeMap<u64, Vec<TrackBox>> = BTreeMap::new();
-    for annotation in &file.annotations {
+    for (index, annotation) in file.annotations.iter().enumerate() {
         let image = images.get(&annotation.image_id).ok_or_else(|| {
-            Error::invalid(&path, "annotations.image_id", format!("image {} is not listed", annotation.image_id))
+            Error::invalid(
+                path,
+                format!("annotations[{index}].image_id"),
+                format!("image {} is not listed", annotation.image_id),
+            )
         })?;
         let frame = tao_frame_index(&image.file_name).ok_or_else(|| {
-            Error::invalid(&path, "images.file_name", format!("`{}` is not frameNNNN.jpg", image.file_name))
+            Error::invalid(path, "images.file_name", format!("`{}` is not frameNNNN.jpg", image.file_name))
         })?;
         boxes.entry(image.video_id).or_default().push(TrackBox {
             frame,
@@ -308,6 +467,14 @@ fn crawl_tao(source: &SourceConfig) -> Result<Vec<VideoEntry>> {
             bbox: annotation.bbox,
         });
     }
+    Ok((file, boxes))
+}
+
+fn tao_entries(
+    source: &SourceConfig,
+    file: &TaoFile,
+    mut boxes: BTreeMap<u64, Vec<TrackBox>>,
+) -> Result<Vec<VideoEntry>> {
     let mut entries = Vec::new();
     for video in &file.videos {
         let folder = source.root.join("frames").join(&video.name);
@@ -325,13 +492,33 @@ fn crawl_tao(source: &SourceConfig) -> Result<Vec<VideoEntry>> {
             _ => MaskSource::None,
         };
         let reconstruction = locate_reconstruction(source, &video.name);
-        entries.push(VideoEntry {
-            dataset: DatasetKind::Tao,
-            video_id: video.name.clone(),
-            frames: FrameSource::Images(frames),
+        entries.push(VideoEntry::new(
+            DatasetKind::Tao,
+            video.name.clone(),
+            FrameSource::Images(frames),
             masks,
             reconstruction,
-        });
+        ));
+    }
+    Ok(entries)
+}
+
+/// The videos of a TAO split as its frame folders show them (`frames/{split}/{source}/{video}`),
+/// for when its JSON cannot say.
+fn tao_frame_folders(source: &SourceConfig, split: &str) -> Result<Vec<VideoEntry>> {
+    let frames_root = source.root.join("frames");
+    let split_dir = frames_root.join(split);
+    let mut entries = Vec::new();
+    if !split_dir.is_dir() {
+        return Ok(entries);
+    }
+    for group in sorted_dir(&split_dir)?.into_iter().filter(|p| p.is_dir()) {
+        for folder in sorted_dir(&group)?.into_iter().filter(|p| p.is_dir()) {
+            let id = folder.strip_prefix(&frames_root).unwrap_or(&folder).to_string_lossy().into_owned();
+            let reconstruction = locate_reconstruction(source, &id);
+            let frames = FrameSource::Images(images_in(&folder)?);
+            entries.push(VideoEntry::new(DatasetKind::Tao, id, frames, MaskSource::None, reconstruction));
+        }
     }
     Ok(entries)
 }
@@ -356,13 +543,13 @@ fn crawl_sequences(source: &SourceConfig) -> Result<Vec<VideoEntry>> {
             let masks =
                 if dir.join("masks").is_dir() { MaskSource::IdPngs(dir.join("masks")) } else { MaskSource::None };
             let reconstruction = locate_reconstruction(source, &id).or_else(|| Some(dir.clone()));
-            entries.push(VideoEntry {
-                dataset: DatasetKind::Sequences,
-                video_id: id,
-                frames: FrameSource::Sequence(dir),
+            entries.push(VideoEntry::new(
+                DatasetKind::Sequences,
+                id,
+                FrameSource::Sequence(dir),
                 masks,
                 reconstruction,
-            });
+            ));
         } else {
             pending.extend(sorted_dir(&dir)?.into_iter().filter(|p| p.is_dir()));
         }
@@ -396,6 +583,7 @@ mod tests {
             reconstructions: Some(format!("{}/recon/{{video_id}}", dir.path().display())),
             annotations: None,
             split: None,
+            id_prefix: None,
         };
         let entries = crawl(&source).unwrap();
         let keys: Vec<String> = entries.iter().map(VideoEntry::key).collect();
@@ -423,6 +611,7 @@ mod tests {
             reconstructions: None,
             annotations: None,
             split: Some("val".into()),
+            id_prefix: None,
         };
         let entries = crawl(&davis).unwrap();
         assert_eq!(entries.iter().map(VideoEntry::key).collect::<Vec<_>>(), ["davis/bear", "davis/dog"]);
@@ -436,6 +625,7 @@ mod tests {
             reconstructions: None,
             annotations: None,
             split: None,
+            id_prefix: None,
         };
         let entries = crawl(&ytvos).unwrap();
         assert_eq!(entries[0].masks, MaskSource::None);
@@ -460,6 +650,7 @@ mod tests {
             reconstructions: None,
             annotations: None,
             split: None,
+            id_prefix: None,
         };
         let entries = crawl(&source).unwrap();
         assert_eq!(entries.len(), 1, "videos without frames on disk are not listed");
@@ -481,6 +672,7 @@ mod tests {
             reconstructions: None,
             annotations: None,
             split: None,
+            id_prefix: None,
         };
         let keys: Vec<String> = crawl(&source).unwrap().iter().map(VideoEntry::key).collect();
         assert_eq!(keys, ["sequences/a", "sequences/group/b", "sequences/group/c"]);
@@ -494,6 +686,7 @@ mod tests {
             reconstructions: None,
             annotations: None,
             split: None,
+            id_prefix: None,
         };
         assert!(crawl(&source).unwrap_err().to_string().contains("/no/such/root"));
     }

@@ -29,7 +29,13 @@ pub fn load_entry(entry: &VideoEntry) -> Result<Sequence> {
         .as_ref()
         .ok_or_else(|| Error::invalid(&key, "reconstruction", "no reconstruction found for this video"))?;
     let mut sequence = match &entry.frames {
-        FrameSource::Sequence(dir) => return read_sequence(dir),
+        FrameSource::Sequence(dir) => {
+            // The folder's own name is not unique in a nested tree (`a/seq`, `b/seq`); the
+            // video id is (keys are checked unique per build), and clip ids and seeds derive from it.
+            let mut sequence = read_sequence(dir)?;
+            sequence.source_id = entry.video_id.clone();
+            return Ok(sequence);
+        }
         FrameSource::Video(path) => {
             let video = crate::video::decode_video(path)?;
             read_with_frames(&entry.video_id, reconstruction, video.fps, video.frames, path)?
@@ -109,7 +115,7 @@ impl InputProcessor for SequenceProcessor<'_> {
         let started = Instant::now();
         let mut sequence = load_entry(entry)?;
         let noise = &self.config.pairs.depth_noise;
-        if let Some(path) = noise.second_depth_path(entry.dataset.name(), &entry.video_id).filter(|_| noise.enabled) {
+        if let Some(path) = noise.second_depth_path(entry.dataset.name(), &entry.dataset_id).filter(|_| noise.enabled) {
             sequence.load_second_depth(&path)?;
         }
         let load_seconds = started.elapsed().as_secs_f64();

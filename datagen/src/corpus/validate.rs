@@ -30,9 +30,16 @@ pub struct ValidationReport {
 
 /// Validates every `shard-*.parquet` (or any `*.parquet` outside `status/`) under `dir`, or the
 /// single shard `dir` names. `deep` also decodes every PNG and EXR and checks its size.
+///
+/// A folder is also checked as a corpus: holding no shard at all is a problem (an unbuilt or
+/// wrong folder, not an empty success), and so is every stats marker whose shard is gone and
+/// every input whose latest status row says ok in a shard that is not there (finished).
 pub fn validate(dir: &Path, deep: bool) -> Result<ValidationReport> {
     let shards = shard_files(dir)?;
     let mut report = ValidationReport::default();
+    if dir.is_dir() {
+        check_corpus_folder(dir, shards.is_empty(), &mut report.problems)?;
+    }
     for shard in shards {
         report.shards += 1;
         let mut problem = |message: String| report.problems.push(Problem { path: shard.clone(), message });
@@ -87,6 +94,54 @@ pub fn validate(dir: &Path, deep: bool) -> Result<ValidationReport> {
     Ok(report)
 }
 
+/// The folder-level problems: no shards, orphan stats markers, ok status rows without a shard.
+fn check_corpus_folder(dir: &Path, no_shards: bool, problems: &mut Vec<Problem>) -> Result<()> {
+    if no_shards {
+        problems.push(Problem {
+            path: dir.to_owned(),
+            message: "no shards (*.parquet) in this folder: nothing was built here, or this is not a corpus".into(),
+        });
+    }
+    let markers = crate::corpus::crawl::sorted_dir(dir)?.into_iter().filter(|p| {
+        let name = p.file_name().unwrap_or_default().to_string_lossy();
+        name.ends_with(schemas::shard::STATS_SUFFIX) && !name.contains(schemas::shard::TEMP_MARKER)
+    });
+    for marker in markers {
+        let name = marker.file_name().unwrap_or_default().to_string_lossy().into_owned();
+        let shard = name.trim_end_matches(schemas::shard::STATS_SUFFIX);
+        if !dir.join(shard).is_file() {
+            problems.push(Problem {
+                path: marker,
+                message: format!(
+                    "stats marker without its shard `{shard}` (lost or deleted); `datagen build` on this folder \
+                     removes the marker and rebuilds its inputs"
+                ),
+            });
+        }
+    }
+    if dir.join("status").is_dir() {
+        match crate::corpus::build::read_corpus_status(dir) {
+            Ok(latest) => {
+                for record in latest.values().filter(|r| r.status == schemas::InputStatus::Ok) {
+                    let shard = dir.join(&record.shard);
+                    if !schemas::is_finished(&shard) {
+                        problems.push(Problem {
+                            path: shard,
+                            message: format!(
+                                "status says input `{}` is ok in this shard, which is missing or has no stats \
+                                 marker; `datagen build` on this folder rebuilds it",
+                                record.input_key
+                            ),
+                        });
+                    }
+                }
+            }
+            Err(error) => problems.push(Problem { path: dir.join("status"), message: error.to_string() }),
+        }
+    }
+    Ok(())
+}
+
 fn shard_files(dir: &Path) -> Result<Vec<PathBuf>> {
     if dir.is_file() {
         return Ok(vec![dir.to_owned()]);
@@ -135,12 +190,11 @@ fn check_clip_content(record: &schemas::ClipRecord) -> Vec<String> {
         }
     }
     for (i, depth) in record.depth.iter().enumerate() {
-        match crate::depth_exr::decode_depth_exr(depth, &format!("depth[{i}]")) {
-            Ok(map) if (map.width, map.height) != (width as usize, height as usize) => {
-                problems.push(format!("depth[{i}]: {}x{} map in a {width}x{height} clip", map.width, map.height))
-            }
-            Ok(_) => {}
-            Err(error) => problems.push(error.to_string()),
+        // The header's size is compared with the clip's before any pixel is decoded.
+        let context = format!("depth[{i}]");
+        if let Err(error) = crate::depth_exr::decode_depth_exr_of_size(depth, &context, width as usize, height as usize)
+        {
+            problems.push(error.to_string());
         }
     }
     problems

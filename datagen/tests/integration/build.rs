@@ -51,6 +51,7 @@ impl InputProcessor for KeyProcessor {
                 covisible_mask: vec![vec![255; 5]; 2],
                 condition: None,
                 covisible_fraction: 1.0,
+                bank_entry: None,
             }],
         };
         Ok(Outcome::Clips(vec![clip(0), clip(2)]))
@@ -76,6 +77,7 @@ fn corpus(root: &Path, names: &[&str]) -> Vec<SourceConfig> {
         reconstructions: None,
         annotations: None,
         split: None,
+        id_prefix: None,
     }]
 }
 

@@ -74,7 +74,8 @@ fn trajectory_rejections_on_the_fixtures_are_reported() {
                 0,
                 index,
                 Some(&crossing),
-            );
+            )
+            .unwrap();
             rejected += sampled.rejected_samples;
             let last = sampled.world_from_camera.len() - 1;
             let final_camera = sampled.world_from_camera[last].w_axis.truncate();

@@ -45,6 +45,7 @@ pub fn record(id: &str) -> ClipRecord {
             covisible_mask: vec![png(image::GrayImage::new(w, h)); 2],
             condition: None,
             covisible_fraction: 0.0,
+            bank_entry: None,
         }],
     }
 }

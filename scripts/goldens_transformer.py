@@ -3,7 +3,7 @@
 
 Usage:
   goldens_transformer.py OUT_DIR
-  goldens_transformer.py --reload MODEL_DIR INPUTS.safetensors OUT.safetensors
+  goldens_transformer.py --reload MODEL_DIR INPUTS.safetensors OUT.safetensors [LORA.safetensors]
 
 The first form builds tiny random transformers (fixed seed) with the structure of CogNVS (learned
 + 3D rotary positions) and of CogVideoX-2B (sin-cos positions), runs diffusers on fixed random
@@ -19,7 +19,9 @@ grid_type="slice" over the latent patch grid) and writes what the Rust tests
 
 The second form loads a model folder written by the Rust trainer with diffusers' from_pretrained,
 runs it on the inputs (`hidden_states`, `encoder_hidden_states`, `timestep`) and writes `sample`,
-so a test can prove our checkpoints load in diffusers and compute the same thing.
+so a test can prove our checkpoints load in diffusers and compute the same thing. With a LoRA
+file (our `pytorch_lora_weights.safetensors`), diffusers' own `load_lora_adapter` (through peft)
+attaches it to the loaded model first, as `CogVideoXPipeline.load_lora_weights` does.
 
 Nothing here is committed; the tests run it into a temporary folder (a few seconds on a CPU).
 Requires torch and diffusers (the project venv, `scripts/setup.sh`).
@@ -150,8 +152,10 @@ def goldens(out: Path) -> None:
     (out / "cognvs_5b_shapes.json").write_text(json.dumps(shapes, indent=1, sort_keys=True))
 
 
-def reload(model_dir: Path, inputs: Path, out: Path) -> None:
+def reload(model_dir: Path, inputs: Path, out: Path, lora: Path | None = None) -> None:
     model = CogVideoXTransformer3DModel.from_pretrained(model_dir).eval().float()
+    if lora is not None:
+        model.load_lora_adapter(str(lora), prefix="transformer")
     x = load_file(str(inputs))
     sample = run(model, x["hidden_states"].float(), x["encoder_hidden_states"].float(), x["timestep"])
     save_file({"sample": sample.contiguous()}, str(out))
@@ -159,8 +163,9 @@ def reload(model_dir: Path, inputs: Path, out: Path) -> None:
 
 def main() -> None:
     torch.set_num_threads(max(1, torch.get_num_threads()))
-    if len(sys.argv) == 5 and sys.argv[1] == "--reload":
-        reload(Path(sys.argv[2]), Path(sys.argv[3]), Path(sys.argv[4]))
+    if len(sys.argv) in (5, 6) and sys.argv[1] == "--reload":
+        lora = Path(sys.argv[5]) if len(sys.argv) == 6 else None
+        reload(Path(sys.argv[2]), Path(sys.argv[3]), Path(sys.argv[4]), lora)
     elif len(sys.argv) == 2:
         out = Path(sys.argv[1])
         out.mkdir(parents=True, exist_ok=True)

@@ -12,6 +12,9 @@ configuration, runs diffusers on fixed random inputs and writes everything the R
   OUT_DIR/vae_io.safetensors                      inputs and diffusers' outputs (fp32)
   OUT_DIR/vae_tiling.json                         the tile settings used for the tiled goldens
   OUT_DIR/vae_5b_shapes.json                      {state-dict key: shape} of the real 5B VAE
+  OUT_DIR/vae_two_level/                          a 2-level VAE with temporal_compression_ratio 4
+                                                  (diffusers compresses time by 2 only), saved
+  OUT_DIR/vae_two_level_io.safetensors            its encode/decode inputs and outputs
   OUT_DIR/scheduler/scheduler_config.json         the CogVideoX-5B scheduler config
   OUT_DIR/scheduler_io.safetensors                schedule, add_noise, get_velocity, DPM/DDIM loops
 
@@ -134,6 +137,33 @@ def vae_goldens(out: Path) -> None:
     (out / "vae_5b_shapes.json").write_text(json.dumps(shapes, indent=1, sort_keys=True))
 
 
+# A config diffusers accepts although its levels cannot give the ratio it names: 2 levels, so
+# only level 0 downsamples, and `compress_time = i < int(log2(4))` halves time once (ratio 2).
+TWO_LEVEL_VAE = dict(
+    TINY_VAE,
+    down_block_types=["CogVideoXDownBlock3D"] * 2,
+    up_block_types=["CogVideoXUpBlock3D"] * 2,
+    block_out_channels=[16, 32],
+)
+
+
+def two_level_vae_goldens(out: Path) -> None:
+    g = torch.Generator().manual_seed(SEED + 3)
+    vae = AutoencoderKLCogVideoX(**TWO_LEVEL_VAE).eval()
+    randomize_(vae, g)
+    vae.save_pretrained(out / "vae_two_level", safe_serialization=True)
+    tensors = {}
+    with torch.no_grad():
+        # 9 frames of 16x24 -> 5 latent frames of 8x12 (time halved once, space once).
+        sample = torch.rand((1, 3, 9, 16, 24), generator=g) * 2 - 1
+        tensors["encode.sample"] = sample
+        tensors["encode.latent"] = vae.encode(sample).latent_dist.mean
+        latent = torch.randn((1, 16, 5, 8, 12), generator=g)
+        tensors["decode.latent"] = latent
+        tensors["decode.sample"] = vae.decode(latent).sample
+    save_file({k: v.contiguous() for k, v in tensors.items()}, str(out / "vae_two_level_io.safetensors"))
+
+
 def scheduler_goldens(out: Path) -> None:
     dpm = CogVideoXDPMScheduler(**SCHEDULER_5B)
     ddim = CogVideoXDDIMScheduler(**SCHEDULER_5B)
@@ -203,6 +233,7 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(SEED)
     vae_goldens(out)
+    two_level_vae_goldens(out)
     scheduler_goldens(out)
 
 

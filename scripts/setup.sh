@@ -23,11 +23,12 @@ APT_PACKAGES=(
 )
 # torch: libtorch for tch; diffusers + safetensors: numerical reference for the model port;
 # numpy, pyarrow, duckdb, datasets, pillow: interoperability checks of the shards; pycocotools:
-# reference RLE encoder for the SA-V mask decoder; scikit-image: reference PSNR/SSIM for `trainer eval`.
+# reference RLE encoder for the SA-V mask decoder; scikit-image: reference PSNR/SSIM for `trainer eval`;
+# peft: diffusers' LoRA loader, the reference our LoRA files are checked against.
 PY_PACKAGES=(
   "torch==${TORCH_VERSION}" "diffusers>=0.35" "safetensors>=0.4"
   "numpy>=1.26" "pyarrow>=17" "duckdb>=1.1" "datasets>=3" "pillow>=10" "pycocotools>=2"
-  "scikit-image>=0.22"
+  "scikit-image>=0.22" "peft>=0.15"
 )
 
 step "Debian packages: ${APT_PACKAGES[*]}"

@@ -86,7 +86,11 @@ pub struct AutoencoderKLCogVideoXConfig {
     pub norm_eps: f64,
     /// GroupNorm groups everywhere.
     pub norm_num_groups: i64,
-    /// Temporal compression (4): `log2` of it is the number of levels that also halve time.
+    /// Temporal compression (4): the first `int(log2(ratio))` levels also halve time, as in
+    /// diffusers, but the last level never downsamples, so time is compressed by at most
+    /// `2^(levels − 1)` (see [`Self::effective_temporal_compression_ratio`]). Valid: finite, > 0
+    /// (what diffusers accepts); a ratio that is not a power of two or needs more levels than the
+    /// config has is computed as diffusers computes it, with a warning.
     pub temporal_compression_ratio: f64,
     /// Nominal frame height; the default spatial tile is half of it.
     pub sample_height: i64,
@@ -156,7 +160,24 @@ impl DiffusersConfig for AutoencoderKLCogVideoXConfig {
     fn extra(&self) -> &BTreeMap<String, serde_json::Value> {
         &self.extra
     }
+
+    fn warnings(&self) -> Vec<String> {
+        let ratio = self.temporal_compression_ratio;
+        let effective = self.effective_temporal_compression_ratio();
+        if ratio == effective as f64 {
+            return Vec::new();
+        }
+        vec![format!(
+            "temporal_compression_ratio {ratio} with {} levels compresses time by {effective} (diffusers halves time \
+             in the first int(log2({ratio})) levels but never in the last one); computing what diffusers computes",
+            self.block_out_channels.len()
+        )]
+    }
 }
+
+/// Most resolution levels a config may have: CogVideoX has 4; 16 already means 32768× spatial
+/// compression, and the compression ratios are computed as `i64` powers of two.
+pub const MAX_LEVELS: usize = 16;
 
 impl AutoencoderKLCogVideoXConfig {
     /// The VAE of CogVideoX-5B / 5B-I2V (and so of CogNVS): `THUDM/CogVideoX-5b-I2V`
@@ -203,9 +224,19 @@ impl AutoencoderKLCogVideoXConfig {
         1 << (self.block_out_channels.len().saturating_sub(1))
     }
 
-    /// Number of levels that also halve time, `log2(temporal_compression_ratio)` (2).
+    /// diffusers' `temporal_compress_level = int(np.log2(temporal_compression_ratio))` (2): levels
+    /// `i < temporal_compress_level` get `compress_time` (a truncation toward zero; negative for
+    /// ratios below 1/2, then no level compresses time).
     pub fn temporal_compress_level(&self) -> usize {
-        self.temporal_compression_ratio.log2() as usize
+        // `as` saturates negatives to 0, which selects the same (no) levels as diffusers' `i < −1`.
+        self.temporal_compression_ratio.log2().trunc() as usize
+    }
+
+    /// The time compression the levels really give: `2^min(temporal_compress_level, levels − 1)`,
+    /// since only levels with a downsampler (all but the last) can halve time.
+    pub fn effective_temporal_compression_ratio(&self) -> i64 {
+        let downsampling = self.block_out_channels.len().saturating_sub(1);
+        1 << self.temporal_compress_level().min(downsampling)
     }
 
     /// Rejects combinations the architecture cannot build, naming the field.
@@ -223,6 +254,12 @@ impl AutoencoderKLCogVideoXConfig {
         let levels = self.block_out_channels.len();
         if levels == 0 {
             return Err(err("block_out_channels", "is empty".to_string()));
+        }
+        if levels > MAX_LEVELS {
+            return Err(err(
+                "block_out_channels",
+                format!("{levels} levels: at most {MAX_LEVELS} (2^{} spatial compression)", MAX_LEVELS - 1),
+            ));
         }
         if self.down_block_types.len() != levels {
             return Err(err(
@@ -264,13 +301,10 @@ impl AutoencoderKLCogVideoXConfig {
                 format!("{c} is not a positive multiple of norm_num_groups ({})", self.norm_num_groups),
             ));
         }
+        // diffusers fails on `int(np.log2(r))` for r <= 0 (and NaN); anything else it builds.
         let ratio = self.temporal_compression_ratio;
-        let level = ratio.log2();
-        if !(ratio >= 1.0 && level.fract() == 0.0 && (level as usize) < levels) {
-            return Err(err(
-                "temporal_compression_ratio",
-                format!("{ratio} must be a power of two below 2^{levels} (one halving per level but the last)"),
-            ));
+        if !(ratio.is_finite() && ratio > 0.0) {
+            return Err(err("temporal_compression_ratio", format!("{ratio} must be finite and > 0")));
         }
         if self.use_quant_conv {
             return Err(err("use_quant_conv", "true is not supported (no CogVideoX checkpoint uses it)".to_string()));
@@ -940,9 +974,10 @@ impl AutoencoderKLCogVideoX {
         self.tiling.as_ref()
     }
 
-    /// Latent frames for `frames` video frames: `1 + (frames − 1) / 4` for 1 + 4k frames.
+    /// Latent frames for `frames` video frames: `1 + (frames − 1) / r` for 1 + r·k frames, r the
+    /// [effective temporal compression](AutoencoderKLCogVideoXConfig::effective_temporal_compression_ratio).
     pub fn latent_frames(&self, frames: i64) -> i64 {
-        let ratio = self.config.temporal_compression_ratio as i64;
+        let ratio = self.config.effective_temporal_compression_ratio();
         1 + (frames - 1) / ratio.max(1)
     }
 
@@ -1242,6 +1277,35 @@ mod tests {
         let json = r#"{"_class_name": "AutoencoderKL"}"#;
         let err = AutoencoderKLCogVideoXConfig::from_json_str(json, "t.json").unwrap_err().to_string();
         assert!(err.contains("_class_name"), "{err}");
+    }
+
+    #[test]
+    fn temporal_ratio_is_accepted_as_diffusers_accepts_it_with_a_warning() {
+        let json = r#"{"block_out_channels": [16, 32], "down_block_types": ["CogVideoXDownBlock3D", "CogVideoXDownBlock3D"],
+            "up_block_types": ["CogVideoXUpBlock3D", "CogVideoXUpBlock3D"], "norm_num_groups": 8, "temporal_compression_ratio": 4}"#;
+        let c = AutoencoderKLCogVideoXConfig::from_json_str(json, "t.json").unwrap();
+        assert_eq!(c.effective_temporal_compression_ratio(), 2);
+        assert!(c.warnings()[0].contains("compresses time by 2"), "{:?}", c.warnings());
+        // int(log2(r)) as diffusers truncates it; no warning when the ratio is what the levels give.
+        for (ratio, effective, warns) in
+            [(4.0, 4, false), (3.0, 2, true), (8.0, 8, false), (0.5, 1, true), (1.0, 1, false)]
+        {
+            let c = AutoencoderKLCogVideoXConfig {
+                temporal_compression_ratio: ratio,
+                ..AutoencoderKLCogVideoXConfig::tiny()
+            };
+            c.validate("t").unwrap();
+            assert_eq!(c.effective_temporal_compression_ratio(), effective, "{ratio}");
+            assert_eq!(!c.warnings().is_empty(), warns, "{ratio}");
+        }
+        for bad in [0.0, -4.0, f64::NAN, f64::INFINITY] {
+            let c = AutoencoderKLCogVideoXConfig {
+                temporal_compression_ratio: bad,
+                ..AutoencoderKLCogVideoXConfig::tiny()
+            };
+            let err = c.validate("t.json").unwrap_err().to_string();
+            assert!(err.contains("temporal_compression_ratio"), "{err}");
+        }
     }
 
     #[test]

@@ -21,6 +21,7 @@ use crate::embeddings::{
     CogVideoXPatchEmbed, PatchEmbedConfig, PositionalEmbedding, RotaryEmbedding, TimestepEmbedding, timestep_embedding,
 };
 use crate::error::{Error, Result};
+use crate::lora::LoraConfig;
 use crate::normalization::{AdaLayerNorm, CogVideoXLayerNormZero};
 use crate::weights::{LayerNorm, Linear, Vars};
 
@@ -424,6 +425,88 @@ pub struct TransformerInput<'a> {
     pub image_rotary_emb: Option<&'a RotaryEmbedding>,
 }
 
+/// What the blocks start from: the embeddings of one transformer call.
+struct Embedded {
+    emb: Tensor,
+    hidden_states: Tensor,
+    encoder_hidden_states: Tensor,
+    rotary: Option<RotaryEmbedding>,
+    dims: [i64; 4],
+}
+
+/// Reseeds tch's generator for block `i` when dropout is active.
+fn reseed(seeds: Option<&[i64]>, i: usize) {
+    if let Some(seeds) = seeds {
+        tch::manual_seed(seeds[i]);
+    }
+}
+
+/// Reseeds tch's generator with the seed that follows the blocks when dropout is active.
+fn reseed_after_blocks(seeds: Option<&[i64]>) {
+    if let Some(&last) = seeds.and_then(|s| s.last()) {
+        tch::manual_seed(last);
+    }
+}
+
+/// What a checkpointed forward keeps for its backward: each block's `(video, text)` input
+/// without autograd state, the leaves the head and the blocks were built on, and the embedding
+/// outputs whose graphs lead to the patch and time embeddings.
+pub struct BlockTape<'m> {
+    model: &'m CogVideoXTransformer3DModel,
+    inputs: Vec<(Tensor, Tensor)>,
+    last: Tensor,
+    emb_leaf: Tensor,
+    embedded_emb: Tensor,
+    embedded_video: Tensor,
+    embedded_text: Tensor,
+    rotary: Option<RotaryEmbedding>,
+    seeds: Option<Vec<i64>>,
+    train: bool,
+}
+
+impl BlockTape<'_> {
+    /// Back-propagates through the blocks and the embeddings, once the output of
+    /// [`CogVideoXTransformer3DModel::forward_checkpointed`] has had its loss back-propagated
+    /// (which leaves the gradient on the last block's output). Parameter gradients accumulate,
+    /// as with a plain `backward`.
+    pub fn backward(self) -> Result<()> {
+        let mut grad_video = self.last.grad();
+        if !grad_video.defined() {
+            return Err(Error::InvalidArgument {
+                name: "gradient checkpointing".to_string(),
+                reason: "the output's loss must be back-propagated before the blocks".to_string(),
+            });
+        }
+        // diffusers drops the text stream after the last block: its gradient there is zero.
+        let mut grad_text: Option<Tensor> = None;
+        let rotary = self.rotary.as_ref();
+        for (i, (block, (video, text))) in self.model.transformer_blocks.iter().zip(&self.inputs).enumerate().rev() {
+            reseed(self.seeds.as_deref(), i);
+            let video = video.detach().set_requires_grad(true);
+            let text = text.detach().set_requires_grad(true);
+            let (out_video, out_text) = block.forward(&video, &text, &self.emb_leaf, rotary, self.train)?;
+            let mut surrogate = out_video.f_mul(&grad_video)?.f_sum(Kind::Float)?;
+            if let Some(g) = &grad_text {
+                surrogate = surrogate.f_add(&out_text.f_mul(g)?.f_sum(Kind::Float)?)?;
+            }
+            surrogate.f_backward()?;
+            grad_video = video.grad();
+            grad_text = Some(text.grad());
+        }
+        reseed_after_blocks(self.seeds.as_deref());
+        let mut surrogate = self.embedded_video.f_mul(&grad_video)?.f_sum(Kind::Float)?;
+        if let Some(g) = &grad_text {
+            surrogate = surrogate.f_add(&self.embedded_text.f_mul(g)?.f_sum(Kind::Float)?)?;
+        }
+        let grad_emb = self.emb_leaf.grad();
+        if grad_emb.defined() {
+            surrogate = surrogate.f_add(&self.embedded_emb.f_mul(&grad_emb)?.f_sum(Kind::Float)?)?;
+        }
+        surrogate.f_backward()?;
+        Ok(())
+    }
+}
+
 /// diffusers' `CogVideoXTransformer3DModel`.
 #[derive(Debug)]
 pub struct CogVideoXTransformer3DModel {
@@ -488,6 +571,68 @@ impl CogVideoXTransformer3DModel {
     /// The predicted latents `[B, F, out_channels, H, W]` (v-prediction for CogNVS) for noisy
     /// latents, text tokens and timesteps; dropout applies only when `train`.
     pub fn forward(&self, input: &TransformerInput, train: bool) -> Result<Tensor> {
+        let embedded = self.embed(input, train)?;
+        let seeds = self.block_seeds(train)?;
+        let rotary = embedded.rotary.as_ref();
+        let (mut hidden_states, mut encoder_hidden_states) = (embedded.hidden_states, embedded.encoder_hidden_states);
+        for (i, block) in self.transformer_blocks.iter().enumerate() {
+            reseed(seeds.as_deref(), i);
+            (hidden_states, encoder_hidden_states) =
+                block.forward(&hidden_states, &encoder_hidden_states, &embedded.emb, rotary, train)?;
+        }
+        reseed_after_blocks(seeds.as_deref());
+        self.head(&hidden_states, &embedded.emb, embedded.dims)
+    }
+
+    /// [`forward`](Self::forward) with activation checkpointing per block: the blocks run without
+    /// autograd and only each block's input is kept; the returned output's graph starts at the
+    /// last block's output. After back-propagating a loss of that output, call
+    /// [`BlockTape::backward`], which recomputes one block at a time (last first) and carries the
+    /// gradient down to the embeddings, so every parameter receives the gradient the plain
+    /// forward would give it. Dropout replays identically: with dropout on, every block (in both
+    /// forwards) reseeds tch's generator from a seed drawn before the blocks, and the generator
+    /// continues after the tape's backward as it would after the plain forward, provided nothing
+    /// draws from it between this call and [`BlockTape::backward`].
+    pub fn forward_checkpointed(&self, input: &TransformerInput, train: bool) -> Result<(Tensor, BlockTape<'_>)> {
+        let embedded = self.embed(input, train)?;
+        let seeds = self.block_seeds(train)?;
+        // The blocks see a leaf copy of the embedding whose gradient accumulates over the
+        // recomputations; the graph to the time embedding is walked once, at the end.
+        let emb_leaf = embedded.emb.detach().set_requires_grad(true);
+        let rotary = embedded.rotary.as_ref();
+        let mut inputs = Vec::with_capacity(self.transformer_blocks.len());
+        let (mut hidden_states, mut encoder_hidden_states) =
+            (embedded.hidden_states.detach(), embedded.encoder_hidden_states.detach());
+        tch::no_grad(|| -> Result<()> {
+            for (i, block) in self.transformer_blocks.iter().enumerate() {
+                reseed(seeds.as_deref(), i);
+                let (h, e) = block.forward(&hidden_states, &encoder_hidden_states, &emb_leaf, rotary, train)?;
+                inputs.push((hidden_states.shallow_clone(), encoder_hidden_states.shallow_clone()));
+                (hidden_states, encoder_hidden_states) = (h, e);
+            }
+            Ok(())
+        })?;
+        reseed_after_blocks(seeds.as_deref());
+        let last = hidden_states.set_requires_grad(true);
+        let out = self.head(&last, &emb_leaf, embedded.dims)?;
+        let tape = BlockTape {
+            model: self,
+            inputs,
+            last,
+            emb_leaf,
+            embedded_emb: embedded.emb,
+            embedded_video: embedded.hidden_states,
+            embedded_text: embedded.encoder_hidden_states,
+            rotary: embedded.rotary,
+            seeds,
+            train,
+        };
+        Ok((out, tape))
+    }
+
+    /// The timestep embedding, the patch-embedded joint sequence split into text and video
+    /// tokens, and the rotary table.
+    fn embed(&self, input: &TransformerInput, train: bool) -> Result<Embedded> {
         let c = &self.config;
         let [b, f, h, w] = self.check_input(input)?;
         let timestep = if input.timestep.dim() == 0 {
@@ -513,24 +658,37 @@ impl CogVideoXTransformer3DModel {
         let joint = self.patch_embed.forward(input.encoder_hidden_states, input.hidden_states)?;
         let joint = joint.f_dropout(c.dropout, train)?;
         let text_len = input.encoder_hidden_states.size()[1];
-        let mut encoder_hidden_states = joint.f_narrow(1, 0, text_len)?;
-        let mut hidden_states = joint.f_narrow(1, text_len, joint.size()[1] - text_len)?;
+        let encoder_hidden_states = joint.f_narrow(1, 0, text_len)?;
+        let hidden_states = joint.f_narrow(1, text_len, joint.size()[1] - text_len)?;
 
-        let computed;
         let rotary = match (c.use_rotary_positional_embeddings, input.image_rotary_emb) {
             (false, _) => None,
-            (true, Some(table)) => Some(table),
-            (true, None) => {
-                computed = self.rotary_for(f, h, w, input.hidden_states.device())?;
-                Some(&computed)
+            (true, Some(table)) => {
+                Some(RotaryEmbedding { cos: table.cos.shallow_clone(), sin: table.sin.shallow_clone() })
             }
+            (true, None) => Some(self.rotary_for(f, h, w, input.hidden_states.device())?),
         };
-        for block in &self.transformer_blocks {
-            (hidden_states, encoder_hidden_states) =
-                block.forward(&hidden_states, &encoder_hidden_states, &emb, rotary, train)?;
+        Ok(Embedded { emb, hidden_states, encoder_hidden_states, rotary, dims: [b, f, h, w] })
+    }
+
+    /// With dropout active, one seed per block drawn from tch's generator (see
+    /// [`forward_checkpointed`](Self::forward_checkpointed)), and one to continue from after the
+    /// blocks; `None` otherwise, leaving the generator's stream untouched.
+    fn block_seeds(&self, train: bool) -> Result<Option<Vec<i64>>> {
+        if !(train && self.config.dropout > 0.0) {
+            return Ok(None);
         }
-        let hidden_states = self.norm_final.forward(&hidden_states)?;
-        let hidden_states = self.norm_out.forward(&hidden_states, &emb)?;
+        let count = self.transformer_blocks.len() as i64 + 1;
+        let seeds = Tensor::f_randint(i64::MAX, [count], (Kind::Int64, Device::Cpu))?;
+        Ok(Some(Vec::<i64>::try_from(seeds)?))
+    }
+
+    /// The final norms and projection of the last block's video tokens, unpatchified to
+    /// `[B, F, out_channels, H, W]`.
+    fn head(&self, hidden_states: &Tensor, emb: &Tensor, [b, f, h, w]: [i64; 4]) -> Result<Tensor> {
+        let c = &self.config;
+        let hidden_states = self.norm_final.forward(hidden_states)?;
+        let hidden_states = self.norm_out.forward(&hidden_states, emb)?;
         let hidden_states = self.proj_out.forward(&hidden_states)?;
 
         let p = c.patch_size;
@@ -623,6 +781,58 @@ pub fn build(
     Ok((vs, model))
 }
 
+/// A transformer as [`build`] with LoRA adapters on the linear layers `lora` targets, in a
+/// second store: `(base, adapters, model)`. Every target must match at least one layer.
+pub fn build_with_lora(
+    config: &CogVideoXTransformer3DModelConfig,
+    lora: &LoraConfig,
+    device: Device,
+    kind: Kind,
+) -> Result<(nn::VarStore, nn::VarStore, CogVideoXTransformer3DModel)> {
+    lora.validate("training config")?;
+    let mut vs = nn::VarStore::new(device);
+    let mut lora_vs = nn::VarStore::new(device);
+    let model = CogVideoXTransformer3DModel::new(&Vars::new(vs.root()).with_lora(lora_vs.root(), lora), config)?;
+    check_lora_targets(lora, &lora_vs)?;
+    vs.set_kind(kind);
+    lora_vs.set_kind(kind);
+    Ok((vs, lora_vs, model))
+}
+
+/// Checks `lora` against the model `config` describes without allocating it (every target
+/// matches a linear layer; the rank fits each): the check [`build_with_lora`] makes, for
+/// configs read before any model is built. Returns the number of adapted layers.
+pub fn check_lora(config: &CogVideoXTransformer3DModelConfig, lora: &LoraConfig) -> Result<usize> {
+    lora.validate("training config")?;
+    let vs = nn::VarStore::new(Device::Cpu);
+    let lora_vs = nn::VarStore::new(Device::Cpu);
+    CogVideoXTransformer3DModel::new(&Vars::shapes_only(vs.root()).with_lora(lora_vs.root(), lora), config)?;
+    check_lora_targets(lora, &lora_vs)
+}
+
+/// Every target of `lora` matched at least one layer of the adapters' store; returns their number.
+fn check_lora_targets(lora: &LoraConfig, lora_vs: &nn::VarStore) -> Result<usize> {
+    let modules: Vec<String> = lora_vs
+        .variables()
+        .into_keys()
+        .filter_map(|name| name.strip_suffix(".lora_A.weight").map(str::to_string))
+        .collect();
+    for target in &lora.target_modules {
+        let single = LoraConfig { target_modules: vec![target.clone()], ..lora.clone() };
+        if !modules.iter().any(|m| single.targets(m)) {
+            return Err(Error::InvalidConfig {
+                source_name: "training config".to_string(),
+                field: "lora.target_modules".to_string(),
+                reason: format!(
+                    "`{target}` matches no linear layer of the transformer (attention layers are \
+                     `to_q`, `to_k`, `to_v`, `to_out.0`; feed-forward `ff.net.0.proj`, `ff.net.2`)"
+                ),
+            });
+        }
+    }
+    Ok(modules.len())
+}
+
 /// Name → shape of every variable of the model `config` describes, without allocating it.
 pub fn variable_shapes(config: &CogVideoXTransformer3DModelConfig) -> Result<BTreeMap<String, Vec<i64>>> {
     let vs = nn::VarStore::new(Device::Cpu);
@@ -641,6 +851,110 @@ mod tests {
             Tensor::randn([1, c.max_text_seq_length, c.text_embed_dim], opts),
             Tensor::from_slice(&[500i64]),
         )
+    }
+
+    /// Every parameter's gradient of `Σ out · weights` after a plain or a checkpointed backward.
+    fn gradients(
+        vs: &nn::VarStore,
+        model: &CogVideoXTransformer3DModel,
+        input: &TransformerInput,
+        weights: &Tensor,
+        checkpointed: bool,
+        seed: i64,
+    ) -> (f64, f64, BTreeMap<String, Option<Tensor>>) {
+        for (_, v) in vs.variables() {
+            let mut g = v.grad();
+            if g.defined() {
+                let _ = g.zero_();
+            }
+        }
+        tch::manual_seed(seed);
+        let loss = if checkpointed {
+            let (out, tape) = model.forward_checkpointed(input, true).unwrap();
+            let loss = out.f_mul(weights).unwrap().sum(Kind::Float);
+            loss.backward();
+            tape.backward().unwrap();
+            loss
+        } else {
+            let loss = model.forward(input, true).unwrap().f_mul(weights).unwrap().sum(Kind::Float);
+            loss.backward();
+            loss
+        };
+        // The generator continues as after the plain forward.
+        let next = Tensor::randn([1], (Kind::Float, Device::Cpu)).double_value(&[0]);
+        let grads = vs
+            .variables()
+            .into_iter()
+            .map(|(name, v)| {
+                let g = v.grad();
+                (name, g.defined().then(|| g.copy()))
+            })
+            .collect();
+        (loss.double_value(&[]), next, grads)
+    }
+
+    /// Checkpointed gradients equal the plain backward's (fp32, relative 1e-5 of each
+    /// gradient's largest entry: only the summation order differs), with dropout on too, whose
+    /// masks must replay identically in the recomputed blocks.
+    #[test]
+    fn checkpointed_backward_gives_the_plain_gradients() {
+        // tch's generator is one per process and other tests draw from it on other threads; the
+        // dropout replay checked here needs it alone, so the test runs in a child process.
+        const ALONE: &str = "COGNVS_TEST_ALONE";
+        if std::env::var_os(ALONE).is_none() {
+            let module = module_path!().split_once("::").map_or(module_path!(), |(_, rest)| rest);
+            let name = format!("{module}::checkpointed_backward_gives_the_plain_gradients");
+            let output = std::process::Command::new(std::env::current_exe().unwrap())
+                .args(["--exact", &name, "--test-threads=1", "--nocapture"])
+                .env(ALONE, "1")
+                .output()
+                .unwrap();
+            let stdout = String::from_utf8_lossy(&output.stdout);
+            assert!(
+                output.status.success() && stdout.contains("1 passed"),
+                "{stdout}{}",
+                String::from_utf8_lossy(&output.stderr)
+            );
+            return;
+        }
+        for dropout in [0.0, 0.2] {
+            let c = CogVideoXTransformer3DModelConfig {
+                num_layers: 3,
+                dropout,
+                ..CogVideoXTransformer3DModelConfig::tiny()
+            };
+            tch::manual_seed(11);
+            let (vs, model) = build(&c, Device::Cpu, Kind::Float).unwrap();
+            let (x, text, t) = input_for(&c, 3);
+            let weights = Tensor::randn([1, 3, 16, c.sample_height, c.sample_width], (Kind::Float, Device::Cpu));
+            let input = TransformerInput {
+                hidden_states: &x,
+                encoder_hidden_states: &text,
+                timestep: &t,
+                ofs: None,
+                image_rotary_emb: None,
+            };
+            let (plain_loss, plain_next, plain) = gradients(&vs, &model, &input, &weights, false, 5);
+            let (checkpointed_loss, checkpointed_next, checkpointed) =
+                gradients(&vs, &model, &input, &weights, true, 5);
+            assert_eq!(plain_loss, checkpointed_loss, "dropout {dropout}: the forwards differ");
+            assert_eq!(plain_next, checkpointed_next, "dropout {dropout}: the generator continues elsewhere");
+            assert_eq!(plain.len(), checkpointed.len());
+            let mut with_gradient = 0;
+            for (name, g) in &plain {
+                let (g, h) = match (g, &checkpointed[name]) {
+                    (Some(g), Some(h)) => (g, h),
+                    (None, None) => continue,
+                    _ => panic!("dropout {dropout}: {name} has a gradient in one backward only"),
+                };
+                with_gradient += 1;
+                let scale = g.abs().max().double_value(&[]).max(1e-12);
+                let diff = (g - h).abs().max().double_value(&[]);
+                assert!(diff <= 1e-5 * scale, "dropout {dropout}: {name}: gradients differ by {diff} (scale {scale})");
+            }
+            let trainable = vs.trainable_variables().len();
+            assert_eq!(with_gradient, trainable, "dropout {dropout}: every trainable variable has a gradient");
+        }
     }
 
     #[test]

@@ -37,25 +37,100 @@ use crate::error::{Error, Result};
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct DataConfig {
-    /// Frames per sample (CogVideoX: 4k + 1, 49 in the paper).
+    /// Frames per sample (CogVideoX: 4k + 1, 49 in the paper). Valid: 1 to [`MAX_FRAMES`], and
+    /// k·r + 1 for the VAE's temporal compression r (checked against the model by
+    /// `PretrainConfig::validate`).
     pub frames: usize,
-    /// Training height in pixels.
+    /// Training height in pixels. Valid: 1 to [`MAX_SIDE`], a multiple of the VAE's spatial
+    /// compression × the transformer's patch size (8 × 2 = 16 for CogVideoX), and the learned
+    /// positional table's height when the transformer has one.
     pub height: u32,
-    /// Training width in pixels.
+    /// Training width in pixels. Valid: as `height`.
     pub width: u32,
-    /// Samples per batch (per rank).
+    /// Samples per batch (per rank). Valid: 1 to [`MAX_BATCH_SIZE`], and one batch's decoded
+    /// tensors within [`MAX_BATCH_BYTES`].
     pub batch_size: usize,
-    /// Seed of the order, trajectory and window choices.
+    /// Seed of the order, trajectory and window choices. Valid: any.
     pub seed: u64,
-    /// This process's rank.
+    /// This process's rank. Valid: below `world_size`.
     #[serde(default)]
     pub rank: usize,
-    /// Number of ranks.
+    /// Number of ranks. Valid: ≥ 1.
     #[serde(default = "one")]
     pub world_size: usize,
-    /// Batches decoded ahead of the trainer.
+    /// Batches decoded ahead of the trainer. Valid: 1 to [`MAX_PREFETCH_BATCHES`].
     #[serde(default = "two")]
     pub prefetch_batches: usize,
+}
+
+/// Most frames per sample: 1 + 4·256, far beyond CogVideoX's 49 (1.5: 81); more is a typo that
+/// would allocate gigabytes per sample.
+pub const MAX_FRAMES: usize = 1025;
+/// Largest training side in pixels (an 8K frame; the paper trains at 480 × 720).
+pub const MAX_SIDE: u32 = 8192;
+/// Most samples per batch and rank (the paper: 8).
+pub const MAX_BATCH_SIZE: usize = 1024;
+/// Most batches decoded ahead.
+pub const MAX_PREFETCH_BATCHES: usize = 64;
+/// Bytes of one batch's decoded tensors may not exceed this (64 GiB): target, condition (3 fp32
+/// channels each) and mask (1) per pixel, checked before anything is allocated.
+pub const MAX_BATCH_BYTES: u64 = 64 << 30;
+/// fp32 bytes per pixel of a sample: 3 target + 3 condition + 1 mask channels.
+const SAMPLE_BYTES_PER_PIXEL: u64 = 7 * 4;
+
+impl DataConfig {
+    /// Checks each field against its documented range; fields are named `data.<key>` as in the
+    /// training TOML and `source_name` names the config.
+    pub fn validate(&self, source_name: &str) -> Result<()> {
+        let bad = |field: &str, reason: String| Error::InvalidConfig {
+            source_name: source_name.to_string(),
+            field: format!("data.{field}"),
+            reason,
+        };
+        if !(1..=MAX_FRAMES).contains(&self.frames) {
+            return Err(bad("frames", format!("{} must be in 1..={MAX_FRAMES}", self.frames)));
+        }
+        for (field, value) in [("height", self.height), ("width", self.width)] {
+            if !(1..=MAX_SIDE).contains(&value) {
+                return Err(bad(field, format!("{value} must be in 1..={MAX_SIDE}")));
+            }
+        }
+        if !(1..=MAX_BATCH_SIZE).contains(&self.batch_size) {
+            return Err(bad("batch_size", format!("{} must be in 1..={MAX_BATCH_SIZE}", self.batch_size)));
+        }
+        let bytes = self.batch_size as u64
+            * self.frames as u64
+            * u64::from(self.height)
+            * u64::from(self.width)
+            * SAMPLE_BYTES_PER_PIXEL;
+        if bytes > MAX_BATCH_BYTES {
+            return Err(bad(
+                "batch_size",
+                format!(
+                    "{} samples of {} frames of {}x{} need {} GiB per batch, above the {} GiB ceiling",
+                    self.batch_size,
+                    self.frames,
+                    self.width,
+                    self.height,
+                    bytes >> 30,
+                    MAX_BATCH_BYTES >> 30
+                ),
+            ));
+        }
+        if self.world_size == 0 {
+            return Err(bad("world_size", "0 must be ≥ 1".to_string()));
+        }
+        if self.rank >= self.world_size {
+            return Err(bad("rank", format!("{} must be below world_size {}", self.rank, self.world_size)));
+        }
+        if !(1..=MAX_PREFETCH_BATCHES).contains(&self.prefetch_batches) {
+            return Err(bad(
+                "prefetch_batches",
+                format!("{} must be in 1..={MAX_PREFETCH_BATCHES}", self.prefetch_batches),
+            ));
+        }
+        Ok(())
+    }
 }
 
 fn one() -> usize {
@@ -114,11 +189,24 @@ impl ClipIndex {
                 shards.push(dir.clone());
                 continue;
             }
-            let entries = std::fs::read_dir(dir).map_err(|source| Error::Io { path: dir.clone(), source })?;
-            let mut found: Vec<PathBuf> = entries
+            let entries = std::fs::read_dir(dir).map_err(|source| Error::Io { path: dir.clone(), error: source })?;
+            let (mut found, unfinished): (Vec<PathBuf>, Vec<PathBuf>) = entries
                 .filter_map(|e| e.ok().map(|e| e.path()))
-                .filter(|p| p.extension().is_some_and(|e| e == "parquet") && schemas::is_finished(p))
-                .collect();
+                .filter(|p| p.extension().is_some_and(|e| e == "parquet"))
+                .partition(|p| schemas::is_finished(p));
+            if found.is_empty() {
+                // Each folder must hold shards: one empty folder among several is a wrong path.
+                let reason = match unfinished.first() {
+                    None => "no *.parquet shards in this folder (a datagen pairs/build output folder?)".to_string(),
+                    Some(example) => format!(
+                        "no finished shards: {} *.parquet without a stats marker (unfinished or not \
+                         datagen shards), e.g. {}",
+                        unfinished.len(),
+                        example.display()
+                    ),
+                };
+                return Err(Error::Io { path: dir.clone(), error: std::io::Error::other(reason) });
+            }
             found.sort();
             shards.extend(found);
         }
@@ -128,10 +216,13 @@ impl ClipIndex {
             clips.extend((0..rows).map(|row| ClipRef { shard, row }));
         }
         if clips.is_empty() {
-            let names: Vec<String> = dirs.iter().map(|d| d.display().to_string()).collect();
+            let names: Vec<String> = shards.iter().map(|d| d.display().to_string()).collect();
             return Err(Error::InvalidArgument {
                 name: "shards".to_string(),
-                reason: format!("no clips in finished shards under {}", names.join(", ")),
+                reason: format!(
+                    "no clips in {}",
+                    if names.is_empty() { "(no shards given)".to_string() } else { names.join(", ") }
+                ),
             });
         }
         Ok(Self { shards, clips })
@@ -183,12 +274,7 @@ struct Plan {
 impl Plan {
     fn new(index: Arc<ClipIndex>, config: DataConfig) -> Result<Self> {
         let bad = |name: &str, reason: String| Error::InvalidArgument { name: name.to_string(), reason };
-        if config.world_size == 0 || config.rank >= config.world_size {
-            return Err(bad("rank", format!("{} is not below world_size {}", config.rank, config.world_size)));
-        }
-        if config.frames == 0 || config.batch_size == 0 || config.height == 0 || config.width == 0 {
-            return Err(bad("data", "frames, batch_size, height and width must be positive".to_string()));
-        }
+        config.validate("data config")?;
         let per_rank = index.len() / config.world_size;
         let batches_per_epoch = (per_rank / config.batch_size) as u64;
         if batches_per_epoch == 0 {
@@ -249,8 +335,9 @@ fn decode_png(bytes: &[u8], clip: &str, field: String) -> Result<image::DynamicI
         .map_err(|e| Error::InvalidArgument { name: format!("{clip}: {field}"), reason: format!("not a PNG: {e}") })
 }
 
-/// Scales `image` to cover `width × height` (keeping its aspect) and crops the centre.
-fn cover_crop<P: image::Pixel<Subpixel = u8> + 'static>(
+/// Scales `image` to cover `width × height` (keeping its aspect) and crops the centre: how the
+/// loader brings every clip to the training resolution (sampling does the same to conditionings).
+pub fn cover_crop<P: image::Pixel<Subpixel = u8> + 'static>(
     image: &image::ImageBuffer<P, Vec<u8>>,
     width: u32,
     height: u32,
@@ -342,7 +429,7 @@ impl ShardLoader {
             std::thread::Builder::new()
                 .name("cognvs-data".to_string())
                 .spawn(move || produce(plan, start, sender, stop))
-                .map_err(|source| Error::Io { path: PathBuf::from("<data loader thread>"), source })?
+                .map_err(|source| Error::Io { path: PathBuf::from("<data loader thread>"), error: source })?
         };
         Ok(Self { receiver: Some(receiver), stop, worker: Some(worker), next: start, batches_per_epoch })
     }

@@ -22,6 +22,13 @@ pub trait DiffusersConfig: DeserializeOwned {
     /// Keys the struct does not know, as parsed.
     fn extra(&self) -> &BTreeMap<String, serde_json::Value>;
 
+    /// Values diffusers accepts and this port computes the way diffusers does, but which do not
+    /// mean what they say (a ratio the levels cannot give): printed as warnings when a file is
+    /// read, never refused.
+    fn warnings(&self) -> Vec<String> {
+        Vec::new()
+    }
+
     /// Keys that are neither fields nor diffusers metadata (`_…`).
     fn unknown_keys(&self) -> Vec<&str> {
         self.extra().keys().filter(|k| !k.starts_with('_')).map(String::as_str).collect()
@@ -39,26 +46,66 @@ pub trait DiffusersConfig: DeserializeOwned {
     }
 }
 
-/// Parses and validates a config; `source_name` names it in errors.
+/// Parses and validates a config; `source_name` names it in errors. A value of the wrong type
+/// is reported with its key (`field `block_out_channels``), not only a line and column.
 pub fn parse<T: DiffusersConfig>(json: &str, source_name: &str) -> Result<T> {
-    let config: T = serde_json::from_str(json).map_err(|e| Error::InvalidConfig {
-        source_name: source_name.to_string(),
-        field: "(json)".to_string(),
-        reason: e.to_string(),
-    })?;
+    let bad =
+        |field: String, reason: String| Error::InvalidConfig { source_name: source_name.to_string(), field, reason };
+    let value: serde_json::Value = serde_json::from_str(json).map_err(|e| bad("(json)".to_string(), e.to_string()))?;
+    let config: T = match T::deserialize(&value) {
+        Ok(config) => config,
+        Err(e) => {
+            let message = e.to_string();
+            return Err(match offending_key::<T>(&value, &message) {
+                Some(key) => {
+                    let found = value.get(&key).map(|v| v.to_string()).unwrap_or_default();
+                    bad(key, format!("{message} (found {found})"))
+                }
+                None => bad("(json)".to_string(), message),
+            });
+        }
+    };
     config.validate(source_name)?;
     Ok(config)
 }
 
-/// Reads a config file (or the [`DiffusersConfig::FILE_NAME`] in a folder); unknown keys are
-/// printed to stderr as a warning.
+/// The key a deserialisation error is about: the field a "missing field" message names, else the
+/// first top-level key whose value alone does not deserialise (every diffusers config struct
+/// fills the other fields with defaults, so a one-key object isolates the bad value; JSON
+/// positions do not, since flattened structs are buffered before they are read).
+fn offending_key<T: DeserializeOwned>(value: &serde_json::Value, message: &str) -> Option<String> {
+    if let Some(missing) = message.strip_prefix("missing field `").and_then(|m| m.split('`').next()) {
+        return Some(missing.to_string());
+    }
+    let object = value.as_object()?;
+    object.iter().find_map(|(key, v)| {
+        let alone = serde_json::Value::Object(serde_json::Map::from_iter([(key.clone(), v.clone())]));
+        T::deserialize(&alone).err().filter(|e| !e.to_string().starts_with("missing field")).map(|_| key.clone())
+    })
+}
+
+/// Reads a config file (or the [`DiffusersConfig::FILE_NAME`] in a folder); unknown keys and
+/// [`DiffusersConfig::warnings`] are printed to stderr.
 pub fn read<T: DiffusersConfig>(path: &Path) -> Result<T> {
-    let path = if path.is_dir() { path.join(T::FILE_NAME) } else { path.to_path_buf() };
-    let json = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), source })?;
-    let name = path.display().to_string();
-    let config: T = parse(&json, &name)?;
-    for key in config.unknown_keys() {
-        eprintln!("warning: {name}: unknown {} config key `{key}` (kept, not used)", T::KIND);
+    let (config, warnings) = read_quiet::<T>(path)?;
+    for warning in warnings {
+        eprintln!("warning: {warning}");
     }
     Ok(config)
+}
+
+/// [`read`] returning the warnings instead of printing them (for checks that run before the
+/// file is read again to build the model, so each warning is printed once).
+pub fn read_quiet<T: DiffusersConfig>(path: &Path) -> Result<(T, Vec<String>)> {
+    let path = if path.is_dir() { path.join(T::FILE_NAME) } else { path.to_path_buf() };
+    let json = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), error: source })?;
+    let name = path.display().to_string();
+    let config: T = parse(&json, &name)?;
+    let mut warnings: Vec<String> = config
+        .unknown_keys()
+        .iter()
+        .map(|key| format!("{name}: unknown {} config key `{key}` (kept, not used)", T::KIND))
+        .collect();
+    warnings.extend(config.warnings().into_iter().map(|w| format!("{name}: {w}")));
+    Ok((config, warnings))
 }

@@ -8,12 +8,13 @@ use std::path::PathBuf;
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// A file could not be read or written.
-    #[error("{path}: {source}")]
+    #[error("{path}: {error}")]
     Io {
         /// The file involved.
         path: PathBuf,
-        /// The operating-system error.
-        source: std::io::Error,
+        /// The operating-system error. In the message, and not exposed as the error's source,
+        /// so that `{:#}` chains print it once.
+        error: std::io::Error,
     },
     /// A configuration (diffusers `config.json`, scheduler config, training TOML) is invalid.
     #[error("{source_name}: field `{field}`: {reason}")]
@@ -64,6 +65,16 @@ pub enum Error {
         count: usize,
         /// One of them.
         example: String,
+    },
+    /// An input file (a frame, a video, a shard folder) does not fit what it is used for.
+    #[error("{path}: {what}: {reason}")]
+    InvalidInput {
+        /// The file or folder at fault.
+        path: PathBuf,
+        /// What in it (`frame size`, `frame count`).
+        what: String,
+        /// What was expected and found.
+        reason: String,
     },
     /// A function argument is out of range or inconsistent.
     #[error("argument `{name}`: {reason}")]

@@ -89,10 +89,7 @@ pub struct ForwardReport {
 /// Runs the request: config → model (shapes checked against the checkpoint's headers before
 /// anything is allocated) → weights → forward → `out`.
 pub fn run(request: &ForwardRequest) -> Result<ForwardReport> {
-    let mut file: BTreeMap<String, Tensor> = Tensor::read_safetensors(&request.inputs)
-        .map_err(|e| Error::Safetensors { path: request.inputs.clone(), reason: e.to_string() })?
-        .into_iter()
-        .collect();
+    let mut file: BTreeMap<String, Tensor> = weights::read_safetensors(&request.inputs)?;
     let mut inputs = Vec::new();
     for &name in request.module.input_names() {
         let tensor = file.remove(name).ok_or_else(|| Error::InvalidArgument {
@@ -103,6 +100,10 @@ pub fn run(request: &ForwardRequest) -> Result<ForwardReport> {
                 request.module.input_names().join(", ")
             ),
         })?;
+        // Timesteps may be integers (diffusers takes both); every other input is a float tensor.
+        if name != "timestep" {
+            weights::check_floating(&request.inputs, name, &tensor)?;
+        }
         let tensor = if tensor.is_floating_point() { tensor.f_to_kind(request.kind)? } else { tensor };
         inputs.push(tensor.f_to_device(request.device)?);
     }
@@ -128,6 +129,8 @@ pub fn run(request: &ForwardRequest) -> Result<ForwardReport> {
             }
             Module::VaeEncoder | Module::VaeDecoder => {
                 let config = AutoencoderKLCogVideoXConfig::from_json_file(&request.config)?;
+                // Truncated or mislabelled weight files fail before the model is allocated.
+                weights::read_checkpoint_info(&request.weights)?;
                 let (vs, mut model) = vae::build(&config, request.device, request.kind)?;
                 weights::load(&vs, &request.weights)?;
                 if request.tiling {
@@ -147,7 +150,7 @@ pub fn run(request: &ForwardRequest) -> Result<ForwardReport> {
     let output = output.f_to_kind(Kind::Float)?.f_to_device(Device::Cpu)?.f_contiguous()?;
     let name = request.module.output_name();
     if let Some(parent) = request.out.parent().filter(|p| !p.as_os_str().is_empty()) {
-        std::fs::create_dir_all(parent).map_err(|source| Error::Io { path: parent.to_path_buf(), source })?;
+        std::fs::create_dir_all(parent).map_err(|source| Error::Io { path: parent.to_path_buf(), error: source })?;
     }
     Tensor::write_safetensors(&[(name, &output)], &request.out)
         .map_err(|e| Error::Safetensors { path: request.out.clone(), reason: e.to_string() })?;

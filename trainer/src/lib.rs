@@ -11,6 +11,7 @@ pub mod diffusers_config;
 pub mod embeddings;
 pub mod error;
 pub mod forward;
+pub mod lora;
 pub mod metrics;
 pub mod normalization;
 pub mod sampling;

@@ -38,6 +38,23 @@ enum Command {
     /// Test-time finetuning: build the video's own self-supervised pairs in-process (datagen
     /// library) and finetune a checkpoint on them.
     Finetune(FinetuneArgs),
+    /// Merge a LoRA file into a base transformer and write the full diffusers transformer folder
+    /// (config.json + diffusion_pytorch_model.safetensors).
+    MergeLora(MergeLoraArgs),
+}
+
+#[derive(Debug, Args)]
+struct MergeLoraArgs {
+    /// Base transformer: a diffusers folder, a checkpoint with transformer/, or a LoRA run's
+    /// checkpoint (its base is found in the run).
+    #[arg(long)]
+    base: PathBuf,
+    /// The LoRA file (pytorch_lora_weights.safetensors: ours, diffusers' or peft's layout).
+    #[arg(long)]
+    lora: PathBuf,
+    /// Output transformer folder.
+    #[arg(long)]
+    out: PathBuf,
 }
 
 #[derive(Debug, Args)]
@@ -52,7 +69,7 @@ struct FinetuneArgs {
     #[arg(long)]
     out: PathBuf,
     /// Optimizer steps.
-    #[arg(long, default_value_t = 200)]
+    #[arg(long, default_value_t = 200, value_parser = clap::value_parser!(u64).range(1..))]
     steps: u64,
     /// Sampled trajectories per clip.
     #[arg(long, default_value_t = 2)]
@@ -60,6 +77,9 @@ struct FinetuneArgs {
     /// Training TOML overriding the init run's settings.
     #[arg(long)]
     config: Option<PathBuf>,
+    /// A LoRA file (pytorch_lora_weights.safetensors) merged into the init transformer first.
+    #[arg(long)]
+    lora: Option<PathBuf>,
     /// Compute device: cpu, cuda or cuda:N.
     #[arg(long, default_value = "cpu")]
     device: String,
@@ -67,13 +87,17 @@ struct FinetuneArgs {
 
 #[derive(Debug, Args)]
 struct SampleArgs {
-    /// Checkpoint folder (RUN/checkpoints/step-N, with transformer/) or a transformer folder.
+    /// Checkpoint folder (RUN/checkpoints/step-N, with transformer/ or a LoRA run's adapters) or a
+    /// transformer folder.
     #[arg(long)]
     ckpt: PathBuf,
+    /// A LoRA file (pytorch_lora_weights.safetensors) merged into the checkpoint's transformer.
+    #[arg(long)]
+    lora: Option<PathBuf>,
     /// Conditioning: a `datagen render` folder, a folder of frames, or a video (4k+1 frames).
     #[arg(long)]
     cond: PathBuf,
-    /// Output video (mp4).
+    /// Output: a video (.mp4), or a folder of lossless PNG frames (any other path).
     #[arg(long)]
     out: PathBuf,
     /// Denoising steps.
@@ -114,6 +138,9 @@ struct PretrainArgs {
     /// Continue the run in --out from its latest checkpoint.
     #[arg(long)]
     resume: bool,
+    /// Optimizer steps in all, overriding the config's `loop.steps`.
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
+    steps: Option<u64>,
     /// Compute device: cpu, cuda or cuda:N.
     #[arg(long, default_value = "cpu")]
     device: String,
@@ -183,6 +210,11 @@ fn main() -> anyhow::Result<()> {
         Command::Pretrain(args) => run_pretrain(args),
         Command::Sample(args) => run_sample(args),
         Command::Finetune(args) => run_finetune(args),
+        Command::MergeLora(args) => {
+            let merged = trainer::lora::merge_lora(&args.base, &args.lora, &args.out)?;
+            println!("merged {merged} adapted layers into {}", args.out.display());
+            Ok(())
+        }
     }
 }
 
@@ -209,6 +241,7 @@ fn run_finetune(args: FinetuneArgs) -> anyhow::Result<()> {
         steps: args.steps,
         trajectories: args.trajectories,
         config: args.config,
+        lora: args.lora,
     };
     let summary = trainer::training::finetune(&request, device, |m| show_step(&bar, m))?;
     bar.finish_and_clear();
@@ -224,6 +257,7 @@ fn run_finetune(args: FinetuneArgs) -> anyhow::Result<()> {
 fn run_sample(args: SampleArgs) -> anyhow::Result<()> {
     let request = trainer::sampling::SampleRequest {
         checkpoint: args.ckpt,
+        lora: args.lora,
         vae: args.vae,
         text_embedding: args.text_embedding,
         negative_text_embedding: args.negative_text_embedding,
@@ -234,7 +268,7 @@ fn run_sample(args: SampleArgs) -> anyhow::Result<()> {
         seed: args.seed,
         device: forward::parse_device(&args.device)?,
     };
-    let report = trainer::sampling::sample(&request).context("trainer sample")?;
+    let report = trainer::sampling::sample(&request)?;
     println!(
         "wrote {} ({} frames, {}x{}) after {} steps in {:.1} s",
         args.out.display(),
@@ -249,7 +283,10 @@ fn run_sample(args: SampleArgs) -> anyhow::Result<()> {
 
 fn run_pretrain(args: PretrainArgs) -> anyhow::Result<()> {
     use trainer::training;
-    let config = training::PretrainConfig::from_toml_file(&args.config)?;
+    let mut config = training::PretrainConfig::from_toml_file(&args.config)?;
+    if let Some(steps) = args.steps {
+        config.train.steps = steps;
+    }
     let device = forward::parse_device(&args.device)?;
     let bar = step_bar(config.train.steps);
     let summary = training::pretrain(&config, &args.shards, &args.out, args.resume, device, |m| show_step(&bar, m))?;
@@ -265,14 +302,7 @@ fn run_pretrain(args: PretrainArgs) -> anyhow::Result<()> {
 }
 
 fn run_eval(args: EvalArgs) -> anyhow::Result<()> {
-    use trainer::metrics;
-    let pred = metrics::read_frames(&args.pred).with_context(|| format!("--pred {}", args.pred.display()))?;
-    let target = metrics::read_frames(&args.target).with_context(|| format!("--target {}", args.target.display()))?;
-    let masks = match &args.mask {
-        Some(dir) => Some(metrics::read_masks(dir).with_context(|| format!("--mask {}", dir.display()))?),
-        None => None,
-    };
-    let result = metrics::video_metrics(&pred, &target, masks.as_deref())?;
+    let result = trainer::metrics::evaluate(&args.pred, &args.target, args.mask.as_deref())?;
     let json = serde_json::to_string_pretty(&result)?;
     if let Some(out) = &args.out {
         std::fs::write(out, &json).with_context(|| format!("writing {}", out.display()))?;
@@ -297,9 +327,8 @@ fn run_forward(args: ForwardArgs) -> anyhow::Result<()> {
         device: forward::parse_device(&args.device)?,
         tiling: args.tiling,
     };
-    let report = forward::run(&request).with_context(|| {
-        format!("trainer forward --module {}", args.module.to_possible_value().expect("no skipped values").get_name())
-    })?;
+    // No context line: the library's error names the file and tensor on the first line.
+    let report = forward::run(&request)?;
     for (name, shape) in &report.inputs {
         println!("input  {name}: {shape:?}");
     }

@@ -5,6 +5,8 @@
 //! [0, 1]. The masked variants restrict the mean to co-visible pixels: PSNR from the MSE over
 //! them, SSIM as the mean of the SSIM map over them (inside the same border).
 
+use std::path::{Path, PathBuf};
+
 use image::{GrayImage, RgbImage};
 use serde::Serialize;
 
@@ -188,23 +190,128 @@ pub fn video_metrics(pred: &[RgbImage], target: &[RgbImage], masks: Option<&[Gra
 }
 
 /// Frames of a video file (decoded with FFmpeg) or of a folder of PNG/JPEG images (sorted by name).
-pub fn read_frames(path: &std::path::Path) -> Result<Vec<RgbImage>> {
+pub fn read_frames(path: &Path) -> Result<Vec<RgbImage>> {
+    Ok(read_named_frames(path)?.frames)
+}
+
+/// Frames with where each came from, for messages.
+#[derive(Debug, Clone)]
+pub struct NamedFrames {
+    /// The frames.
+    pub frames: Vec<RgbImage>,
+    /// Per frame: its image file, or the video file (`sources[i]`) with `frame i`.
+    pub sources: Vec<PathBuf>,
+    /// Whether the frames come from one video file (then `sources` repeat it).
+    pub from_video: bool,
+    /// The video's frame rate (0 for image folders).
+    pub fps: f64,
+}
+
+impl NamedFrames {
+    /// `file` or `file frame i`.
+    pub fn name(&self, i: usize) -> String {
+        match (self.from_video, self.sources.get(i)) {
+            (true, Some(p)) => format!("{} frame {i}", p.display()),
+            (false, Some(p)) => p.display().to_string(),
+            (_, None) => format!("frame {i}"),
+        }
+    }
+
+    /// The common frame size, or an error naming the first frame that differs from frame 0
+    /// (both files and sizes).
+    pub fn uniform_size(&self) -> Result<(u32, u32)> {
+        let size = self.frames.first().map_or((0, 0), |f| f.dimensions());
+        if let Some(i) = self.frames.iter().position(|f| f.dimensions() != size) {
+            let (w, h) = self.frames[i].dimensions();
+            return Err(Error::InvalidInput {
+                path: self.sources[i].clone(),
+                what: "frame size".to_string(),
+                reason: format!("{} is {w}x{h} but {} is {}x{}", self.name(i), self.name(0), size.0, size.1),
+            });
+        }
+        Ok(size)
+    }
+}
+
+/// [`read_frames`] keeping each frame's file.
+pub fn read_named_frames(path: &Path) -> Result<NamedFrames> {
     if path.is_file() {
-        return Ok(datagen::video::decode_video(path)?.frames);
+        let video = datagen::video::decode_video(path)?;
+        let sources = vec![path.to_path_buf(); video.frames.len()];
+        return Ok(NamedFrames { frames: video.frames, sources, from_video: true, fps: video.fps });
     }
     let images = sorted_images(path)?;
     if images.is_empty() {
-        return Err(Error::InvalidArgument {
-            name: path.display().to_string(),
+        return Err(Error::InvalidInput {
+            path: path.to_path_buf(),
+            what: "frames".to_string(),
             reason: "neither a video file nor a folder of PNG/JPEG frames".to_string(),
         });
     }
-    Ok(datagen::sequence::read_frames(&images)?)
+    let frames = datagen::sequence::read_frames(&images)?;
+    Ok(NamedFrames { frames, sources: images, from_video: false, fps: 0.0 })
+}
+
+/// `trainer eval`: reads the predicted and target videos (and masks) and compares them. Frame
+/// counts and sizes must agree within and between the inputs; errors name the files and sizes.
+pub fn evaluate(pred: &Path, target: &Path, mask: Option<&Path>) -> Result<VideoMetrics> {
+    let pred = read_named_frames(pred)?;
+    let target_frames = read_named_frames(target)?;
+    let (pred_size, target_size) = (pred.uniform_size()?, target_frames.uniform_size()?);
+    if pred.frames.len() != target_frames.frames.len() {
+        return Err(Error::InvalidInput {
+            path: pred.sources.first().cloned().unwrap_or_default(),
+            what: "frame count".to_string(),
+            reason: format!(
+                "pred has {} frames, target has {} ({})",
+                pred.frames.len(),
+                target_frames.frames.len(),
+                target.display()
+            ),
+        });
+    }
+    if pred_size != target_size {
+        return Err(Error::InvalidInput {
+            path: pred.sources[0].clone(),
+            what: "frame size".to_string(),
+            reason: format!(
+                "pred {} is {}x{} but target {} is {}x{}",
+                pred.name(0),
+                pred_size.0,
+                pred_size.1,
+                target_frames.name(0),
+                target_size.0,
+                target_size.1
+            ),
+        });
+    }
+    let masks = match mask {
+        Some(dir) => {
+            let files = sorted_images(dir)?;
+            let masks = read_masks(dir)?;
+            if let Some(i) = masks.iter().position(|m| m.dimensions() != target_size) {
+                let (w, h) = masks[i].dimensions();
+                return Err(Error::InvalidInput {
+                    path: files[i].clone(),
+                    what: "mask size".to_string(),
+                    reason: format!(
+                        "{w}x{h}, but target {} is {}x{}",
+                        target_frames.name(0),
+                        target_size.0,
+                        target_size.1
+                    ),
+                });
+            }
+            Some(masks)
+        }
+        None => None,
+    };
+    video_metrics(&pred.frames, &target_frames.frames, masks.as_deref())
 }
 
 /// Masks from a folder of PNGs (sorted by name; non-zero = co-visible), as `datagen inspect
 /// --export` writes them (`mask/%05d.png`) or `datagen render` (`holes/`, inverted there).
-pub fn read_masks(dir: &std::path::Path) -> Result<Vec<GrayImage>> {
+pub fn read_masks(dir: &Path) -> Result<Vec<GrayImage>> {
     sorted_images(dir)?
         .iter()
         .map(|p| {
@@ -215,9 +322,9 @@ pub fn read_masks(dir: &std::path::Path) -> Result<Vec<GrayImage>> {
         .collect()
 }
 
-fn sorted_images(dir: &std::path::Path) -> Result<Vec<std::path::PathBuf>> {
-    let entries = std::fs::read_dir(dir).map_err(|source| Error::Io { path: dir.to_path_buf(), source })?;
-    let mut paths: Vec<std::path::PathBuf> = entries
+fn sorted_images(dir: &Path) -> Result<Vec<PathBuf>> {
+    let entries = std::fs::read_dir(dir).map_err(|source| Error::Io { path: dir.to_path_buf(), error: source })?;
+    let mut paths: Vec<PathBuf> = entries
         .filter_map(|e| e.ok().map(|e| e.path()))
         .filter(|p| {
             p.extension()

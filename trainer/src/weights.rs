@@ -22,6 +22,7 @@ use serde::Serialize;
 use tch::{Device, Kind, Tensor, nn};
 
 use crate::error::{Error, Result};
+use crate::lora::{LoraAdapter, LoraConfig};
 
 /// File name of a single-file checkpoint (diffusers' `SAFETENSORS_WEIGHTS_NAME`).
 pub const WEIGHTS_NAME: &str = "diffusion_pytorch_model.safetensors";
@@ -46,29 +47,39 @@ pub enum ParamInit {
     Const(f64),
 }
 
-/// Where a module's variables go: a path in a [`nn::VarStore`] and whether to allocate them.
+/// Where a module's variables go: a path in a [`nn::VarStore`] and whether to allocate them,
+/// and, for LoRA training, the same path in the adapters' store with the adapter settings.
 #[derive(Clone)]
 pub struct Vars<'a> {
     path: nn::Path<'a>,
     shapes_only: bool,
+    lora: Option<(nn::Path<'a>, &'a LoraConfig)>,
 }
 
 impl<'a> Vars<'a> {
     /// Variables allocated and initialised in `path`'s store.
     pub fn new(path: nn::Path<'a>) -> Self {
-        Self { path, shapes_only: false }
+        Self { path, shapes_only: false, lora: None }
+    }
+
+    /// These variables, with LoRA adapters (`{module}.lora_A.weight`, `lora_B.weight`) created in
+    /// `adapters` for every linear layer `config` targets.
+    pub fn with_lora(self, adapters: nn::Path<'a>, config: &'a LoraConfig) -> Self {
+        Self { lora: Some((adapters, config)), ..self }
     }
 
     /// Shape-only placeholders: every variable is one element broadcast to its shape, so a module
     /// tree of any size costs a few bytes per variable. Such a module lists names and shapes
     /// ([`nn::VarStore::variables`]) but must not be run.
     pub fn shapes_only(path: nn::Path<'a>) -> Self {
-        Self { path, shapes_only: true }
+        Self { path, shapes_only: true, lora: None }
     }
 
     /// The variables of a sub-module (`vars.sub("attn1")`).
     pub fn sub<T: std::string::ToString>(&self, name: T) -> Vars<'a> {
-        Vars { path: self.path.sub(name), shapes_only: self.shapes_only }
+        let name = name.to_string();
+        let lora = self.lora.as_ref().map(|(path, config)| (path.sub(&name), *config));
+        Vars { path: self.path.sub(&name), shapes_only: self.shapes_only, lora }
     }
 
     /// The device variables live on.
@@ -109,7 +120,15 @@ impl<'a> Vars<'a> {
     pub fn linear(&self, in_dim: i64, out_dim: i64, bias: bool) -> Result<Linear> {
         let weight = self.param("weight", &[out_dim, in_dim], ParamInit::FanInUniform(in_dim))?;
         let bias = if bias { Some(self.param("bias", &[out_dim], ParamInit::FanInUniform(in_dim))?) } else { None };
-        Ok(Linear { weight, bias })
+        let module = self.path.path("weight");
+        let module = module.strip_suffix(".weight").unwrap_or(&module);
+        let lora = match &self.lora {
+            Some((adapters, config)) if config.targets(module) => {
+                Some(LoraAdapter::new(adapters, config, in_dim, out_dim, self.shapes_only)?)
+            }
+            _ => None,
+        };
+        Ok(Linear { weight, bias, lora })
     }
 
     /// `nn.LayerNorm(dim, eps, elementwise_affine)`.
@@ -135,12 +154,17 @@ impl<'a> Vars<'a> {
 pub struct Linear {
     weight: Tensor,
     bias: Option<Tensor>,
+    lora: Option<LoraAdapter>,
 }
 
 impl Linear {
-    /// `x · Wᵀ + b` over the last dimension.
+    /// `x · Wᵀ + b` over the last dimension, plus the LoRA adapter's term where there is one.
     pub fn forward(&self, xs: &Tensor) -> Result<Tensor> {
-        Ok(xs.f_linear(&self.weight, self.bias.as_ref())?)
+        let out = xs.f_linear(&self.weight, self.bias.as_ref())?;
+        match &self.lora {
+            Some(adapter) => Ok(out.f_add(&adapter.forward(xs)?)?),
+            None => Ok(out),
+        }
     }
 
     /// The weight, `[out, in]`.
@@ -197,7 +221,7 @@ pub fn checkpoint_files(path: &Path) -> Result<(Vec<PathBuf>, PathBuf)> {
         if !index.is_file() {
             return Err(Error::Io {
                 path: path.to_path_buf(),
-                source: std::io::Error::new(
+                error: std::io::Error::new(
                     std::io::ErrorKind::NotFound,
                     format!("no {WEIGHTS_NAME} or {WEIGHTS_INDEX_NAME} in this folder"),
                 ),
@@ -209,7 +233,7 @@ pub fn checkpoint_files(path: &Path) -> Result<(Vec<PathBuf>, PathBuf)> {
     } else {
         return Ok((vec![path.to_path_buf()], path.to_path_buf()));
     };
-    let text = std::fs::read_to_string(&index).map_err(|source| Error::Io { path: index.clone(), source })?;
+    let text = std::fs::read_to_string(&index).map_err(|source| Error::Io { path: index.clone(), error: source })?;
     let json: serde_json::Value = serde_json::from_str(&text)
         .map_err(|e| Error::Safetensors { path: index.clone(), reason: format!("index is not JSON: {e}") })?;
     let map = json.get("weight_map").and_then(|m| m.as_object()).ok_or_else(|| Error::Safetensors {
@@ -228,23 +252,34 @@ pub fn checkpoint_files(path: &Path) -> Result<(Vec<PathBuf>, PathBuf)> {
     Ok((files.into_iter().collect(), index))
 }
 
+/// Largest safetensors header read (the `safetensors` crate's own limit, 100 MB).
+const MAX_HEADER_BYTES: u64 = 100_000_000;
+
 /// Reads the header (names, dtypes, shapes) of one safetensors file without reading its data.
+/// Every tensor's `data_offsets` are checked against its dtype and shape and against the file's
+/// length, so a truncated file fails here, naming the file and the first tensor it cuts, before
+/// any model is built or any data read.
 pub fn read_header(file: &Path) -> Result<BTreeMap<String, TensorInfo>> {
     let bad = |reason: String| Error::Safetensors { path: file.to_path_buf(), reason };
-    let io = |source| Error::Io { path: file.to_path_buf(), source };
+    let io = |source| Error::Io { path: file.to_path_buf(), error: source };
     let mut f = std::fs::File::open(file).map_err(io)?;
-    let mut len = [0u8; 8];
-    f.read_exact(&mut len).map_err(io)?;
-    let len = u64::from_le_bytes(len);
     let file_len = f.metadata().map_err(io)?.len();
-    if len > file_len.saturating_sub(8) {
-        return Err(bad(format!("header length {len} exceeds the file size {file_len}")));
+    let mut len = [0u8; 8];
+    f.read_exact(&mut len)
+        .map_err(|_| bad(format!("{file_len} bytes: too short for the 8-byte header length (not safetensors)")))?;
+    let len = u64::from_le_bytes(len);
+    if len > file_len.saturating_sub(8) || len > MAX_HEADER_BYTES {
+        return Err(bad(format!(
+            "header length {len} exceeds the file size {file_len} (truncated, or not safetensors)"
+        )));
     }
     let mut header = vec![0u8; len as usize];
     f.read_exact(&mut header).map_err(io)?;
     let json: BTreeMap<String, serde_json::Value> =
         serde_json::from_slice(&header).map_err(|e| bad(format!("header is not JSON: {e}")))?;
+    let data_len = file_len - 8 - len;
     let mut out = BTreeMap::new();
+    let mut extents = Vec::new();
     for (name, entry) in json {
         if name == "__metadata__" {
             continue;
@@ -253,9 +288,55 @@ pub fn read_header(file: &Path) -> Result<BTreeMap<String, TensorInfo>> {
             .map_err(|e| bad(format!("tensor `{name}`: bad dtype: {e}")))?;
         let shape: Vec<i64> = serde_json::from_value(entry.get("shape").cloned().unwrap_or_default())
             .map_err(|e| bad(format!("tensor `{name}`: bad shape: {e}")))?;
+        let [begin, end]: [u64; 2] = serde_json::from_value(entry.get("data_offsets").cloned().unwrap_or_default())
+            .map_err(|e| bad(format!("tensor `{name}`: bad data_offsets: {e}")))?;
+        let bits = shape
+            .iter()
+            .try_fold(dtype.bitsize() as u64, |acc, &d| u64::try_from(d).ok().and_then(|d| acc.checked_mul(d)))
+            .ok_or_else(|| bad(format!("tensor `{name}`: shape {shape:?} is negative or too large")))?;
+        let bytes = bits.div_ceil(8);
+        if end < begin || end - begin != bytes {
+            return Err(bad(format!(
+                "tensor `{name}`: data_offsets [{begin}, {end}] do not hold {bytes} bytes of {dtype:?} {shape:?}"
+            )));
+        }
+        if end > data_len {
+            return Err(bad(format!(
+                "tensor `{name}`: data ends at byte {end} of the data section, but the file holds only {data_len} \
+                 ({file_len} bytes in all: truncated)"
+            )));
+        }
+        extents.push((begin, end, name.clone()));
         out.insert(name, TensorInfo { dtype, shape, file: file.to_path_buf() });
     }
+    extents.sort();
+    if let Some(pair) = extents.windows(2).find(|w| w[1].0 < w[0].1) {
+        return Err(bad(format!("tensors `{}` and `{}` overlap", pair[0].2, pair[1].2)));
+    }
     Ok(out)
+}
+
+/// Reads every tensor of a safetensors file (inputs, text embeddings) after [`read_header`]'s
+/// checks, so a truncated or malformed file is an error naming it and the tensor, never a
+/// libtorch exception.
+pub fn read_safetensors(file: &Path) -> Result<BTreeMap<String, Tensor>> {
+    read_header(file)?;
+    Ok(Tensor::read_safetensors(file)
+        .map_err(|e| Error::Safetensors { path: file.to_path_buf(), reason: e.to_string() })?
+        .into_iter()
+        .collect())
+}
+
+/// Checks that `tensor` (named `name`, from `file`) holds floating-point values.
+pub fn check_floating(file: &Path, name: &str, tensor: &Tensor) -> Result<()> {
+    if tensor.is_floating_point() {
+        return Ok(());
+    }
+    Err(Error::DtypeDevice {
+        tensor: format!("{name}` in `{}", file.display()),
+        expected: "a floating-point dtype (F32, F16, BF16, F64)".to_string(),
+        actual: format!("{:?}", tensor.kind()),
+    })
 }
 
 /// Names, dtypes and shapes of every tensor of a checkpoint (folder, file or index).
@@ -330,7 +411,7 @@ pub fn load(vs: &nn::VarStore, path: &Path) -> Result<usize> {
     let mut variables = vs.variables();
     let mut loaded = 0;
     for file in &files {
-        let bytes = std::fs::read(file).map_err(|source| Error::Io { path: file.clone(), source })?;
+        let bytes = std::fs::read(file).map_err(|source| Error::Io { path: file.clone(), error: source })?;
         let tensors = SafeTensors::deserialize(&bytes)
             .map_err(|e| Error::Safetensors { path: file.clone(), reason: e.to_string() })?;
         tch::no_grad(|| -> Result<()> {
@@ -415,7 +496,7 @@ pub fn save_tensors<C: Serialize>(
     dir: &Path,
     max_shard_bytes: u64,
 ) -> Result<()> {
-    std::fs::create_dir_all(dir).map_err(|source| Error::Io { path: dir.to_path_buf(), source })?;
+    std::fs::create_dir_all(dir).map_err(|source| Error::Io { path: dir.to_path_buf(), error: source })?;
     let mut json = serde_json::to_value(config)
         .map_err(|e| Error::InvalidArgument { name: "config".to_string(), reason: format!("cannot serialise: {e}") })?;
     if let Some(map) = json.as_object_mut() {

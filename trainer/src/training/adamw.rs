@@ -125,19 +125,29 @@ impl AdamW {
         self.step
     }
 
-    pub(super) fn save(&self, path: &Path) -> Result<()> {
-        let mut named: Vec<(String, &Tensor)> = Vec::new();
-        for (i, (name, _)) in self.params.iter().enumerate() {
-            named.push((format!("exp_avg.{name}"), &self.exp_avg[i]));
-            named.push((format!("exp_avg_sq.{name}"), &self.exp_avg_sq[i]));
+    /// Writes the moments and the step count, and with `with_params` the parameters' own fp32
+    /// values (`param.{name}`; the master copies in mixed precision), for runs whose parameters
+    /// are saved nowhere else exactly (LoRA adapters).
+    pub(super) fn save(&self, path: &Path, with_params: bool) -> Result<()> {
+        let mut named: Vec<(String, Tensor)> = Vec::new();
+        let masters = self.master_weights();
+        for (i, (name, param)) in self.params.iter().enumerate() {
+            named.push((format!("exp_avg.{name}"), self.exp_avg[i].shallow_clone()));
+            named.push((format!("exp_avg_sq.{name}"), self.exp_avg_sq[i].shallow_clone()));
+            if with_params {
+                let value = masters.as_ref().map_or_else(|| param.shallow_clone(), |m| m[i].1.shallow_clone());
+                named.push((format!("param.{name}"), value.f_to_kind(Kind::Float)?.f_detach()?));
+            }
         }
-        let step = Tensor::from_slice(&[self.step as i64]);
-        named.push(("step".to_string(), &step));
-        Tensor::write_safetensors(&named, path)
+        named.push(("step".to_string(), Tensor::from_slice(&[self.step as i64])));
+        let refs: Vec<(&str, &Tensor)> = named.iter().map(|(n, t)| (n.as_str(), t)).collect();
+        Tensor::write_safetensors(&refs, path)
             .map_err(|e| Error::Safetensors { path: path.to_path_buf(), reason: e.to_string() })
     }
 
-    pub(super) fn load(&mut self, path: &Path) -> Result<()> {
+    /// Reads what [`Self::save`] wrote; with `with_params` also copies the saved parameter
+    /// values into the parameters (before any master copies are taken).
+    pub(super) fn load(&mut self, path: &Path, with_params: bool) -> Result<()> {
         let tensors: BTreeMap<String, Tensor> = Tensor::read_safetensors(path)
             .map_err(|e| Error::Safetensors { path: path.to_path_buf(), reason: e.to_string() })?
             .into_iter()
@@ -154,6 +164,10 @@ impl AdamW {
         for (i, (name, p)) in self.params.iter().enumerate() {
             self.exp_avg[i] = get(&format!("exp_avg.{name}"), p)?;
             self.exp_avg_sq[i] = get(&format!("exp_avg_sq.{name}"), p)?;
+            if with_params {
+                let value = get(&format!("param.{name}"), p)?;
+                tch::no_grad(|| p.shallow_clone().f_copy_(&value))?;
+            }
         }
         self.step = tensors.get("step").map(|t| t.int64_value(&[0]) as u64).unwrap_or(0);
         Ok(())

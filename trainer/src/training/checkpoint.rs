@@ -56,25 +56,34 @@ pub(super) fn save_checkpoint(
     let temp = dir.join(format!(".tmp-step-{:08}", state.step));
     let io = |path: &Path| {
         let path = path.to_path_buf();
-        move |source| Error::Io { path, source }
+        move |source| Error::Io { path, error: source }
     };
     let _ = std::fs::remove_dir_all(&temp);
     std::fs::create_dir_all(&temp).map_err(io(&temp))?;
     // fp32 throughout: a mixed-precision run's master weights replace its bf16 parameters.
-    let mut variables: BTreeMap<String, Tensor> = model.vs.variables().into_iter().collect();
-    variables.extend(optimizer.master_weights().into_iter().flatten());
-    let variables = variables
-        .into_iter()
-        .map(|(name, t)| Ok((name, if t.is_floating_point() { t.f_to_kind(Kind::Float)? } else { t })))
-        .collect::<Result<_>>()?;
-    weights::save_tensors(
-        variables,
-        model.transformer.config(),
-        transformer::CLASS_NAME,
-        &temp.join("transformer"),
-        weights::DEFAULT_MAX_SHARD_BYTES,
-    )?;
-    optimizer.save(&temp.join("optimizer.safetensors"))?;
+    let masters: BTreeMap<String, Tensor> = optimizer.master_weights().into_iter().flatten().collect();
+    match (&model.lora_vs, &model.lora) {
+        (Some(lora_vs), Some(lora)) => {
+            crate::lora::save(lora_vs, &masters, lora.scale(), &temp.join(crate::lora::LORA_WEIGHTS_NAME))?;
+        }
+        _ => {
+            let mut variables: BTreeMap<String, Tensor> = model.vs.variables().into_iter().collect();
+            variables.extend(masters);
+            let variables = variables
+                .into_iter()
+                .map(|(name, t)| Ok((name, if t.is_floating_point() { t.f_to_kind(Kind::Float)? } else { t })))
+                .collect::<Result<_>>()?;
+            weights::save_tensors(
+                variables,
+                model.transformer.config(),
+                transformer::CLASS_NAME,
+                &temp.join("transformer"),
+                weights::DEFAULT_MAX_SHARD_BYTES,
+            )?;
+        }
+    }
+    // A LoRA run keeps its adapters' exact values here too (the LoRA file holds B scaled).
+    optimizer.save(&temp.join("optimizer.safetensors"), model.lora_vs.is_some())?;
     let json = serde_json::to_vec_pretty(state).expect("state serialises");
     std::fs::write(temp.join("state.json"), json).map_err(io(&temp))?;
     let _ = std::fs::remove_dir_all(&final_dir);

@@ -6,8 +6,12 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind};
 
+use crate::autoencoder_kl_cogvideox::AutoencoderKLCogVideoXConfig;
+use crate::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
 use crate::data::DataConfig;
+use crate::diffusers_config;
 use crate::error::{Error, Result};
+use crate::lora::LoraConfig;
 
 /// Which models to train and with what.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -15,36 +19,45 @@ use crate::error::{Error, Result};
 pub struct ModelConfig {
     /// Transformer: a preset (`tiny`, `cognvs-5b`, `cogvideox-2b`) or a `config.json` file, both
     /// random init, or a diffusers model folder (config.json + weights) to start from.
+    /// Valid: a preset name or an existing file/folder; `in_channels` twice and `out_channels`
+    /// once the VAE's `latent_channels`.
     pub transformer: String,
     /// VAE: a preset (`tiny` random init with `seed`, `cogvideox-5b`) or a diffusers model folder.
+    /// Valid: a preset name or an existing folder.
     pub vae: String,
     /// Optional safetensors file with `encoder_hidden_states` `[S, D]`: the empty prompt's text
-    /// embedding. Zeros when unset.
+    /// embedding. Zeros when unset. Valid: an existing file (its shape is checked at load).
     #[serde(default)]
     pub text_embedding: Option<PathBuf>,
+    /// Optional LoRA file (`pytorch_lora_weights.safetensors`, ours or another diffusers/peft
+    /// trainer's) merged into the transformer's weights once they are loaded: training starts
+    /// from base + adapter. Valid: an existing file whose adapters fit the transformer (checked
+    /// at load, naming the key and both shapes).
+    #[serde(default)]
+    pub transformer_lora: Option<PathBuf>,
 }
 
 /// AdamW and its schedule (paper: lr 2e-5, β = (0.9, 0.95)).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct OptimConfig {
-    /// Peak learning rate.
+    /// Peak learning rate. Valid: finite, in (0, 1].
     pub lr: f64,
-    /// First-moment decay.
+    /// First-moment decay. Valid: [0, 1).
     pub beta1: f64,
-    /// Second-moment decay.
+    /// Second-moment decay. Valid: [0, 1).
     pub beta2: f64,
-    /// Decoupled weight decay.
+    /// Decoupled weight decay. Valid: finite, in [0, 1].
     pub weight_decay: f64,
-    /// Denominator epsilon.
+    /// Denominator epsilon. Valid: finite, > 0.
     pub eps: f64,
-    /// Linear warm-up steps from 0 to `lr`.
+    /// Linear warm-up steps from 0 to `lr`. Valid: any (0: none).
     pub warmup_steps: u64,
-    /// After warm-up: `constant` or `cosine` (to 0 at the last step).
+    /// After warm-up: `constant` or `cosine` (to 0 at the last step). Valid: those two.
     pub schedule: String,
-    /// Gradient-norm clip (0: none).
+    /// Gradient-norm clip (0: none). Valid: finite, ≥ 0.
     pub max_grad_norm: f64,
-    /// Micro-batches accumulated per optimizer step.
+    /// Micro-batches accumulated per optimizer step. Valid: ≥ 1.
     pub grad_accumulation: u64,
 }
 
@@ -68,28 +81,35 @@ impl Default for OptimConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct LoopConfig {
-    /// Optimizer steps in all (a resumed run continues up to this).
+    /// Optimizer steps in all (a resumed run continues up to this). Valid: ≥ 1.
     pub steps: u64,
-    /// Seed of model init and of every per-step draw.
+    /// Seed of model init and of every per-step draw. Valid: any.
     pub seed: u64,
-    /// Steps between checkpoints (and one at the end).
+    /// Steps between checkpoints (and one at the end). Valid: ≥ 1.
     pub checkpoint_every: u64,
-    /// Checkpoints kept.
+    /// Checkpoints kept. Valid: ≥ 1.
     pub keep_last: usize,
-    /// Mean of log σ of the condition noise augmentation.
+    /// Mean of log σ of the condition noise augmentation. Valid: finite, in
+    /// [−[`MAX_ABS_LOG_SIGMA`], [`MAX_ABS_LOG_SIGMA`]].
     pub condition_noise_log_mean: f64,
-    /// Standard deviation of log σ.
+    /// Standard deviation of log σ. Valid: finite, in [0, [`MAX_ABS_LOG_SIGMA`]].
     pub condition_noise_log_std: f64,
     /// Steps between validation samples (0: none): the first pair of the data is sampled from
     /// its conditioning into `RUN/samples/step-N/` (`sample.mp4`, `contact_sheet.png` with
-    /// target | conditioning | sample rows).
+    /// target | conditioning | sample rows). Valid: any.
     pub validate_every: u64,
-    /// Denoising steps of a validation sample.
+    /// Denoising steps of a validation sample. Valid: 1 to the scheduler's 1000 training
+    /// timesteps.
     pub validation_steps: usize,
     /// A folder caching VAE latents per pair (see [`LatentCache`]); none when unset.
+    /// Valid: any path (created when missing).
     pub latent_cache: Option<PathBuf>,
-    /// Arithmetic of the transformer and the VAE.
+    /// Arithmetic of the transformer and the VAE. Valid: `auto`, `fp32`, `bf16`.
     pub precision: Precision,
+    /// Activation checkpointing per transformer block: the forward keeps only each block's
+    /// input and the backward recomputes one block at a time, so activation memory is one
+    /// block's instead of all of them, for about one more forward of compute. Same gradients.
+    pub gradient_checkpointing: bool,
 }
 
 /// Training arithmetic.
@@ -132,6 +152,7 @@ impl Default for LoopConfig {
             validation_steps: 20,
             latent_cache: None,
             precision: Precision::Auto,
+            gradient_checkpointing: false,
         }
     }
 }
@@ -150,41 +171,387 @@ pub struct PretrainConfig {
     /// Loop.
     #[serde(default, rename = "loop")]
     pub train: LoopConfig,
+    /// LoRA adapters: when the section is present, only adapters on the targeted linear layers
+    /// of the transformer train (the base stays frozen) and checkpoints hold
+    /// `pytorch_lora_weights.safetensors` instead of `transformer/`.
+    #[serde(default)]
+    pub lora: Option<LoraConfig>,
+}
+
+/// Largest |log σ| of the condition noise augmentation: σ = e^±30 is already far outside any
+/// useful noise level for videos in [−1, 1] (the paper uses log σ ~ N(−3, 0.5)), and larger
+/// values overflow to 0 or inf in fp32.
+pub const MAX_ABS_LOG_SIGMA: f64 = 30.0;
+/// Largest peak learning rate accepted: AdamW steps are ~`lr` per parameter, so above 1 every
+/// weight jumps by more than its own scale in one step (the paper uses 2e-5).
+pub const MAX_LR: f64 = 1.0;
+
+impl PretrainConfig {
+    /// Reads and checks a TOML config (see [`Self::validate`]). Errors name the file and the key
+    /// as written in it (`optim.lr`, `data.height`), with the value or the parser's complaint.
+    pub fn from_toml_file(path: &Path) -> Result<Self> {
+        let text =
+            std::fs::read_to_string(path).map_err(|source| Error::Io { path: path.to_path_buf(), error: source })?;
+        let source_name = path.display().to_string();
+        let config: Self = toml::from_str(&text).map_err(|e| toml_error(&text, &source_name, &e))?;
+        config.validate(&source_name)?;
+        Ok(config)
+    }
+
+    /// Checks every field against its documented range and the combinations the models need
+    /// (frames, height and width multiples of the VAE's compression and the transformer's patch,
+    /// the learned positional table's size, latent channels), resolving the model configs
+    /// (presets or `config.json` files; no weights are read). `source_name` names the config in
+    /// errors; fields are named as in the TOML (`loop.steps`). Called by
+    /// [`Self::from_toml_file`] and by [`super::pretrain`] before anything is written.
+    pub fn validate(&self, source_name: &str) -> Result<()> {
+        let bad = |field: &str, reason: String| Error::InvalidConfig {
+            source_name: source_name.to_string(),
+            field: field.to_string(),
+            reason,
+        };
+        if let Some(lora) = &self.lora {
+            lora.validate(source_name)?;
+        }
+        self.model.validate(source_name)?;
+        let o = &self.optim;
+        if !(o.lr.is_finite() && o.lr > 0.0 && o.lr <= MAX_LR) {
+            return Err(bad("optim.lr", format!("{} must be finite and in (0, {MAX_LR}]", o.lr)));
+        }
+        for (field, value) in [("optim.beta1", o.beta1), ("optim.beta2", o.beta2)] {
+            if !(0.0..1.0).contains(&value) {
+                return Err(bad(field, format!("{value} must be in [0, 1)")));
+            }
+        }
+        if !(o.eps.is_finite() && o.eps > 0.0) {
+            return Err(bad("optim.eps", format!("{} must be finite and > 0", o.eps)));
+        }
+        if !(0.0..=1.0).contains(&o.weight_decay) {
+            return Err(bad("optim.weight_decay", format!("{} must be in [0, 1]", o.weight_decay)));
+        }
+        if !["constant", "cosine"].contains(&o.schedule.as_str()) {
+            return Err(bad("optim.schedule", format!("`{}` must be `constant` or `cosine`", o.schedule)));
+        }
+        if !(o.max_grad_norm.is_finite() && o.max_grad_norm >= 0.0) {
+            return Err(bad(
+                "optim.max_grad_norm",
+                format!("{} must be finite and ≥ 0 (0: no clipping)", o.max_grad_norm),
+            ));
+        }
+        let t = &self.train;
+        for (field, value) in [
+            ("optim.grad_accumulation", o.grad_accumulation),
+            ("loop.steps", t.steps),
+            ("loop.checkpoint_every", t.checkpoint_every),
+            ("loop.keep_last", t.keep_last as u64),
+        ] {
+            if value == 0 {
+                return Err(bad(field, "0 must be ≥ 1".to_string()));
+            }
+        }
+        if !(t.condition_noise_log_mean.is_finite() && t.condition_noise_log_mean.abs() <= MAX_ABS_LOG_SIGMA) {
+            return Err(bad(
+                "loop.condition_noise_log_mean",
+                format!(
+                    "{} must be finite and in [-{MAX_ABS_LOG_SIGMA}, {MAX_ABS_LOG_SIGMA}]",
+                    t.condition_noise_log_mean
+                ),
+            ));
+        }
+        if !(0.0..=MAX_ABS_LOG_SIGMA).contains(&t.condition_noise_log_std) {
+            return Err(bad(
+                "loop.condition_noise_log_std",
+                format!("{} must be in [0, {MAX_ABS_LOG_SIGMA}]", t.condition_noise_log_std),
+            ));
+        }
+        let timesteps = crate::scheduling_ddim::CogVideoXSchedulerConfig::cogvideox_5b().num_train_timesteps;
+        if t.validation_steps == 0 || t.validation_steps as i64 > timesteps {
+            return Err(bad(
+                "loop.validation_steps",
+                format!("{} must be in 1..={timesteps} (the scheduler's training timesteps)", t.validation_steps),
+            ));
+        }
+        self.data.validate(source_name)?;
+        self.check_models(source_name)
+    }
+
+    /// The data sizes and channel counts against the models they feed.
+    fn check_models(&self, source_name: &str) -> Result<()> {
+        let bad = |field: &str, reason: String| Error::InvalidConfig {
+            source_name: source_name.to_string(),
+            field: field.to_string(),
+            reason,
+        };
+        let (transformer, vae) = self.model.configs(false)?;
+        if let Some(lora) = &self.lora {
+            // Targets and rank against the transformer's layers, before any run folder exists.
+            crate::cogvideox_transformer_3d::check_lora(&transformer, lora).map_err(|e| match e {
+                Error::InvalidConfig { field, reason, .. } => {
+                    Error::InvalidConfig { source_name: source_name.to_string(), field, reason }
+                }
+                other => other,
+            })?;
+        }
+        let d = &self.data;
+        let temporal = vae.effective_temporal_compression_ratio() as usize;
+        if !(d.frames - 1).is_multiple_of(temporal) {
+            return Err(bad(
+                "data.frames",
+                format!(
+                    "{} must be {temporal}k + 1 (the VAE compresses time by {temporal} after the first frame)",
+                    d.frames
+                ),
+            ));
+        }
+        let spatial = vae.spatial_compression_ratio();
+        let multiple = spatial * transformer.patch_size;
+        for (field, value, sample) in
+            [("data.height", d.height, transformer.sample_height), ("data.width", d.width, transformer.sample_width)]
+        {
+            if i64::from(value) % multiple != 0 {
+                return Err(bad(
+                    field,
+                    format!(
+                        "{value} must be a multiple of {multiple} (the VAE's {spatial}x spatial compression \
+                         times the transformer's patch size {})",
+                        transformer.patch_size
+                    ),
+                ));
+            }
+            if transformer.use_learned_positional_embeddings && i64::from(value) != sample * spatial {
+                return Err(bad(
+                    field,
+                    format!(
+                        "{value} must be {} pixels: the transformer's learned positional table covers {sample} \
+                         latents of {spatial} pixels",
+                        sample * spatial
+                    ),
+                ));
+            }
+        }
+        if transformer.in_channels != 2 * vae.latent_channels {
+            return Err(bad(
+                "model.transformer",
+                format!(
+                    "in_channels {} must be twice the VAE's latent_channels {} (noisy + condition latents)",
+                    transformer.in_channels, vae.latent_channels
+                ),
+            ));
+        }
+        if transformer.output_channels() != vae.latent_channels {
+            return Err(bad(
+                "model.transformer",
+                format!(
+                    "out_channels {} must equal the VAE's latent_channels {}",
+                    transformer.output_channels(),
+                    vae.latent_channels
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
+
+impl ModelConfig {
+    /// The transformer's and the VAE's configs: presets, or read from their `config.json` (no
+    /// weights are read). Errors name the preset or file; with `warn`, the files' warnings
+    /// (unknown keys, inconsistent values) go to stderr.
+    pub fn configs(&self, warn: bool) -> Result<(CogVideoXTransformer3DModelConfig, AutoencoderKLCogVideoXConfig)> {
+        let mut warnings = Vec::new();
+        let transformer = match Path::new(&self.transformer) {
+            p if p.is_dir() || p.is_file() => {
+                let (config, w) = diffusers_config::read_quiet(p)?;
+                warnings.extend(w);
+                config
+            }
+            _ => CogVideoXTransformer3DModelConfig::preset(&self.transformer)?,
+        };
+        let vae = match Path::new(&self.vae) {
+            p if p.is_dir() => {
+                let (config, w) = diffusers_config::read_quiet(p)?;
+                warnings.extend(w);
+                config
+            }
+            _ => AutoencoderKLCogVideoXConfig::preset(&self.vae)?,
+        };
+        if warn {
+            for warning in warnings {
+                eprintln!("warning: {warning}");
+            }
+        }
+        Ok((transformer, vae))
+    }
+
+    fn validate(&self, source_name: &str) -> Result<()> {
+        let bad = |field: &str, reason: String| Error::InvalidConfig {
+            source_name: source_name.to_string(),
+            field: field.to_string(),
+            reason,
+        };
+        let transformer = Path::new(&self.transformer);
+        if !(transformer.is_dir() || transformer.is_file())
+            && let Err(e) = CogVideoXTransformer3DModelConfig::preset(&self.transformer)
+        {
+            return Err(bad("model.transformer", format!("neither a config file, a model folder nor a preset: {e}")));
+        }
+        if !Path::new(&self.vae).is_dir()
+            && let Err(e) = AutoencoderKLCogVideoXConfig::preset(&self.vae)
+        {
+            return Err(bad("model.vae", format!("neither a model folder nor a preset: {e}")));
+        }
+        if let Some(path) = &self.text_embedding
+            && !path.is_file()
+        {
+            return Err(bad("model.text_embedding", format!("{} is not a file", path.display())));
+        }
+        Ok(())
+    }
 }
 
 impl PretrainConfig {
-    /// Reads and checks a TOML config, naming the file and field on error.
-    pub fn from_toml_file(path: &Path) -> Result<Self> {
-        let text = std::fs::read_to_string(path).map_err(|source| Error::Io { path: path.to_path_buf(), source })?;
-        let config: Self = toml::from_str(&text).map_err(|e| Error::InvalidConfig {
-            source_name: path.display().to_string(),
-            field: "(toml)".to_string(),
-            reason: e.to_string(),
+    /// Reads a run's `config.json` (the config a run was trained with, as `trainer pretrain`
+    /// writes it). Parse errors name the file and the key path (`optim.lr`). Not validated here:
+    /// `trainer finetune` replaces its model paths first, and [`super::pretrain`] validates.
+    pub fn from_json_file(path: &Path) -> Result<Self> {
+        let text =
+            std::fs::read_to_string(path).map_err(|source| Error::Io { path: path.to_path_buf(), error: source })?;
+        let source_name = path.display().to_string();
+        let config: Self = serde_json::from_str(&text).map_err(|e| {
+            let offset = offset_of(&text, e.line(), e.column());
+            let key = json_key_at(&text, offset);
+            Error::InvalidConfig {
+                source_name: source_name.clone(),
+                field: if key.is_empty() { "(json)".to_string() } else { key },
+                reason: e.to_string(),
+            }
         })?;
-        let bad = |field: &str, reason: &str| Error::InvalidConfig {
-            source_name: path.display().to_string(),
-            field: field.to_string(),
-            reason: reason.to_string(),
-        };
-        if !["constant", "cosine"].contains(&config.optim.schedule.as_str()) {
-            return Err(bad("optim.schedule", "must be `constant` or `cosine`"));
-        }
-        if config.optim.grad_accumulation == 0 || config.train.checkpoint_every == 0 || config.train.keep_last == 0 {
-            return Err(bad(
-                "optim.grad_accumulation",
-                "grad_accumulation, checkpoint_every and keep_last must be ≥ 1",
-            ));
-        }
-        if config.data.frames == 0 || !(config.data.frames - 1).is_multiple_of(4) {
-            return Err(bad("data.frames", "must be 4k + 1 (the VAE compresses time by 4 after the first frame)"));
-        }
         Ok(config)
     }
+}
+
+/// Byte offset of a 1-based line and column (serde_json's error position).
+fn offset_of(text: &str, line: usize, column: usize) -> usize {
+    let start: usize = text.split_inclusive('\n').take(line.saturating_sub(1)).map(str::len).sum();
+    (start + column).min(text.len())
+}
+
+/// The dotted path of object keys open at byte `offset` of a JSON text (`optim.lr`): the keys
+/// of the enclosing objects and the last key read in the innermost one.
+fn json_key_at(text: &str, offset: usize) -> String {
+    // One entry per open object: the last key seen in it.
+    let mut stack: Vec<Option<String>> = Vec::new();
+    let mut chars = text[..offset.min(text.len())].char_indices().peekable();
+    let mut last_string: Option<String> = None;
+    while let Some((_, c)) = chars.next() {
+        match c {
+            '"' => {
+                let mut value = String::new();
+                while let Some((_, c)) = chars.next() {
+                    match c {
+                        '\\' => {
+                            chars.next();
+                        }
+                        '"' => break,
+                        other => value.push(other),
+                    }
+                }
+                last_string = Some(value);
+            }
+            ':' => {
+                if let Some(top) = stack.last_mut() {
+                    *top = last_string.take();
+                }
+            }
+            '{' => stack.push(None),
+            '}' => {
+                stack.pop();
+            }
+            _ => {}
+        }
+    }
+    stack.into_iter().flatten().collect::<Vec<_>>().join(".")
+}
+
+/// A TOML parse error as an [`Error::InvalidConfig`] whose field is the key at the error's
+/// position (`optim.lr`; the table for a missing key, `data.frames`), and whose reason starts
+/// with the line and column, so the first line of the message names file and key.
+fn toml_error(text: &str, source_name: &str, error: &toml::de::Error) -> Error {
+    let message = error.message().trim().replace('\n', " ");
+    let (field, place) = match error.span() {
+        Some(span) => {
+            let (line, column) = line_column(text, span.start);
+            let (table, line_key) = toml_key_at(text, span.start, span.end);
+            let key = match message.strip_prefix("missing field `").and_then(|m| m.split('`').next()) {
+                Some(missing) => [table, missing.to_string()].into_iter().filter(|k| !k.is_empty()).collect::<Vec<_>>(),
+                None => [table, line_key].into_iter().filter(|k| !k.is_empty()).collect(),
+            }
+            .join(".");
+            (key, format!("line {line}, column {column}: "))
+        }
+        None => (String::new(), String::new()),
+    };
+    Error::InvalidConfig {
+        source_name: source_name.to_string(),
+        field: if field.is_empty() { "(toml)".to_string() } else { field },
+        reason: format!("{place}{message}"),
+    }
+}
+
+/// 1-based line and column of byte `offset`.
+fn line_column(text: &str, offset: usize) -> (usize, usize) {
+    let before = &text[..offset.min(text.len())];
+    let line = before.matches('\n').count() + 1;
+    let column = before.rsplit('\n').next().map_or(0, |l| l.chars().count()) + 1;
+    (line, column)
+}
+
+/// The table header in force at byte `start` of a TOML text (`optim` under `[optim]`; empty
+/// for the root table or a span covering the whole text) and the key of that line (`lr` for
+/// `lr = …`; empty on a header, comment or blank line).
+fn toml_key_at(text: &str, start: usize, end: usize) -> (String, String) {
+    if start == 0 && end >= text.len() {
+        return (String::new(), String::new());
+    }
+    let clean = |s: &str| s.replace(['"', '\'', ' '], "");
+    let mut table = String::new();
+    let mut offset = 0;
+    for line in text.split_inclusive('\n') {
+        let trimmed = line.trim();
+        let is_here = start < offset + line.len();
+        if let Some(header) = trimmed.strip_prefix('[') {
+            table = clean(header.trim_start_matches('[').split(']').next().unwrap_or(""));
+            if is_here {
+                return (table, String::new());
+            }
+        } else if is_here {
+            let key = if trimmed.starts_with('#') || !trimmed.contains('=') {
+                String::new()
+            } else {
+                clean(trimmed.split('=').next().unwrap_or(""))
+            };
+            return (table, key);
+        }
+        offset += line.len();
+    }
+    (table, String::new())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn toml_and_json_error_positions_map_to_dotted_keys() {
+        let toml = "# comment\n[model]\nvae = \"tiny\"\n\n[optim]\nlr = \"x\"  # peak\n";
+        let at = |needle: &str| toml.find(needle).unwrap();
+        assert_eq!(toml_key_at(toml, at("\"x\""), at("\"x\"") + 3), ("optim".to_string(), "lr".to_string()));
+        assert_eq!(toml_key_at(toml, at("[optim]"), at("[optim]") + 7), ("optim".to_string(), String::new()));
+        assert_eq!(toml_key_at(toml, 0, toml.len()), (String::new(), String::new()));
+        let json = "{\n  \"data\": {\"frames\": 9},\n  \"optim\": {\n    \"beta1\": 0.9,\n    \"lr\": \"fast\"\n  }\n}";
+        assert_eq!(json_key_at(json, json.find("fast").unwrap()), "optim.lr");
+        assert_eq!(json_key_at(json, json.find("9}").unwrap()), "data.frames");
+        assert_eq!(offset_of("ab\ncd", 2, 1), 4);
+    }
 
     #[test]
     fn auto_precision_is_bf16_on_cuda_only() {

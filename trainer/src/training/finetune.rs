@@ -22,6 +22,8 @@ pub struct FinetuneRequest {
     pub trajectories: u32,
     /// Training TOML overriding the init run's settings.
     pub config: Option<PathBuf>,
+    /// A LoRA file merged into `init`'s transformer before finetuning (a base plus an adapter).
+    pub lora: Option<PathBuf>,
 }
 
 /// `trainer finetune`: test-time finetuning on one video (DESIGN §1). Its self-supervised pairs
@@ -30,19 +32,11 @@ pub struct FinetuneRequest {
 /// `init` is trained on them for `steps` steps with the init run's settings (its `config.json`,
 /// or `config` when given) and the init run's VAE. Checkpoints and metrics go to `run`.
 pub fn finetune(request: &FinetuneRequest, device: Device, progress: impl FnMut(&StepMetrics)) -> Result<RunSummary> {
-    let FinetuneRequest { init, sequence: sequence_dir, out: run, steps, trajectories, config } = request;
+    let FinetuneRequest { init, sequence: sequence_dir, out: run, steps, trajectories, config, lora: _ } = request;
     let (steps, trajectories) = (*steps, *trajectories);
     let mut config = match config {
         Some(path) => PretrainConfig::from_toml_file(path)?,
-        None => {
-            let path = init.join("../../config.json");
-            let text = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), source })?;
-            serde_json::from_str(&text).map_err(|e| Error::InvalidConfig {
-                source_name: path.display().to_string(),
-                field: "(json)".to_string(),
-                reason: e.to_string(),
-            })?
-        }
+        None => PretrainConfig::from_json_file(&init.join("../../config.json"))?,
     };
     if run.join("config.json").exists() {
         return Err(Error::InvalidArgument {
@@ -50,7 +44,26 @@ pub fn finetune(request: &FinetuneRequest, device: Device, progress: impl FnMut(
             reason: format!("{} already holds a run; choose another folder", run.display()),
         });
     }
-    config.model.transformer = crate::sampling::transformer_dir(init).display().to_string();
+    match crate::lora::lora_checkpoint(init)? {
+        // A LoRA checkpoint: its base with its adapter merged is where finetuning starts.
+        Some((base, file)) => {
+            config.model.transformer = base.display().to_string();
+            config.model.transformer_lora = Some(file);
+        }
+        None => config.model.transformer = crate::sampling::transformer_dir(init).display().to_string(),
+    }
+    if let Some(file) = &request.lora {
+        if config.model.transformer_lora.is_some() {
+            return Err(Error::InvalidArgument {
+                name: "lora".to_string(),
+                reason: format!(
+                    "{} is a LoRA checkpoint already; pass its base to combine it with another LoRA file",
+                    init.display()
+                ),
+            });
+        }
+        config.model.transformer_lora = Some(file.clone());
+    }
     config.model.vae = crate::sampling::find_vae(init, None)?.display().to_string();
     config.train.steps = steps;
     config.train.checkpoint_every = config.train.checkpoint_every.min(steps.max(1));

@@ -25,7 +25,7 @@ pub struct LatentCache {
 impl LatentCache {
     /// A cache in `dir` for `model`'s VAE and the data size.
     pub fn open(dir: &Path, model: &CogNvsModel, data: &DataConfig) -> Result<Self> {
-        std::fs::create_dir_all(dir).map_err(|source| Error::Io { path: dir.to_path_buf(), source })?;
+        std::fs::create_dir_all(dir).map_err(|source| Error::Io { path: dir.to_path_buf(), error: source })?;
         let mut hasher = blake3::Hasher::new();
         hasher.update(b"cognvs latent cache v1");
         hasher.update(serde_json::to_string(model.vae.config()).expect("config serialises").as_bytes());
@@ -87,7 +87,7 @@ impl LatentCache {
             &temp,
         )
         .map_err(|e| Error::Safetensors { path: temp.clone(), reason: e.to_string() })?;
-        std::fs::rename(&temp, &path).map_err(|source| Error::Io { path: path.clone(), source })?;
+        std::fs::rename(&temp, &path).map_err(|source| Error::Io { path: path.clone(), error: source })?;
         Ok((posterior.mean, posterior.logvar, cond))
     }
 }

@@ -6,13 +6,11 @@ use std::path::Path;
 use tch::{Device, Kind, Tensor, nn};
 
 use super::{LatentCache, ModelConfig};
-use crate::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoX, AutoencoderKLCogVideoXConfig};
-use crate::cogvideox_transformer_3d::{
-    self as transformer, CogVideoXTransformer3DModel, CogVideoXTransformer3DModelConfig, TransformerInput,
-};
+use crate::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoX};
+use crate::cogvideox_transformer_3d::{self as transformer, BlockTape, CogVideoXTransformer3DModel, TransformerInput};
 use crate::data::Batch;
-use crate::diffusers_config::DiffusersConfig;
 use crate::error::Result;
+use crate::lora::{LoraConfig, LoraFile};
 use crate::scheduling_ddim::{CogVideoXSchedulerConfig, NoiseSchedule};
 use crate::weights;
 
@@ -30,26 +28,46 @@ pub struct CogNvsModel {
     pub schedule: NoiseSchedule,
     /// `[1, S, D]` text embedding of the empty prompt (fp32).
     pub text: Tensor,
+    /// The LoRA adapters' variables when only adapters train (the base `vs` is then frozen).
+    pub lora_vs: Option<nn::VarStore>,
+    /// The adapters' settings, with `lora_vs`.
+    pub lora: Option<LoraConfig>,
     /// Element type of both models' weights and of their inputs.
     pub(super) kind: Kind,
 }
 
 impl CogNvsModel {
-    /// Builds (preset names, random init from `seed`) or loads (model folders) the models.
-    pub fn load(config: &ModelConfig, seed: u64, device: Device) -> Result<Self> {
+    /// Builds (preset names, random init from `seed`) or loads (model folders) the models; with
+    /// `lora`, adds fresh adapters (drawn after the base's initialisation) and freezes the base.
+    pub fn load(config: &ModelConfig, lora: Option<&LoraConfig>, seed: u64, device: Device) -> Result<Self> {
         tch::manual_seed(seed as i64);
-        let transformer_config = match Path::new(&config.transformer) {
-            p if p.is_dir() || p.is_file() => CogVideoXTransformer3DModelConfig::from_json_file(p)?,
-            _ => CogVideoXTransformer3DModelConfig::preset(&config.transformer)?,
+        let (transformer_config, vae_config) = config.configs(true)?;
+        // The transformer checkpoint's headers are checked before its 5B variables are allocated.
+        let transformer_dir = Path::new(&config.transformer);
+        if transformer_dir.is_dir() {
+            let found = weights::read_checkpoint_info(transformer_dir)?;
+            weights::check_against(&transformer::variable_shapes(&transformer_config)?, &found, transformer_dir)?;
+        }
+        let (mut vs, lora_vs, transformer) = match lora {
+            Some(lora) => {
+                let (vs, lora_vs, model) =
+                    transformer::build_with_lora(&transformer_config, lora, device, Kind::Float)?;
+                (vs, Some(lora_vs), model)
+            }
+            None => {
+                let (vs, model) = transformer::build(&transformer_config, device, Kind::Float)?;
+                (vs, None, model)
+            }
         };
-        let (vs, transformer) = transformer::build(&transformer_config, device, Kind::Float)?;
         if Path::new(&config.transformer).is_dir() {
             weights::load(&vs, Path::new(&config.transformer))?;
         }
-        let vae_config = match Path::new(&config.vae) {
-            p if p.is_dir() => AutoencoderKLCogVideoXConfig::from_json_file(p)?,
-            _ => AutoencoderKLCogVideoXConfig::preset(&config.vae)?,
-        };
+        if let Some(file) = &config.transformer_lora {
+            LoraFile::read(file)?.merge_into(&vs, file)?;
+        }
+        if lora_vs.is_some() {
+            vs.freeze();
+        }
         let (mut vae_vs, vae) = vae::build(&vae_config, device, Kind::Float)?;
         if Path::new(&config.vae).is_dir() {
             weights::load(&vae_vs, Path::new(&config.vae))?;
@@ -57,15 +75,23 @@ impl CogNvsModel {
         vae_vs.freeze();
         let text = crate::sampling::load_text_embedding(config.text_embedding.as_deref(), &transformer_config, device)?;
         let schedule = NoiseSchedule::new(&CogVideoXSchedulerConfig::cogvideox_5b())?;
-        Ok(Self { vs, transformer, vae_vs, vae, schedule, text, kind: Kind::Float })
+        Ok(Self { vs, transformer, vae_vs, vae, schedule, text, lora_vs, lora: lora.cloned(), kind: Kind::Float })
     }
 
     /// Casts both models' weights to `kind` (fp32 as loaded; bf16 for mixed precision, after the
     /// optimizer has taken its master copies).
     pub fn set_kind(&mut self, kind: Kind) {
         self.vs.set_kind(kind);
+        if let Some(lora_vs) = &mut self.lora_vs {
+            lora_vs.set_kind(kind);
+        }
         self.vae_vs.set_kind(kind);
         self.kind = kind;
+    }
+
+    /// The variables that train: the adapters in a LoRA run, else the whole transformer.
+    pub fn trainable(&self) -> &nn::VarStore {
+        self.lora_vs.as_ref().unwrap_or(&self.vs)
     }
 
     /// Element type of the models' weights.
@@ -96,6 +122,43 @@ impl CogNvsModel {
         noise_log_std: f64,
         cache: Option<&LatentCache>,
     ) -> Result<Tensor> {
+        Ok(self.loss_graph(batch, noise_log_mean, noise_log_std, cache, false)?.0)
+    }
+
+    /// The loss of one batch, as [`loss`](Self::loss), back-propagated with the gradient divided
+    /// by `divisor` (the micro-batches per step); returns the unscaled loss value. With
+    /// `checkpointing`, the transformer keeps only each block's input and recomputes the blocks
+    /// during the backward (see
+    /// [`forward_checkpointed`](CogVideoXTransformer3DModel::forward_checkpointed)): the same
+    /// gradients for a fraction of the activation memory.
+    pub fn loss_backward(
+        &self,
+        batch: &Batch,
+        noise_log_mean: f64,
+        noise_log_std: f64,
+        cache: Option<&LatentCache>,
+        divisor: f64,
+        checkpointing: bool,
+    ) -> Result<f64> {
+        let (loss, tape) = self.loss_graph(batch, noise_log_mean, noise_log_std, cache, checkpointing)?;
+        let value = loss.double_value(&[]);
+        if value.is_finite() {
+            loss.f_div_scalar(divisor)?.f_backward()?;
+            if let Some(tape) = tape {
+                tape.backward()?;
+            }
+        }
+        Ok(value)
+    }
+
+    fn loss_graph(
+        &self,
+        batch: &Batch,
+        noise_log_mean: f64,
+        noise_log_std: f64,
+        cache: Option<&LatentCache>,
+        checkpointing: bool,
+    ) -> Result<(Tensor, Option<BlockTape<'_>>)> {
         let device = self.text.device();
         let b = batch.target.size()[0];
         let (x0, cond) = match cache {
@@ -135,19 +198,20 @@ impl CogNvsModel {
         let xt = self.schedule.add_noise(&x0, &noise, &t)?;
         let input = Tensor::f_cat(&[&xt, &cond], 2)?.f_to_kind(self.kind)?;
         let text = self.text.f_to_kind(self.kind)?.f_expand([b, -1, -1], false)?;
-        let v = self
-            .transformer
-            .forward(
-                &TransformerInput {
-                    hidden_states: &input,
-                    encoder_hidden_states: &text,
-                    timestep: &t,
-                    ofs: None,
-                    image_rotary_emb: None,
-                },
-                true,
-            )?
-            .f_to_kind(Kind::Float)?;
+        let transformer_input = TransformerInput {
+            hidden_states: &input,
+            encoder_hidden_states: &text,
+            timestep: &t,
+            ofs: None,
+            image_rotary_emb: None,
+        };
+        let (v, tape) = if checkpointing {
+            let (v, tape) = self.transformer.forward_checkpointed(&transformer_input, true)?;
+            (v, Some(tape))
+        } else {
+            (self.transformer.forward(&transformer_input, true)?, None)
+        };
+        let v = v.f_to_kind(Kind::Float)?;
         let alphas: Vec<f64> =
             (0..b).map(|i| self.schedule.alpha_cumprod_at(t.int64_value(&[i]))).collect::<Result<_>>()?;
         let per_sample = |f: fn(f64) -> f64| -> Result<Tensor> {
@@ -158,6 +222,6 @@ impl CogNvsModel {
         let sqrt_one_minus = per_sample(|a| (1.0 - a).sqrt())?;
         let weight = per_sample(|a| 1.0 / (1.0 - a).max(1e-12))?;
         let x0_hat = xt.f_mul(&sqrt_alpha)?.f_sub(&v.f_mul(&sqrt_one_minus)?)?;
-        Ok(x0_hat.f_sub(&x0)?.f_square()?.f_mul(&weight)?.f_mean(Kind::Float)?)
+        Ok((x0_hat.f_sub(&x0)?.f_square()?.f_mul(&weight)?.f_mean(Kind::Float)?, tape))
     }
 }

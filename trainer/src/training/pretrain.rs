@@ -51,9 +51,10 @@ pub fn pretrain(
     device: Device,
     mut progress: impl FnMut(&StepMetrics),
 ) -> Result<RunSummary> {
-    // Bad shard folders fail before the run folder is touched.
+    // A bad config or bad shard folders fail before the run folder is touched.
+    config.validate("training config")?;
     crate::data::describe(shards, &config.data)?;
-    std::fs::create_dir_all(run).map_err(|source| Error::Io { path: run.to_path_buf(), source })?;
+    std::fs::create_dir_all(run).map_err(|source| Error::Io { path: run.to_path_buf(), error: source })?;
     let run_config = run.join("config.json");
     let text = serde_json::to_vec_pretty(config).expect("config serialises");
     let latest = if resume { list_checkpoints(run).pop() } else { None };
@@ -66,21 +67,53 @@ pub fn pretrain(
             ),
         });
     }
-    std::fs::write(&run_config, text).map_err(|source| Error::Io { path: run_config.clone(), source })?;
+    std::fs::write(&run_config, text).map_err(|source| Error::Io { path: run_config.clone(), error: source })?;
 
-    let mut model = CogNvsModel::load(&config.model, config.train.seed, device)?;
+    let mut model = CogNvsModel::load(&config.model, config.lora.as_ref(), config.train.seed, device)?;
     // The frozen VAE goes with the run once (sampling and finetuning find it there).
     let vae_dir = run.join("vae");
     if !vae_dir.join("config.json").exists() {
         weights::save(&model.vae_vs, model.vae.config(), vae::CLASS_NAME, &vae_dir, weights::DEFAULT_MAX_SHARD_BYTES)?;
     }
-    let mut optimizer = AdamW::new(&model.vs, config.optim.clone());
+    // A LoRA run's checkpoints hold only adapters: the base they sit on is kept once, unless it is
+    // simply the configured model folder.
+    let base_is_folder = Path::new(&config.model.transformer).is_dir() && config.model.transformer_lora.is_none();
+    let base_dir = run.join(crate::lora::BASE_TRANSFORMER_DIR);
+    if model.lora_vs.is_some() && !base_is_folder && !base_dir.join("config.json").exists() {
+        weights::save(
+            &model.vs,
+            model.transformer.config(),
+            crate::cogvideox_transformer_3d::CLASS_NAME,
+            &base_dir,
+            weights::DEFAULT_MAX_SHARD_BYTES,
+        )?;
+    }
+    let mut optimizer = AdamW::new(model.trainable(), config.optim.clone());
     let mut state = TrainState { step: 0, data_position: DataPosition::default(), seed: config.train.seed };
     if let Some((_, dir)) = &latest {
-        weights::load(&model.vs, &dir.join("transformer"))?;
-        optimizer.load(&dir.join("optimizer.safetensors"))?;
+        // A LoRA run's adapters resume from the optimizer file's exact values; its base is the
+        // configured model, loaded above.
+        let lora_file = dir.join(crate::lora::LORA_WEIGHTS_NAME);
+        match (model.lora_vs.is_some(), lora_file.is_file()) {
+            (false, false) => {
+                weights::load(&model.vs, &dir.join("transformer"))?;
+            }
+            (true, true) => {}
+            (lora, _) => {
+                return Err(Error::InvalidArgument {
+                    name: "resume".to_string(),
+                    reason: format!(
+                        "{} is a {} checkpoint but the config {} a [lora] section: resume with the run's own config",
+                        dir.display(),
+                        if lora { "full-model" } else { "LoRA" },
+                        if lora { "has" } else { "has no" }
+                    ),
+                });
+            }
+        }
+        optimizer.load(&dir.join("optimizer.safetensors"), model.lora_vs.is_some())?;
         let path = dir.join("state.json");
-        let text = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), source })?;
+        let text = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), error: source })?;
         state = serde_json::from_str(&text).map_err(|e| Error::InvalidConfig {
             source_name: path.display().to_string(),
             field: "(json)".to_string(),
@@ -99,7 +132,7 @@ pub fn pretrain(
         .create(true)
         .append(true)
         .open(run.join("metrics.jsonl"))
-        .map_err(|source| Error::Io { path: run.join("metrics.jsonl"), source })?;
+        .map_err(|source| Error::Io { path: run.join("metrics.jsonl"), error: source })?;
     let mut loader = ShardLoader::open(shards, config.data.clone(), state.data_position)?;
     let mut last_checkpoint = latest.map(|(_, d)| d);
     let accumulation = config.optim.grad_accumulation;
@@ -116,13 +149,14 @@ pub fn pretrain(
         let mut loss_sum = 0.0;
         for _ in 0..accumulation {
             let batch = loader.next_batch()?;
-            let loss = model.loss(
+            let value = model.loss_backward(
                 &batch,
                 config.train.condition_noise_log_mean,
                 config.train.condition_noise_log_std,
                 cache.as_ref(),
+                accumulation as f64,
+                config.train.gradient_checkpointing,
             )?;
-            let value = loss.double_value(&[]);
             if !value.is_finite() {
                 return Err(Error::InvalidArgument {
                     name: "loss".to_string(),
@@ -135,7 +169,6 @@ pub fn pretrain(
                 });
             }
             loss_sum += value;
-            (loss / accumulation as f64).f_backward()?;
         }
         let grad_norm = optimizer.clip_grad_norm(config.optim.max_grad_norm)?;
         let lr = learning_rate(&config.optim, state.step, config.train.steps);
@@ -150,7 +183,7 @@ pub fn pretrain(
             seconds: started.elapsed().as_secs_f64(),
         };
         writeln!(metrics_file, "{}", serde_json::to_string(&metrics).expect("metrics serialise"))
-            .map_err(|source| Error::Io { path: run.join("metrics.jsonl"), source })?;
+            .map_err(|source| Error::Io { path: run.join("metrics.jsonl"), error: source })?;
         progress(&metrics);
         if config.train.validate_every > 0 && state.step.is_multiple_of(config.train.validate_every) {
             let batch = validation.get_or_insert_with(|| {
@@ -180,7 +213,7 @@ fn write_validation_sample(
     config: &PretrainConfig,
 ) -> Result<()> {
     let dir = run.join("samples").join(format!("step-{step:08}"));
-    std::fs::create_dir_all(&dir).map_err(|source| Error::Io { path: dir.clone(), source })?;
+    std::fs::create_dir_all(&dir).map_err(|source| Error::Io { path: dir.clone(), error: source })?;
     let device = model.text.device();
     let condition = batch.condition.f_narrow(0, 0, 1)?.f_to_device(device)?;
     tch::manual_seed(step_seed(config.train.seed ^ VALIDATION_SEED, step));
@@ -202,7 +235,8 @@ fn write_validation_sample(
         picked.iter().map(|&i| vec![target[i].clone(), cond[i].clone(), sample[i].clone()]).collect();
     datagen::contact_sheet::write_contact_sheet(&dir.join("contact_sheet.png"), &rows)?;
     let provenance = serde_json::json!({ "step": step, "pair": batch.provenance[0] });
-    std::fs::write(dir.join("pair.json"), provenance.to_string()).map_err(|source| Error::Io { path: dir, source })?;
+    std::fs::write(dir.join("pair.json"), provenance.to_string())
+        .map_err(|source| Error::Io { path: dir, error: source })?;
     Ok(())
 }
 
@@ -238,7 +272,7 @@ fn rewrite_metrics(run: &Path, step: u64) -> Result<()> {
 /// Reads a run's `metrics.jsonl`.
 pub fn read_metrics(run: &Path) -> Result<Vec<StepMetrics>> {
     let path = run.join("metrics.jsonl");
-    let text = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), source })?;
+    let text = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), error: source })?;
     text.lines()
         .map(|line| {
             serde_json::from_str(line).map_err(|e| Error::InvalidConfig {

@@ -121,7 +121,7 @@ fn bad_shard_folders_are_named_errors() {
         .err()
         .unwrap()
         .to_string();
-    assert!(err.contains("no clips") && err.contains(&empty.path().display().to_string()), "{err}");
+    assert!(err.contains("no *.parquet shards") && err.contains(&empty.path().display().to_string()), "{err}");
     let err = ShardLoader::open(&dirs(), config(7, 0, 1), DataPosition::default()).err().unwrap().to_string();
     assert!(err.contains("batch_size") && err.contains("6 clips"), "{err}");
     // A Parquet file of another schema, finished with a stats marker.

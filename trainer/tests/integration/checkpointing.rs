@@ -1,0 +1,95 @@
+//! Activation checkpointing (`[loop] gradient_checkpointing`): a checkpointed run repeats the
+//! plain run's losses and weights, and the frozen VAE and text embedding hold no autograd state.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use tch::Device;
+use trainer::data::{DataPosition, ShardLoader};
+use trainer::training::{CogNvsModel, LatentCache, PretrainConfig, read_metrics};
+
+use super::parity::{read_tensors, repo_root};
+use super::pretrain::pairs;
+
+/// Relative tolerance of the losses between the two runs: only the summation order of the
+/// gradients differs (fp32).
+const TOLERANCE: f64 = 1e-5;
+/// Absolute tolerance of the final weights: AdamW divides by √v, so on parameters with tiny
+/// gradients (norm biases) a last-bit difference in the gradient becomes a relative difference
+/// of ~1e-5 in the update; 4 steps at lr 1e-3 move a weight by at most ~4e-3, of which 1e-6 is
+/// a quarter per mille.
+const WEIGHT_TOLERANCE: f64 = 1e-6;
+
+/// The tiny preset for `steps` steps, without validation samples, checkpointed or not.
+fn config(dir: &Path, steps: u64, checkpointing: bool) -> PathBuf {
+    let text = std::fs::read_to_string(repo_root().join("configs/pretrain_tiny.toml"))
+        .unwrap()
+        .replace("steps = 20", &format!("steps = {steps}"))
+        .replace("checkpoint_every = 10", &format!("checkpoint_every = {steps}"))
+        .replace("validate_every = 10", "validate_every = 0");
+    let text = format!("{text}\ngradient_checkpointing = {checkpointing}\n");
+    let path = dir.join(format!("checkpointing_{checkpointing}.toml"));
+    std::fs::write(&path, text).unwrap();
+    path
+}
+
+fn pretrain(config: &Path, shards: &Path, out: &Path) {
+    let output = Command::new(env!("CARGO_BIN_EXE_trainer"))
+        .arg("pretrain")
+        .arg("--config")
+        .arg(config)
+        .arg("--shards")
+        .arg(shards)
+        .arg("--out")
+        .arg(out)
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+}
+
+#[test]
+fn checkpointed_run_repeats_the_plain_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let shards = pairs(dir.path());
+    let steps = 4;
+    let (plain, checkpointed) = (dir.path().join("plain"), dir.path().join("checkpointed"));
+    pretrain(&config(dir.path(), steps, false), &shards, &plain);
+    pretrain(&config(dir.path(), steps, true), &shards, &checkpointed);
+    let losses = |run: &Path| read_metrics(run).unwrap().iter().map(|m| m.loss).collect::<Vec<_>>();
+    let (a, b) = (losses(&plain), losses(&checkpointed));
+    assert_eq!(a.len(), steps as usize);
+    for (step, (x, y)) in a.iter().zip(&b).enumerate() {
+        assert!((x - y).abs() <= TOLERANCE * x.abs(), "step {}: loss {x} plain, {y} checkpointed", step + 1);
+    }
+    let weights = |run: &Path| {
+        read_tensors(&run.join(format!("checkpoints/step-{steps:08}/transformer/diffusion_pytorch_model.safetensors")))
+    };
+    let (wa, wb) = (weights(&plain), weights(&checkpointed));
+    assert_eq!(wa.len(), wb.len());
+    for (name, x) in &wa {
+        let y = &wb[name];
+        let diff = (x - y).abs().max().double_value(&[]);
+        assert!(diff <= WEIGHT_TOLERANCE, "{name}: final weights differ by {diff}");
+    }
+}
+
+#[test]
+fn frozen_vae_and_text_embedding_hold_no_autograd_state() {
+    let dir = tempfile::tempdir().unwrap();
+    let shards = pairs(dir.path());
+    let config = PretrainConfig::from_toml_file(&config(dir.path(), 1, true)).unwrap();
+    let model = CogNvsModel::load(&config.model, None, 0, Device::Cpu).unwrap();
+    let mut loader = ShardLoader::open(&[shards], config.data.clone(), DataPosition::default()).unwrap();
+    let batch = loader.next_batch().unwrap();
+    let cache_dir = dir.path().join("latents");
+    for cache in [None, Some(LatentCache::open(&cache_dir, &model, &config.data).unwrap())] {
+        let value = model.loss_backward(&batch, -3.0, 0.5, cache.as_ref(), 1.0, true).unwrap();
+        assert!(value.is_finite());
+        for (name, variable) in model.vae_vs.variables() {
+            assert!(!variable.requires_grad() && !variable.grad().defined(), "VAE variable {name} holds a gradient");
+        }
+        assert!(!model.text.requires_grad() && !model.text.grad().defined(), "the text embedding holds a gradient");
+        let trained = model.vs.trainable_variables();
+        assert!(trained.iter().all(|v| v.grad().defined()), "every transformer variable receives a gradient");
+    }
+}

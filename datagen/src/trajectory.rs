@@ -308,6 +308,18 @@ pub fn crosses_depth_surface(depth: &DepthMap, camera: &PinholeCamera, from: DVe
 /// Says whether, on frame `i`, the straight path between two camera centres crosses the surface.
 pub type Crossing<'a> = &'a (dyn Fn(usize, DVec3, DVec3) -> bool + Sync);
 
+/// Whether any frame's move from its source camera to the candidate novel pose crosses the
+/// surface (the rejection test of every sampler); never, without a test.
+fn path_crosses(crosses: Option<Crossing>, poses: &[DMat4], cameras: &[PinholeCamera]) -> bool {
+    crosses.is_some_and(|crosses| {
+        poses
+            .iter()
+            .zip(cameras)
+            .enumerate()
+            .any(|(i, (pose, camera))| crosses(i, camera.center(), pose.w_axis.truncate()))
+    })
+}
+
 /// Samples trajectory `index` of the clip starting at `clip_start` (see module docs). Fails,
 /// naming the key (`trajectory.azimuth_deg`), when `config` is out of its documented ranges.
 #[allow(clippy::too_many_arguments)]
@@ -335,13 +347,7 @@ pub fn sample_trajectory(
         let elevation = controls(&mut rng, config.elevation_deg, "elevation_deg").map_err(in_config)?;
         let radius = controls(&mut rng, config.radius_frac, "radius_frac").map_err(in_config)?;
         let poses = poses_from_controls(cameras, pivot, &azimuth, &elevation, &radius);
-        let crossing = crosses.is_some_and(|crosses| {
-            poses
-                .iter()
-                .zip(cameras)
-                .enumerate()
-                .any(|(i, (pose, camera))| crosses(i, camera.center(), pose.w_axis.truncate()))
-        });
+        let crossing = path_crosses(crosses, &poses, cameras);
         if !crossing || rejected + 1 >= attempts {
             return Ok(SampledTrajectory {
                 azimuth_deg: azimuth,
@@ -451,13 +457,7 @@ pub fn sample_novel_trajectory(
             0.0
         };
         let poses = bank.compose(row, &sources, pivot, mirrored, roll_deg);
-        let crossing = crosses.is_some_and(|crosses| {
-            poses
-                .iter()
-                .zip(cameras)
-                .enumerate()
-                .any(|(i, (pose, camera))| crosses(i, camera.center(), pose.w_axis.truncate()))
-        });
+        let crossing = path_crosses(crosses, &poses, cameras);
         if !crossing || rejected + 1 >= attempts {
             return Ok(NovelTrajectory::Bank(BankTrajectory {
                 row,

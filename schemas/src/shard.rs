@@ -323,21 +323,25 @@ fn open_checked(path: &Path) -> Result<ParquetRecordBatchReaderBuilder<File>> {
             ),
         ));
     };
-    let expected = pair_schema_of_version(version);
+    check_columns(path, builder.schema(), &pair_schema_of_version(version))?;
+    Ok(builder)
+}
+
+/// Every column of `expected` is in `found` with its data type (extra columns are allowed);
+/// errors name the file and the column.
+pub(crate) fn check_columns(path: &Path, found: &Schema, expected: &Schema) -> Result<()> {
     for field in expected.fields() {
-        let found = builder
-            .schema()
-            .field_with_name(field.name())
-            .map_err(|_| Error::mismatch(path, field.name(), "column missing"))?;
-        if !found.data_type().equals_datatype(field.data_type()) {
+        let column =
+            found.field_with_name(field.name()).map_err(|_| Error::mismatch(path, field.name(), "column missing"))?;
+        if !column.data_type().equals_datatype(field.data_type()) {
             return Err(Error::mismatch(
                 path,
                 field.name(),
-                format!("expected type {}, found {}", field.data_type(), found.data_type()),
+                format!("expected type {}, found {}", field.data_type(), column.data_type()),
             ));
         }
     }
-    Ok(builder)
+    Ok(())
 }
 
 /// Reads clip `row` (0-based) of a shard, decoding only the row group that holds it.

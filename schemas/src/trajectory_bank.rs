@@ -20,7 +20,7 @@ use parquet::file::properties::WriterProperties;
 use crate::arrow_convert::{matrix_list, read_matrices};
 use crate::error::{Error, Result};
 use crate::pairs::{DOC_KEY, SCHEMA_NAME_KEY, SCHEMA_VERSION_KEY, per_frame_matrix};
-use crate::shard::write_atomic;
+use crate::shard::{check_columns, write_atomic};
 
 /// Value of [`SCHEMA_NAME_KEY`] for trajectory banks.
 pub const BANK_SCHEMA_NAME: &str = "cognvs.trajectory_bank";
@@ -194,19 +194,7 @@ pub fn read_bank(path: &Path) -> Result<Vec<BankEntry>> {
             format!("bank has version `{version}`, this reader reads version {BANK_SCHEMA_VERSION}"),
         ));
     }
-    for field in bank_schema().fields() {
-        let found = builder
-            .schema()
-            .field_with_name(field.name())
-            .map_err(|_| Error::mismatch(path, field.name(), "column missing"))?;
-        if !found.data_type().equals_datatype(field.data_type()) {
-            return Err(Error::mismatch(
-                path,
-                field.name(),
-                format!("expected type {}, found {}", field.data_type(), found.data_type()),
-            ));
-        }
-    }
+    check_columns(path, builder.schema(), &bank_schema())?;
     let mut entries = Vec::new();
     for batch in builder.build().map_err(parquet)? {
         let batch = batch.map_err(|source| Error::Arrow { path: path.to_owned(), source })?;

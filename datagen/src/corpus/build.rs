@@ -324,16 +324,17 @@ fn read_state(out: &Path, worker: Worker, repair: bool) -> Result<ExistingState>
         state.repairs.push(note);
         Ok(())
     };
+    // A temporary file is this run's to remove only when this worker wrote it.
+    let remove_temp = |path: &Path, name: &str, state: &mut ExistingState| -> Result<()> {
+        if repair && is_mine(name, worker) {
+            remove(path, format!("removed {}, a temporary file of an interrupted run", path.display()), state)?;
+        }
+        Ok(())
+    };
     for path in sorted_dir(out)? {
         let name = path.file_name().unwrap_or_default().to_string_lossy().into_owned();
         if is_temp(&name) {
-            if repair && is_mine(&name, worker) {
-                remove(
-                    &path,
-                    format!("removed {}, a temporary file of an interrupted run", path.display()),
-                    &mut state,
-                )?;
-            }
+            remove_temp(&path, &name, &mut state)?;
             continue;
         }
         if let Some(shard) = name.strip_suffix(schemas::shard::STATS_SUFFIX) {
@@ -373,13 +374,7 @@ fn read_state(out: &Path, worker: Worker, repair: bool) -> Result<ExistingState>
         for path in sorted_dir(&status)? {
             let name = path.file_name().unwrap_or_default().to_string_lossy().into_owned();
             if is_temp(&name) {
-                if repair && is_mine(&name, worker) {
-                    remove(
-                        &path,
-                        format!("removed {}, a temporary file of an interrupted run", path.display()),
-                        &mut state,
-                    )?;
-                }
+                remove_temp(&path, &name, &mut state)?;
             } else if let Some(rest) = name.strip_prefix(&status_prefix) {
                 let number = rest.trim_end_matches(".parquet").parse::<u64>().unwrap_or(0);
                 state.next_status = state.next_status.max(number + 1);

@@ -216,16 +216,7 @@ fn a_failed_input_is_retried_when_its_files_change_or_with_retry_failed() {
     assert_eq!(status["sequences/fixed_later"].status, InputStatus::Ok);
 
     // The CLI offers the forced retry; a dry run shows it.
-    let config = dir.path().join("corpus.toml");
-    std::fs::write(
-        &config,
-        format!(
-            "[[sources]]\ndataset = \"sequences\"\nroot = \"{}\"\n\n[output]\ndir = \"{}\"\n",
-            root.display(),
-            out.dir.display()
-        ),
-    )
-    .unwrap();
+    let config = sequences_config(dir.path(), &root, &out.dir);
     let dry =
         datagen().arg("build").arg("--config").arg(&config).args(["--dry-run", "--retry-failed"]).output().unwrap();
     let text = String::from_utf8_lossy(&dry.stdout);
@@ -248,16 +239,7 @@ fn a_second_build_on_a_locked_folder_and_worker_refuses_to_start() {
     let seqs = sequences(&root, &["a", "b"], |n| n.to_owned());
     let out = output(&dir.path().join("out"));
     std::fs::create_dir_all(&out.dir).unwrap();
-    let config = dir.path().join("corpus.toml");
-    std::fs::write(
-        &config,
-        format!(
-            "[[sources]]\ndataset = \"sequences\"\nroot = \"{}\"\n\n[output]\ndir = \"{}\"\n",
-            root.display(),
-            out.dir.display()
-        ),
-    )
-    .unwrap();
+    let config = sequences_config(dir.path(), &root, &out.dir);
 
     let held = lock_output(&out.dir, Worker::SOLE).unwrap();
     // A planted temporary file of the running build must survive the refused one.
@@ -367,4 +349,16 @@ fn validate_fails_on_an_empty_folder_and_on_a_marker_without_its_shard() {
     assert!(!run.status.success(), "a marker without its shard is a problem: {stdout}");
     let marker = schemas::shard::stats_path(&shard);
     assert!(stdout.contains(&format!("{}: stats marker without its shard", marker.display())), "{stdout}");
+}
+
+/// A corpus TOML building the sequence folders under `root` into `out`, written in `dir`.
+fn sequences_config(dir: &Path, root: &Path, out: &Path) -> PathBuf {
+    let config = dir.join("corpus.toml");
+    let text = format!(
+        "[[sources]]\ndataset = \"sequences\"\nroot = \"{}\"\n\n[output]\ndir = \"{}\"\n",
+        root.display(),
+        out.display()
+    );
+    std::fs::write(&config, text).unwrap();
+    config
 }

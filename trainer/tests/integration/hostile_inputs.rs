@@ -29,6 +29,23 @@ fn stderr(output: &Output) -> String {
 }
 
 /// Asserts a non-zero exit whose first error line contains every one of `needles`.
+/// `trainer forward --module vae_encoder` with the VAE folder as config and weights.
+fn encode(vae_dir: &Path, inputs: &Path, out: &Path) -> Output {
+    run(&[
+        &"forward",
+        &"--module",
+        &"vae_encoder",
+        &"--config",
+        &vae_dir,
+        &"--weights",
+        &vae_dir,
+        &"--inputs",
+        &inputs,
+        &"--out",
+        &out,
+    ])
+}
+
 fn fails_with(output: &Output, needles: &[&str]) {
     let text = stderr(output);
     let first = text.lines().find(|l| l.starts_with("Error: ")).unwrap_or_default();
@@ -277,25 +294,10 @@ fn truncated_safetensors_name_the_file_and_tensor_before_reading() {
     let weights_file = vae_dir.join(weights::WEIGHTS_NAME);
     truncate(&weights_file, 1000);
     let out = dir.path().join("out.safetensors");
-    let forward = |inputs: &Path| {
-        run(&[
-            &"forward",
-            &"--module",
-            &"vae_encoder",
-            &"--config",
-            &vae_dir,
-            &"--weights",
-            &vae_dir,
-            &"--inputs",
-            &inputs,
-            &"--out",
-            &out,
-        ])
-    };
-    fails_with(&forward(&inputs), &[&weights_file.display().to_string(), "truncated"]);
+    fails_with(&encode(&vae_dir, &inputs, &out), &[&weights_file.display().to_string(), "truncated"]);
     // Truncated inputs name the input file and tensor.
     truncate(&inputs, 100);
-    fails_with(&forward(&inputs), &[&inputs.display().to_string(), "`sample`", "truncated"]);
+    fails_with(&encode(&vae_dir, &inputs, &out), &[&inputs.display().to_string(), "`sample`", "truncated"]);
     assert!(!out.exists(), "nothing is written");
 }
 
@@ -308,19 +310,7 @@ fn integer_inputs_where_floats_are_expected_name_tensor_and_dtype() {
     Tensor::write_safetensors(&[("sample", &Tensor::zeros([1, 3, 1, 16, 16], (Kind::Int64, Device::Cpu)))], &inputs)
         .unwrap();
     let out = dir.path().join("out.safetensors");
-    let output = run(&[
-        &"forward",
-        &"--module",
-        &"vae_encoder",
-        &"--config",
-        &vae_dir,
-        &"--weights",
-        &vae_dir,
-        &"--inputs",
-        &inputs,
-        &"--out",
-        &out,
-    ]);
+    let output = encode(&vae_dir, &inputs, &out);
     fails_with(&output, &["`sample`", &inputs.display().to_string(), "Int64"]);
     assert!(!out.exists());
     // An integer text embedding (library).
@@ -365,19 +355,7 @@ fn config_json_of_wrong_types_names_file_and_key() {
     Tensor::write_safetensors(&[("sample", &Tensor::zeros([1, 3, 1, 16, 16], (Kind::Float, Device::Cpu)))], &inputs)
         .unwrap();
     let (vae_dir, out) = (ckpt.join("vae"), dir.path().join("out.safetensors"));
-    let output = run(&[
-        &"forward",
-        &"--module",
-        &"vae_encoder",
-        &"--config",
-        &vae_dir,
-        &"--weights",
-        &vae_dir,
-        &"--inputs",
-        &inputs,
-        &"--out",
-        &out,
-    ]);
+    let output = encode(&vae_dir, &inputs, &out);
     fails_with(&output, &[&vae_config.display().to_string(), "`block_out_channels`", "\"wide\""]);
     assert!(!out.exists());
     // The transformer's config.json and a run's config.json (nested keys named as a path).

@@ -4,8 +4,10 @@
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 out="${1:-out}"
-cargo build --release -p datagen --quiet
-datagen=./target/release/datagen
+# The dev profile (optimized: opt-level 2, dependencies 3) is the one the tests build too, so the
+# demo's build is not repeated by `scripts/test.sh`.
+cargo build -p datagen --quiet
+datagen=./target/debug/datagen
 echo "==> datagen synth: a ray-traced dynamic scene with exact ground truth"
 "$datagen" synth --out "$out/synth"
 echo "==> datagen pairs: 2 sampled trajectories, exact co-visibility masks, one shard"

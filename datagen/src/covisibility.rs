@@ -68,7 +68,8 @@ pub fn covisibility_mask(
             if !novel.contains(glam::DVec2::new(pixel.x, pixel.y)) {
                 continue;
             }
-            *keep = !view.segment_blocked(point, Some(index as u32), config.epsilon);
+            let projected = (glam::DVec2::new(pixel.x, pixel.y), in_novel.z);
+            *keep = !view.segment_blocked_projected(point, projected, Some(index as u32), config.epsilon);
         }
     });
     mask

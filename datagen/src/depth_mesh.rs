@@ -16,10 +16,10 @@
 //! novel camera ([`crate::view_bins`]). The obvhs CWBVH over all triangles is the alternative.
 //! Every path equals a brute-force loop over all triangles (integration tests).
 
-use std::sync::OnceLock;
+use std::sync::{Mutex, OnceLock};
 use std::time::Duration;
 
-use glam::{DVec3, Vec3A};
+use glam::{DVec2, DVec3, Vec3A};
 use obvhs::BvhBuildParams;
 use obvhs::cwbvh::CwBvh;
 use obvhs::cwbvh::builder::build_cwbvh_from_tris;
@@ -313,7 +313,9 @@ impl DepthMesh {
                 let pixel = novel.intrinsics * (in_novel / in_novel.z);
                 DVec3::new(pixel.x, pixel.y, in_novel.z)
             };
-            let projected: Vec<DVec3> = self.vertices.par_iter().map(|&v| project(v)).collect();
+            let (mut projected, mut diagonal_separates) =
+                PROJECTION_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).pop().unwrap_or_default();
+            self.vertices.par_iter().map(|&v| project(v)).collect_into_vec(&mut projected);
             // One bin entry per quad: its two triangles share most of their footprint.
             let corners = |quad: u32| {
                 let quad = quad as usize;
@@ -331,7 +333,7 @@ impl DepthMesh {
             let count = self.quads.len() as u32;
             let bins = ViewBins::new(count, corners, novel_from_world, novel.intrinsics, size, self.nearest_depth);
             // Per surface quad: whether its diagonal separates corners 0 and 3 in the image.
-            let diagonal_separates = (0..self.quads.len())
+            (0..self.quads.len())
                 .into_par_iter()
                 .map(|quad| {
                     self.quads[quad] == SURFACE && {
@@ -343,8 +345,8 @@ impl DepthMesh {
                             && view_bins::line_separates(c1, c2, c3, c0, 2.0)
                     }
                 })
-                .collect();
-            Projection { bins, diagonal_separates }
+                .collect_into_vec(&mut diagonal_separates);
+            Projection { bins, projected, diagonal_separates }
         });
         MeshView { mesh: self, eye: novel.center(), projection }
     }
@@ -446,6 +448,20 @@ fn segment_ray(from: DVec3, to: DVec3, epsilon: f64) -> Option<Ray> {
     (length > 0.0).then(|| Ray::new(to_vec3a(from), to_vec3a(offset / length), 0.0, (length * (1.0 - epsilon)) as f32))
 }
 
+/// [`segment_ray`] for triangle tests only: the same origin, direction and range, without the
+/// inverse direction (three divisions per ray) that only box tests read.
+fn segment_ray_for_triangles(from: DVec3, to: DVec3, epsilon: f64) -> Option<Ray> {
+    let offset = to - from;
+    let length = offset.length();
+    (length > 0.0).then(|| Ray {
+        origin: to_vec3a(from),
+        direction: to_vec3a(offset / length),
+        inv_direction: Vec3A::ZERO,
+        tmin: 0.0,
+        tmax: (length * (1.0 - epsilon)) as f32,
+    })
+}
+
 /// A depth mesh seen from one novel camera ([`DepthMesh::view`]): the same answers as the mesh's
 /// own queries from the camera's centre, faster for whole images of rays.
 pub struct MeshView<'a> {
@@ -458,12 +474,27 @@ pub struct MeshView<'a> {
 /// The per-view structures of the image-grid accelerator.
 struct Projection {
     bins: ViewBins,
+    /// Every vertex in the novel camera: pixel coordinates and depth (kept only to give the
+    /// allocation back to [`PROJECTION_POOL`]).
+    projected: Vec<DVec3>,
     /// Per surface quad (by its corner-0 pixel): whether, in the novel image, the diagonal shared
     /// by its two triangles separates corners 0 and 3 beyond the bins' margin. Then neither corner
     /// can be hidden by the quad's triangle opposite it ([`view_bins::line_separates`]). A source
     /// point's own four quads always reach its bin and its two opposite triangles would otherwise
     /// be most of the exact tests.
     diagonal_separates: Vec<bool>,
+}
+
+/// The per-vertex and per-quad arrays of dropped views ([`Projection`]), reused for the same
+/// reason as the bins' ([`view_bins`]): fresh image-sized allocations per view cost the kernel's
+/// page clearing.
+static PROJECTION_POOL: Mutex<Vec<(Vec<DVec3>, Vec<bool>)>> = Mutex::new(Vec::new());
+
+impl Drop for Projection {
+    fn drop(&mut self) {
+        let arrays = (std::mem::take(&mut self.projected), std::mem::take(&mut self.diagonal_separates));
+        PROJECTION_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push(arrays);
+    }
 }
 
 impl MeshView<'_> {
@@ -474,9 +505,33 @@ impl MeshView<'_> {
 
     /// [`DepthMesh::segment_blocked`] from the camera's centre to `to`.
     pub fn segment_blocked(&self, to: DVec3, exclude: Option<u32>, epsilon: f64) -> bool {
+        self.segment_blocked_with(to, exclude, epsilon, |bins, test| bins.any_towards(to, test))
+    }
+
+    /// [`Self::segment_blocked`] for a point already projected into the novel camera: `pixel` =
+    /// K · (p / p.z) and `depth` = p.z, p = `novel.camera_from_world()` applied to `to`, computed
+    /// exactly so (then the answer is the same; the point is not projected a second time).
+    pub fn segment_blocked_projected(
+        &self,
+        to: DVec3,
+        (pixel, depth): (DVec2, f64),
+        exclude: Option<u32>,
+        epsilon: f64,
+    ) -> bool {
+        self.segment_blocked_with(to, exclude, epsilon, |bins, test| bins.any_towards_projected(pixel, depth, test))
+    }
+
+    /// The query of [`Self::segment_blocked`], the bins' candidates visited by `visit`.
+    fn segment_blocked_with(
+        &self,
+        to: DVec3,
+        exclude: Option<u32>,
+        epsilon: f64,
+        visit: impl FnOnce(&ViewBins, &mut dyn FnMut(u32, bool) -> bool) -> Option<bool>,
+    ) -> bool {
         let fallback = || self.mesh.segment_blocked(self.eye, to, exclude, epsilon);
         let Some(projection) = &self.projection else { return fallback() };
-        let Some(ray) = segment_ray(self.eye, to, epsilon) else { return false };
+        let Some(ray) = segment_ray_for_triangles(self.eye, to, epsilon) else { return false };
         // The four quads around the excluded pixel reach its bin for every view. It is corner 1
         // or 2 of two of them and in both their triangles; corner 0 or 3 of the other two and in
         // one triangle, the other one missed if their diagonal separates them.
@@ -485,12 +540,12 @@ impl MeshView<'_> {
             Some(p) => ([p.wrapping_sub(1), p.wrapping_sub(width)], [p, p.wrapping_sub(width + 1)]),
             None => ([u32::MAX; 2], [u32::MAX; 2]),
         };
-        let blocks = |quad: u32, binned: bool| {
+        let mut blocks = |quad: u32, binned: bool| {
             let skipped =
                 both.contains(&quad) || (binned && one.contains(&quad) && projection.diagonal_separates[quad as usize]);
             !skipped && self.mesh.hit_quad(quad as usize, &ray, true, exclude) < ray.tmax
         };
-        projection.bins.any_towards(to, blocks).unwrap_or_else(fallback)
+        visit(&projection.bins, &mut blocks).unwrap_or_else(fallback)
     }
 
     /// [`DepthMesh::first_surface_hit`] from the camera's centre along the unit `direction`.

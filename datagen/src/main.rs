@@ -263,8 +263,9 @@ fn pairs(args: PairsArgs) -> anyhow::Result<()> {
     let (path, stats) = datagen::pairs::write_shard(&args.out, &sequence.source_id, &records, input)?;
     if args.timings {
         eprintln!(
-            "timings: read+decode+hash {read_seconds:.3} s, per-frame phase {:.3} s wall \
-             (CPU: mesh build {:.3} s, view bins + rays {:.3} s, encode {:.3} s), shard write {:.3} s",
+            "timings (wall s; phases in brackets run concurrently and overlap): [read+decode, hash] \
+             {read_seconds:.3} s, per-frame phase {:.3} s [summed over frames: mesh build {:.3} s, \
+             view bins + rays {:.3} s, encode {:.3} s], shard write {:.3} s",
             times.masks_and_encode,
             times.mesh_build,
             times.ray_cpu,
@@ -478,8 +479,8 @@ fn build(args: BuildArgs) -> anyhow::Result<()> {
         let t = processor.timings();
         println!(
             "timings: {:.3} pairs/s, {:.2} MB/s written; wall {:.1} s = hash {:.1} s + process {:.1} s + write {:.1} s; \
-             process: load (decode, reconstruction, masks) {:.1} s, per-frame phase {:.1} s wall (CPU: mesh {:.1} s, \
-             rays {:.1} s, encode {:.1} s)",
+             process: load (decode, reconstruction, masks) {:.1} s, per-frame phase {:.1} s wall [concurrent, \
+             summed over frames, overlapping: mesh {:.1} s, rays {:.1} s, encode {:.1} s]",
             summary.pairs as f64 / summary.seconds.max(1e-9),
             summary.bytes as f64 / 1e6 / summary.seconds.max(1e-9),
             summary.seconds,

@@ -393,13 +393,23 @@ fn generate_clip(
     times.mesh_build += per_frame.iter().map(|f| f.1).sum::<f64>();
     times.ray_cpu += per_frame.iter().map(|f| f.2).sum::<f64>();
     times.encode_cpu += per_frame.iter().map(|f| f.3).sum::<f64>();
-    let per_frame: Vec<EncodedFrame> = per_frame.into_iter().map(|f| f.0).collect();
+    // Moved, not copied, into the record's columns: copies would hold every encoded byte twice.
+    let (mut frames, mut depth, mut dynamic_masks) = (Vec::new(), Vec::new(), Vec::new());
+    let mut per_trajectory: Vec<Vec<EncodedMask>> = planned.iter().map(|_| Vec::new()).collect();
+    for ((frame, depth_exr, dynamic, masks), ..) in per_frame {
+        frames.push(frame);
+        depth.push(depth_exr);
+        dynamic_masks.extend(dynamic);
+        for (column, mask) in per_trajectory.iter_mut().zip(masks) {
+            column.push(mask);
+        }
+    }
 
     let pixels = (width as usize * height as usize * length as usize).max(1) as f64;
     let trajectories = planned
         .iter()
-        .enumerate()
-        .map(|(t, plan)| TrajectoryRecord {
+        .zip(per_trajectory)
+        .map(|(plan, encoded)| TrajectoryRecord {
             index: plan.index,
             kind: plan.kind,
             bank_entry: plan.bank_entry.clone(),
@@ -409,13 +419,13 @@ fn generate_clip(
             radius_frac: plan.controls[2].clone(),
             rejected_samples: plan.rejected,
             world_from_camera: plan.poses.iter().map(mat4_to_row_major).collect(),
-            covisible_mask: per_frame.iter().map(|f| f.3[t].0.clone()).collect(),
+            covisible_fraction: encoded.iter().map(|m| m.1).sum::<usize>() as f64 / pixels,
             // Stored only when depth noise changed some frame; otherwise it is frames × mask.
-            condition: per_frame
+            condition: encoded
                 .iter()
-                .any(|f| f.3[t].2.as_ref().is_some_and(|c| c.1))
-                .then(|| per_frame.iter().map(|f| f.3[t].2.as_ref().expect("noise on").0.clone()).collect()),
-            covisible_fraction: per_frame.iter().map(|f| f.3[t].1).sum::<usize>() as f64 / pixels,
+                .any(|m| m.2.as_ref().is_some_and(|c| c.1))
+                .then(|| encoded.iter().map(|m| m.2.as_ref().expect("noise on").0.clone()).collect()),
+            covisible_mask: encoded.into_iter().map(|m| m.0).collect(),
         })
         .collect();
     let clip_id = format!("{dataset}/{}/{start}", sequence.source_id);
@@ -432,12 +442,9 @@ fn generate_clip(
         tool_version: format!("datagen {}", env!("CARGO_PKG_VERSION")),
         intrinsics: cameras.iter().map(|c| mat3_to_row_major(&c.intrinsics)).collect(),
         world_from_camera: cameras.iter().map(|c| mat4_to_row_major(&c.world_from_camera)).collect(),
-        frames: per_frame.iter().map(|f| f.0.clone()).collect(),
-        depth: per_frame.iter().map(|f| f.1.clone()).collect(),
-        dynamic_mask: sequence
-            .dynamic_masks
-            .as_ref()
-            .map(|_| per_frame.iter().map(|f| f.2.clone().expect("masks present")).collect()),
+        frames,
+        depth,
+        dynamic_mask: sequence.dynamic_masks.as_ref().map(|_| dynamic_masks),
         trajectories,
     };
     Ok((record, times))

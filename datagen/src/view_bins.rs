@@ -11,6 +11,8 @@
 //! numerically unstable) are tested by every ray, so answers equal a brute-force loop over every
 //! triangle. Sub-pixel ray points are binned by their nearest pixel centre.
 
+use std::sync::Mutex;
+
 use glam::{DMat3, DMat4, DVec2, DVec3};
 use rayon::prelude::*;
 
@@ -32,22 +34,46 @@ pub struct ViewBins {
     height: usize,
     novel_from_world: DMat4,
     intrinsics: DMat3,
+    /// The arrays, taken from [`POOL`] and given back on drop.
+    buffers: BinBuffers,
+}
+
+/// A primitive's widened projected box (x0, y0, x1, y1) and nearest corner depth, read by the
+/// rays of its bins (outside the box or ending before that depth: no exact test), and the
+/// inclusive pixel range it is binned into ([`UNBINNED`] in `x0` when it is not).
+#[derive(Clone, Copy)]
+struct Footprint {
+    bounds: [f32; 5],
+    pixels: [u32; 4],
+}
+
+/// `Footprint::pixels[0]` of a primitive in no bin (outside the image, or tested by every ray).
+const UNBINNED: u32 = u32::MAX;
+
+/// The arrays of one view's bins. They are the size of the image and of the mesh, tens of MB at
+/// 480×720: allocating them anew per view had the kernel clear ~40 MB of fresh pages per view
+/// (~10 % of `datagen pairs`' CPU), so they are kept in a pool and reused.
+#[derive(Default)]
+struct BinBuffers {
+    /// Per primitive id.
+    footprints: Vec<Footprint>,
     /// Per pixel (row-major) its entries: `ids[starts[p]..starts[p + 1]]`.
     starts: Vec<u32>,
     ids: Vec<u32>,
-    /// Per primitive id: its widened projected box (x0, y0, x1, y1) and nearest corner depth;
-    /// rays outside the box or ending before that depth skip the exact test.
-    boxes: Vec<[f32; 5]>,
-    /// Triangles every ray is tested against (see [`NEAR_FRACTION`]).
+    /// The next free slot of each pixel while the bins are filled.
+    next: Vec<u32>,
+    /// Primitives every ray is tested against (see [`NEAR_FRACTION`]).
     everywhere: Vec<u32>,
 }
 
-/// A binned primitive's pixel range (inclusive), widened box and nearest depth, or the
-/// near-plane case.
-enum Footprint {
-    Pixels { x0: u32, x1: u32, y0: u32, y1: u32, bounds: [f32; 5] },
-    Everywhere,
-    Outside,
+/// Buffers of dropped views; at most as many as views were ever alive at once (one per thread).
+static POOL: Mutex<Vec<BinBuffers>> = Mutex::new(Vec::new());
+
+impl Drop for ViewBins {
+    fn drop(&mut self) {
+        let buffers = std::mem::take(&mut self.buffers);
+        POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push(buffers);
+    }
 }
 
 impl ViewBins {
@@ -64,87 +90,101 @@ impl ViewBins {
         nearest_surface: f64,
     ) -> Self {
         let near = nearest_surface * NEAR_FRACTION;
-        let footprints: Vec<Footprint> = (0..count)
+        let mut buffers = POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).pop().unwrap_or_default();
+        let outside = Footprint { bounds: [0.0; 5], pixels: [UNBINNED; 4] };
+        let everywhere = Footprint { bounds: [f32::NAN; 5], pixels: [UNBINNED; 4] };
+        (0..count)
             .into_par_iter()
             .map(|id| {
-                let Some(corners) = corners(id) else { return Footprint::Outside };
+                let Some(corners) = corners(id) else { return outside };
                 let nearest = corners.iter().map(|c| c.z).fold(f64::INFINITY, f64::min);
                 if nearest.is_nan() || nearest <= near {
-                    return Footprint::Everywhere;
+                    return everywhere;
                 }
                 let pixels = corners.map(|c| DVec2::new(c.x, c.y));
                 let lo = pixels.iter().fold(DVec2::INFINITY, |a, &p| a.min(p)) - MARGIN_PIXELS;
                 let hi = pixels.iter().fold(DVec2::NEG_INFINITY, |a, &p| a.max(p)) + MARGIN_PIXELS;
                 // Pixel k owns [k − 0.5, k + 0.5); truncation is floor once clamped at 0.
                 if hi.x + 0.5 < 0.0 || hi.y + 0.5 < 0.0 {
-                    return Footprint::Outside;
+                    return outside;
                 }
                 let (x0, y0) = ((lo.x + 0.5).max(0.0) as u32, (lo.y + 0.5).max(0.0) as u32);
                 let x1 = ((hi.x + 0.5) as u32).min(width as u32 - 1);
                 let y1 = ((hi.y + 0.5) as u32).min(height as u32 - 1);
                 if x0 > x1 || y0 > y1 {
-                    return Footprint::Outside;
+                    return outside;
                 }
                 let bounds = [lo.x as f32, lo.y as f32, hi.x as f32, hi.y as f32, nearest as f32];
-                Footprint::Pixels { x0, x1, y0, y1, bounds }
+                Footprint { bounds, pixels: [x0, x1, y0, y1] }
             })
-            .collect();
-        let mut starts = vec![0u32; width * height + 1];
-        let mut everywhere = Vec::new();
+            .collect_into_vec(&mut buffers.footprints);
+        let BinBuffers { footprints, starts, ids, next, everywhere } = &mut buffers;
+        starts.clear();
+        starts.resize(width * height + 1, 0);
+        everywhere.clear();
         for (id, footprint) in footprints.iter().enumerate() {
-            match *footprint {
-                Footprint::Pixels { x0, x1, y0, y1, .. } => {
-                    for y in y0..=y1 {
-                        for x in x0..=x1 {
-                            starts[y as usize * width + x as usize + 1] += 1;
-                        }
+            let [x0, x1, y0, y1] = footprint.pixels;
+            if x0 != UNBINNED {
+                for y in y0..=y1 {
+                    let row = y as usize * width + 1;
+                    for count in &mut starts[row + x0 as usize..=row + x1 as usize] {
+                        *count += 1;
                     }
                 }
-                Footprint::Everywhere => everywhere.push(id as u32),
-                Footprint::Outside => {}
+            } else if footprint.bounds[4].is_nan() {
+                everywhere.push(id as u32);
             }
         }
         for p in 0..width * height {
             starts[p + 1] += starts[p];
         }
-        let mut ids = vec![0u32; starts[width * height] as usize];
-        let mut boxes = vec![[0f32; 5]; count as usize];
-        let mut next: Vec<u32> = starts[..width * height].to_vec();
+        ids.clear();
+        ids.resize(starts[width * height] as usize, 0);
+        next.clear();
+        next.extend_from_slice(&starts[..width * height]);
         for (id, footprint) in footprints.iter().enumerate() {
-            if let Footprint::Pixels { x0, x1, y0, y1, bounds } = *footprint {
-                boxes[id] = bounds;
-                for y in y0..=y1 {
-                    for x in x0..=x1 {
-                        let slot = &mut next[y as usize * width + x as usize];
-                        ids[*slot as usize] = id as u32;
-                        *slot += 1;
-                    }
+            let [x0, x1, y0, y1] = footprint.pixels;
+            if x0 == UNBINNED {
+                continue;
+            }
+            for y in y0..=y1 {
+                let row = y as usize * width;
+                for slot in &mut next[row + x0 as usize..=row + x1 as usize] {
+                    ids[*slot as usize] = id as u32;
+                    *slot += 1;
                 }
             }
         }
-        Self { width, height, novel_from_world, intrinsics, starts, ids, boxes, everywhere }
+        Self { width, height, novel_from_world, intrinsics, buffers }
     }
 
     /// Where the rays towards `point` (world space) meet the image: pixel coordinates, the bin,
     /// and the point's depth; None outside the image or behind the camera.
     fn bin_of(&self, point: DVec3) -> Option<(DVec2, usize, f64)> {
         let in_novel = self.novel_from_world.transform_point3(point);
-        if in_novel.z.is_nan() || in_novel.z <= 0.0 {
+        let p = self.intrinsics * (in_novel / in_novel.z);
+        self.bin_of_projected(DVec2::new(p.x, p.y), in_novel.z).map(|bin| (DVec2::new(p.x, p.y), bin, in_novel.z))
+    }
+
+    /// The bin of a point already projected: `pixel` = K · (p / p.z) and `depth` = p.z for the
+    /// point p in the novel camera; None outside the image or behind the camera.
+    fn bin_of_projected(&self, pixel: DVec2, depth: f64) -> Option<usize> {
+        if depth.is_nan() || depth <= 0.0 {
             return None;
         }
-        let p = self.intrinsics * (in_novel / in_novel.z);
-        let (x, y) = (p.x + 0.5, p.y + 0.5);
+        let (x, y) = (pixel.x + 0.5, pixel.y + 0.5);
         // Pixel k owns [k − 0.5, k + 0.5): truncation is floor for the non-negative values kept.
         let inside = x >= 0.0 && y >= 0.0 && x < self.width as f64 && y < self.height as f64;
-        inside.then(|| (DVec2::new(p.x, p.y), y as usize * self.width + x as usize, in_novel.z))
+        inside.then(|| y as usize * self.width + x as usize)
     }
 
     /// The binned primitives whose box holds `pixel` and that reach nearer than `limit`.
     fn candidates(&self, bin: usize, pixel: DVec2, limit: f64) -> impl Iterator<Item = u32> {
         let (x, y, limit) = (pixel.x as f32, pixel.y as f32, limit as f32);
-        let range = self.starts[bin] as usize..self.starts[bin + 1] as usize;
-        self.ids[range].iter().copied().filter(move |&id| {
-            let [x0, y0, x1, y1, nearest] = self.boxes[id as usize];
+        let BinBuffers { footprints, starts, ids, .. } = &self.buffers;
+        let range = starts[bin] as usize..starts[bin + 1] as usize;
+        ids[range].iter().copied().filter(move |&id| {
+            let [x0, y0, x1, y1, nearest] = footprints[id as usize].bounds;
             nearest <= limit && x >= x0 && x <= x1 && y >= y0 && y <= y1
         })
     }
@@ -153,24 +193,37 @@ impl ViewBins {
     /// centre to `point`, until it returns true; whether it did. `binned` is false for the
     /// primitives tested by every ray. None when `point` is outside the image or behind the
     /// camera (not binned).
-    pub fn any_towards(&self, point: DVec3, mut test: impl FnMut(u32, bool) -> bool) -> Option<bool> {
-        let (pixel, bin, depth) = self.bin_of(point)?;
+    pub fn any_towards(&self, point: DVec3, test: impl FnMut(u32, bool) -> bool) -> Option<bool> {
+        let (pixel, _, depth) = self.bin_of(point)?;
+        self.any_towards_projected(pixel, depth, test)
+    }
+
+    /// [`Self::any_towards`] for a point already projected into the novel camera: `pixel` =
+    /// K · (p / p.z) and `depth` = p.z, p the point in camera coordinates (`novel_from_world`
+    /// applied), computed exactly so, which gives the same bin and answers.
+    pub fn any_towards_projected(
+        &self,
+        pixel: DVec2,
+        depth: f64,
+        mut test: impl FnMut(u32, bool) -> bool,
+    ) -> Option<bool> {
+        let bin = self.bin_of_projected(pixel, depth)?;
         let limit = depth * (1.0 + DEPTH_SLACK);
         let binned = self.candidates(bin, pixel, limit).any(|id| test(id, true));
-        Some(binned || self.everywhere.iter().any(|&id| test(id, false)))
+        Some(binned || self.buffers.everywhere.iter().any(|&id| test(id, false)))
     }
 
     /// The nearest of `hit(id)` (a ray distance, +∞ for a miss) over the primitives that may
     /// cross the ray through `point`. None when `point` is not binned (see [`Self::any_towards`]).
     pub fn nearest_towards(&self, point: DVec3, hit: impl Fn(u32) -> f32) -> Option<f32> {
         let (pixel, bin, _) = self.bin_of(point)?;
-        let candidates = self.candidates(bin, pixel, f64::INFINITY).chain(self.everywhere.iter().copied());
+        let candidates = self.candidates(bin, pixel, f64::INFINITY).chain(self.buffers.everywhere.iter().copied());
         Some(candidates.map(hit).fold(f32::INFINITY, f32::min))
     }
 
     /// Number of bin entries, and of primitives tested by every ray.
     pub fn sizes(&self) -> (usize, usize) {
-        (self.ids.len(), self.everywhere.len())
+        (self.buffers.ids.len(), self.buffers.everywhere.len())
     }
 }
 

@@ -11,6 +11,7 @@ mod hostile_files;
 mod hostile_sequences;
 mod inspect;
 mod pairs;
+mod pairs_golden;
 mod report;
 mod sequence;
 mod static_background;

@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # One-step, idempotent set-up of a fresh Debian machine for this workspace:
 #   1. Debian packages: FFmpeg development libraries and CLI, clang/libclang, pkg-config,
-#      chromium (headless, renders `datagen inspect --report` pages in a test);
+#      chromium (headless, renders `datagen inspect --report` pages in a test); gloo's headers (the
+#      c10d shim of `trainer` compiles against them); slurm-wlm and munge (a one-node Slurm that
+#      `scripts/test_slurm.sh` starts and stops);
 #   2. a project-local Python venv (.venv, git-ignored) with torch==2.13.0 (the libtorch that
 #      tch 0.26 links against) and the Python packages the tests use for interoperability checks;
 #   3. the `.venv/libtorch` link that `.cargo/config.toml` points LIBTORCH at.
@@ -20,15 +22,22 @@ APT_PACKAGES=(
   libavcodec-dev libavformat-dev libavutil-dev libavfilter-dev libavdevice-dev
   libswscale-dev libswresample-dev
   chromium
+  libgloo-dev slurm-wlm munge
 )
 # torch: libtorch for tch; diffusers + safetensors: numerical reference for the model port;
 # numpy, pyarrow, duckdb, datasets, pillow: interoperability checks of the shards; pycocotools:
 # reference RLE encoder for the SA-V mask decoder; scikit-image: reference PSNR/SSIM for `trainer eval`;
-# peft: diffusers' LoRA loader, the reference our LoRA files are checked against.
+# peft: diffusers' LoRA loader, the reference our LoRA files are checked against; torchvision,
+# lpips, clean-fid: reference LPIPS, Inception features, FID and KID for `trainer eval`;
+# tensorboard: its own event reader checks our training event files; nvidia-cuda-nvcc and
+# nvidia-cuda-cccl: headers only (crt/, cuda/std), which the NCCL half of the c10d shim needs
+# beside the CUDA runtime and NCCL headers the torch wheel already pulls in (same CUDA 13.0).
 PY_PACKAGES=(
   "torch==${TORCH_VERSION}" "diffusers>=0.35" "safetensors>=0.4"
   "numpy>=1.26" "pyarrow>=17" "duckdb>=1.1" "datasets>=3" "pillow>=10" "pycocotools>=2"
   "scikit-image>=0.22" "peft>=0.15"
+  "torchvision==0.28.0" "lpips==0.1.4" "clean-fid==0.1.35" "tensorboard>=2.16"
+  "nvidia-cuda-nvcc==13.0.88" "nvidia-cuda-cccl==13.0.85"
 )
 
 step "Debian packages: ${APT_PACKAGES[*]}"

@@ -1,8 +1,8 @@
 //! The end-to-end test binaries link libtorch through `trainer`: same rpath rule as there.
 
-#[path = "../trainer/build.rs"]
-mod libtorch_rpath;
+#[path = "../trainer/build_link.rs"]
+mod libtorch_link;
 
 fn main() {
-    libtorch_rpath::main();
+    libtorch_link::emit();
 }

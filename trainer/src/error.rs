@@ -84,6 +84,26 @@ pub enum Error {
         /// What is wrong.
         reason: String,
     },
+    /// A launcher variable (torchrun, Slurm or set by hand) is missing or inconsistent.
+    #[error("launcher variable `{variable}`: {reason}")]
+    Launcher {
+        /// The environment variable.
+        variable: String,
+        /// What is wrong.
+        reason: String,
+    },
+    /// A multi-process job failed: a collective, the rendezvous, or ranks that disagree.
+    #[error("rank {rank} of {world_size}: {what}: {reason}")]
+    Distributed {
+        /// This process's rank.
+        rank: usize,
+        /// Number of ranks.
+        world_size: usize,
+        /// The operation (`all-reduce #12 (gradients)`, `rendezvous`, `config check`).
+        what: String,
+        /// What happened, naming the ranks involved.
+        reason: String,
+    },
     /// A safetensors file is malformed.
     #[error("{path}: safetensors: {reason}")]
     Safetensors {

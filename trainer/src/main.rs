@@ -23,10 +23,11 @@ enum Command {
     /// `timestep` [B] → `sample`; vae_encoder `sample` [B,3,F,H,W] → `latent` (posterior mean,
     /// unscaled); vae_decoder `latent` → `sample`. Outputs are written as fp32.
     Forward(ForwardArgs),
-    /// Compare a predicted video with the target: PSNR and SSIM (scikit-image conventions, data
-    /// range 1) per frame and on average, and over co-visible pixels only when --mask is given.
-    /// Prints JSON. LPIPS and FID are not computed (they need network weights this tool does
-    /// not download).
+    /// Compare predictions with targets: PSNR and SSIM (scikit-image conventions), LPIPS (the
+    /// lpips package) and FID/KID (clean-fid) from weight files you convert once with
+    /// scripts/convert_eval_weights.py, masked mPSNR/mSSIM/mLPIPS with --mask. One video pair
+    /// (video files or frame folders; JSON as before), or folders of videos matched by name
+    /// (a Markdown table and JSON, per video and mean, FID/KID over all frames).
     Eval(EvalArgs),
     /// Pretrain the transformer on training-pair shards (datagen pairs/build output): v-prediction
     /// with the CogVideoX-5B schedule, AdamW, checkpoints in the diffusers layout plus optimizer
@@ -41,6 +42,47 @@ enum Command {
     /// Merge a LoRA file into a base transformer and write the full diffusers transformer folder
     /// (config.json + diffusion_pytorch_model.safetensors).
     MergeLora(MergeLoraArgs),
+    /// Print the memory plan of a training config per device: parameters, gradients, master
+    /// weights, optimizer state, activations with and without checkpointing (per block and in
+    /// all), VAE encode/decode peaks and the predicted peak, for the config's precision, LoRA
+    /// and ZeRO settings. `pretrain` and `finetune` print the same plan and, on CUDA, refuse a
+    /// run that does not fit the device's free memory.
+    Plan(PlanArgs),
+    /// Check the multi-process setup the launcher gives (torchrun, srun, RANK/WORLD_SIZE): every
+    /// collective the trainer uses, verified against values computed locally, then all-reduce
+    /// bandwidth. Prints one line per check on rank 0; exits non-zero on any mismatch.
+    CommCheck(CommCheckArgs),
+}
+
+#[derive(Debug, Args)]
+struct CommCheckArgs {
+    /// Size of the all-reduce bandwidth test in MiB (fp32).
+    #[arg(long, default_value_t = 64)]
+    mib: usize,
+    /// All-reduces timed.
+    #[arg(long, default_value_t = 5)]
+    iterations: usize,
+    /// Compute device: cpu (Gloo) or cuda (NCCL, the GPU chosen by LOCAL_RANK).
+    #[arg(long, default_value = "cpu")]
+    device: String,
+    /// Seconds any collective may wait.
+    #[arg(long, default_value_t = 60.0)]
+    timeout: f64,
+}
+
+#[derive(Debug, Args)]
+struct PlanArgs {
+    /// Training TOML (as for `pretrain --config`).
+    #[arg(long)]
+    config: PathBuf,
+    /// Ranks [default: the launcher's WORLD_SIZE / SLURM_NTASKS, else the config's
+    /// data.world_size].
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
+    world_size: Option<u64>,
+    /// Device the plan is for (decides precision = "auto"): cpu, cuda or cuda:N; no device is
+    /// needed to plan.
+    #[arg(long, default_value = "cuda")]
+    device: String,
 }
 
 #[derive(Debug, Args)]
@@ -154,12 +196,74 @@ struct EvalArgs {
     /// Target video: a video file or a folder of PNG/JPEG frames.
     #[arg(long)]
     target: PathBuf,
-    /// Folder of per-frame mask PNGs (non-zero = co-visible), e.g. an export's mask/ folder.
+    /// Folder of per-frame mask PNGs (non-zero = co-visible), e.g. an export's mask/ folder;
+    /// for folders of videos, a folder with one such folder per video name.
     #[arg(long)]
     mask: Option<PathBuf>,
     /// Also write the JSON to this file.
     #[arg(long)]
     out: Option<PathBuf>,
+    /// Resize predictions, targets and masks to the protocol's size first: gcd 384x576, dycheck
+    /// 960x720 (HxW). Without it, sizes must agree.
+    #[arg(long, value_enum)]
+    protocol: Option<ProtocolArg>,
+    /// Each prediction PRED/NAME/ holds K samples; the best by PSNR (mPSNR with masks) is scored.
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
+    top_k: Option<u64>,
+    /// Metrics beyond PSNR/SSIM (comma-separated: lpips, fid, kid) [default: those whose
+    /// weights are given].
+    #[arg(long, value_delimiter = ',')]
+    metrics: Vec<MetricArg>,
+    /// LPIPS weights (safetensors from `scripts/convert_eval_weights.py lpips`).
+    #[arg(long)]
+    lpips_weights: Option<PathBuf>,
+    /// LPIPS backbone of --lpips-weights.
+    #[arg(long, value_enum, default_value = "alex")]
+    lpips_net: LpipsNetArg,
+    /// Inception weights for FID/KID (safetensors from `scripts/convert_eval_weights.py inception`).
+    #[arg(long)]
+    inception_weights: Option<PathBuf>,
+    /// KID subset size (clean-fid's default 1000; every set needs at least this many frames).
+    #[arg(long, default_value_t = trainer::eval::fid::KID_SUBSET_SIZE)]
+    kid_subset_size: usize,
+    /// KID subsets (clean-fid's default).
+    #[arg(long, default_value_t = trainer::eval::fid::KID_SUBSETS)]
+    kid_subsets: usize,
+    /// Seed of KID's subsets.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Also write the Markdown table to this file.
+    #[arg(long)]
+    markdown: Option<PathBuf>,
+    /// Compute device of the networks: cpu, cuda or cuda:N.
+    #[arg(long, default_value = "cpu")]
+    device: String,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum ProtocolArg {
+    /// Kubric-4D / ParallelDomain-4D (GCD): 384x576.
+    Gcd,
+    /// DyCheck iPhone: 960x720.
+    Dycheck,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum MetricArg {
+    /// LPIPS (needs --lpips-weights).
+    Lpips,
+    /// FID (needs --inception-weights).
+    Fid,
+    /// KID (needs --inception-weights).
+    Kid,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum LpipsNetArg {
+    /// AlexNet (the lpips default).
+    Alex,
+    /// VGG16.
+    Vgg,
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -210,12 +314,124 @@ fn main() -> anyhow::Result<()> {
         Command::Pretrain(args) => run_pretrain(args),
         Command::Sample(args) => run_sample(args),
         Command::Finetune(args) => run_finetune(args),
+        Command::Plan(args) => run_plan(args),
+        Command::CommCheck(args) => run_comm_check(args),
         Command::MergeLora(args) => {
             let merged = trainer::lora::merge_lora(&args.base, &args.lora, &args.out)?;
             println!("merged {merged} adapted layers into {}", args.out.display());
             Ok(())
         }
     }
+}
+
+/// Joins the multi-process job the launcher started (torchrun, Slurm, RANK/WORLD_SIZE), if any:
+/// one process per GPU, the CUDA device chosen by LOCAL_RANK when `--device cuda` names none.
+fn join_job(
+    device: tch::Device,
+    timeout_seconds: f64,
+) -> anyhow::Result<(tch::Device, Option<trainer::distributed::ProcessGroup>)> {
+    join_launched(trainer::distributed::Launch::from_env()?, device, timeout_seconds)
+}
+
+/// [`join_job`] for a launch read already (None: a single process).
+fn join_launched(
+    launch: Option<trainer::distributed::Launch>,
+    device: tch::Device,
+    timeout_seconds: f64,
+) -> anyhow::Result<(tch::Device, Option<trainer::distributed::ProcessGroup>)> {
+    use trainer::distributed::ProcessGroup;
+    let Some(launch) = launch else { return Ok((device, None)) };
+    let device = match device {
+        tch::Device::Cuda(index) => {
+            let index = if index == 0 { launch.local_rank } else { index };
+            let count = tch::Cuda::device_count() as usize;
+            anyhow::ensure!(
+                index < count,
+                "rank {} (LOCAL_RANK {}) needs CUDA device {index}, but this machine has {count}",
+                launch.rank,
+                launch.local_rank
+            );
+            tch::Device::Cuda(index)
+        }
+        other => other,
+    };
+    let pg = ProcessGroup::init(&launch, device, std::time::Duration::from_secs_f64(timeout_seconds))?;
+    Ok((device, Some(pg)))
+}
+
+fn run_comm_check(args: CommCheckArgs) -> anyhow::Result<()> {
+    use tch::{Kind, Tensor};
+    // A launcher's world size of 1 still gets a process group: a backend check on one GPU.
+    let launch = trainer::distributed::Launch::from_env_any_size()?;
+    let (device, pg) = join_launched(launch, forward::parse_device(&args.device)?, args.timeout)?;
+    let Some(pg) = pg else {
+        println!("no launcher variables (torchrun, srun, RANK/WORLD_SIZE): nothing to check");
+        return Ok(());
+    };
+    let (rank, world) = (pg.rank as i64, pg.world_size as i64);
+    let say = |line: String| {
+        if rank == 0 {
+            println!("{line}");
+        }
+    };
+    let options = (Kind::Float, device);
+    // Broadcast: rank 0's values everywhere.
+    let value = Tensor::full([1000], rank as f64 + 7.0, options);
+    pg.broadcast(&value, 0, "check")?;
+    anyhow::ensure!(value.min().double_value(&[]) == 7.0, "rank {rank}: broadcast gave {}", value.min());
+    say("broadcast ok".to_string());
+    // All-reduce: Σ (r + 1) over ranks.
+    let value = Tensor::full([1000], rank as f64 + 1.0, options);
+    pg.all_reduce_sum(&value, "check")?;
+    let expected = (world * (world + 1) / 2) as f64;
+    anyhow::ensure!(value.max().double_value(&[]) == expected, "rank {rank}: all-reduce gave {}", value.max());
+    say("all-reduce ok".to_string());
+    // Reduce-scatter: element i of the input is i + r; this rank's slice of the sum.
+    let chunk = 5;
+    let input = Tensor::arange(chunk * world, options).f_add_scalar(rank as f64)?;
+    let output = Tensor::zeros([chunk], options);
+    let work = pg.reduce_scatter_sum_start(&output, &input, "check")?;
+    pg.wait(work)?;
+    let expected = Tensor::arange_start(rank * chunk, (rank + 1) * chunk, options)
+        .f_mul_scalar(world as f64)?
+        .f_add_scalar((world * (world - 1) / 2) as f64)?;
+    anyhow::ensure!(output.allclose(&expected, 0.0, 0.0, false), "rank {rank}: reduce-scatter gave {output}");
+    say("reduce-scatter ok".to_string());
+    // All-gather: every rank's constant block in rank order.
+    let input = Tensor::full([chunk], rank as f64, options);
+    let output = Tensor::zeros([chunk * world], options);
+    let work = pg.all_gather_start(&output, &input, "check")?;
+    pg.wait(work)?;
+    let expected = Tensor::arange(world, options).f_repeat_interleave_self_int(chunk, None::<i64>, None::<i64>)?;
+    anyhow::ensure!(output.allclose(&expected, 0.0, 0.0, false), "rank {rank}: all-gather gave {output}");
+    say("all-gather ok".to_string());
+    pg.barrier("check")?;
+    say("barrier ok".to_string());
+    let elements = (args.mib * 1024 * 1024 / 4) as i64;
+    let big = Tensor::ones([elements], options);
+    pg.all_reduce_sum(&big, "warm-up")?;
+    let mut times = Vec::new();
+    for _ in 0..args.iterations {
+        pg.barrier("bandwidth")?;
+        let started = std::time::Instant::now();
+        pg.all_reduce_sum(&big, "bandwidth")?;
+        times.push(started.elapsed().as_secs_f64());
+    }
+    times.sort_by(f64::total_cmp);
+    let median = times[times.len() / 2];
+    // The bus bandwidth convention of nccl-tests: 2·(N−1)/N of the payload crosses each link.
+    let bus = 2.0 * (world - 1) as f64 / world as f64 * args.mib as f64 / median;
+    say(format!(
+        "all-reduce {} MiB over {world} ranks ({:?}): median {:.1} ms (range {:.1}-{:.1}), algorithm bandwidth {:.0} MiB/s, bus bandwidth {:.0} MiB/s",
+        args.mib,
+        device,
+        median * 1e3,
+        times[0] * 1e3,
+        times[times.len() - 1] * 1e3,
+        args.mib as f64 / median,
+        bus
+    ));
+    Ok(())
 }
 
 /// The progress bar of a training run: steps, loss and speed, ETA.
@@ -243,7 +459,15 @@ fn run_finetune(args: FinetuneArgs) -> anyhow::Result<()> {
         config: args.config,
         lora: args.lora,
     };
-    let summary = trainer::training::finetune(&request, device, |m| show_step(&bar, m))?;
+    let timeout = match &request.config {
+        Some(path) => trainer::training::PretrainConfig::from_toml_file(path)?.distributed.timeout_seconds,
+        None => trainer::training::DistributedConfig::default().timeout_seconds,
+    };
+    let (device, pg) = join_job(device, timeout)?;
+    let (plan_config, source_name) = trainer::plan::finetune_config(&request)?;
+    check_plan(&plan_config, device, pg.as_ref(), &source_name)?;
+    let bar = if pg.as_ref().is_some_and(|pg| pg.rank != 0) { indicatif::ProgressBar::hidden() } else { bar };
+    let summary = trainer::training::finetune_on(&request, device, pg.as_ref(), |m| show_step(&bar, m))?;
     bar.finish_and_clear();
     println!(
         "finetuned {} steps into {}; checkpoint: {}",
@@ -289,7 +513,13 @@ fn run_pretrain(args: PretrainArgs) -> anyhow::Result<()> {
     }
     let device = forward::parse_device(&args.device)?;
     let bar = step_bar(config.train.steps);
-    let summary = training::pretrain(&config, &args.shards, &args.out, args.resume, device, |m| show_step(&bar, m))?;
+    let (device, pg) = join_job(device, config.distributed.timeout_seconds)?;
+    config.validate(&args.config.display().to_string())?;
+    check_plan(&config, device, pg.as_ref(), &args.config.display().to_string())?;
+    let bar = if pg.as_ref().is_some_and(|pg| pg.rank != 0) { indicatif::ProgressBar::hidden() } else { bar };
+    let summary = training::pretrain_on(&config, &args.shards, &args.out, args.resume, device, pg.as_ref(), |m| {
+        show_step(&bar, m)
+    })?;
     bar.finish_and_clear();
     println!(
         "trained steps {}..{} into {}; last checkpoint: {}",
@@ -301,13 +531,103 @@ fn run_pretrain(args: PretrainArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn run_eval(args: EvalArgs) -> anyhow::Result<()> {
-    let result = trainer::metrics::evaluate(&args.pred, &args.target, args.mask.as_deref())?;
-    let json = serde_json::to_string_pretty(&result)?;
-    if let Some(out) = &args.out {
-        std::fs::write(out, &json).with_context(|| format!("writing {}", out.display()))?;
+fn run_plan(args: PlanArgs) -> anyhow::Result<()> {
+    let config = trainer::training::PretrainConfig::from_toml_file(&args.config)?;
+    let device = trainer::plan::parse_device(&args.device)?;
+    let plan = make_plan(&config, args.world_size.map(|n| n as usize), device)?;
+    println!("{plan}");
+    Ok(())
+}
+
+/// The memory plan of `config` on `device` (world size: `world_size`, else the launcher's,
+/// else the config's).
+fn make_plan(
+    config: &trainer::training::PretrainConfig,
+    world_size: Option<usize>,
+    device: tch::Device,
+) -> anyhow::Result<trainer::plan::MemoryPlan> {
+    let world_size = world_size.or_else(trainer::plan::launcher_world_size).unwrap_or(config.data.world_size);
+    Ok(trainer::plan::plan(config, &trainer::plan::PlanOptions { world_size, device })?)
+}
+
+/// Prints a training run's memory plan to stderr (rank 0) and, on CUDA, refuses a plan that
+/// does not fit the device's free memory, before anything is written.
+fn check_plan(
+    config: &trainer::training::PretrainConfig,
+    device: tch::Device,
+    pg: Option<&trainer::distributed::ProcessGroup>,
+    source_name: &str,
+) -> anyhow::Result<()> {
+    let plan = make_plan(config, pg.map(|pg| pg.world_size), device)?;
+    if pg.is_none_or(|pg| pg.rank == 0) {
+        eprintln!("{plan}");
     }
-    println!("{json}");
+    trainer::plan::check_fits(&plan, source_name)?;
+    Ok(())
+}
+
+fn run_eval(args: EvalArgs) -> anyhow::Result<()> {
+    use trainer::eval::{benchmark, inception, lpips};
+    let write = |path: &Option<PathBuf>, text: &str| -> anyhow::Result<()> {
+        if let Some(out) = path {
+            std::fs::write(out, text).with_context(|| format!("writing {}", out.display()))?;
+        }
+        Ok(())
+    };
+    // One pair: a video file, or a folder holding frames itself (not videos).
+    let single = args.pred.is_file() || trainer::metrics::read_frames(&args.pred).is_ok_and(|f| !f.is_empty());
+    let wants = |m: MetricArg| args.metrics.contains(&m);
+    let networks = args.lpips_weights.is_some() || args.inception_weights.is_some() || !args.metrics.is_empty();
+    if single && !networks && args.protocol.is_none() && args.top_k.is_none() {
+        let result = trainer::metrics::evaluate(&args.pred, &args.target, args.mask.as_deref())?;
+        let json = serde_json::to_string_pretty(&result)?;
+        write(&args.out, &json)?;
+        println!("{json}");
+        return Ok(());
+    }
+    if wants(MetricArg::Lpips) && args.lpips_weights.is_none() {
+        anyhow::bail!("--metrics lpips needs --lpips-weights FILE: {}", lpips::HOW_TO_GET);
+    }
+    if (wants(MetricArg::Fid) || wants(MetricArg::Kid)) && args.inception_weights.is_none() {
+        anyhow::bail!("--metrics fid/kid needs --inception-weights FILE: {}", inception::HOW_TO_GET);
+    }
+    let fid_requested = args.metrics.is_empty() || wants(MetricArg::Fid) || wants(MetricArg::Kid);
+    let request = benchmark::BenchmarkRequest {
+        pred: args.pred,
+        target: args.target,
+        mask: args.mask,
+        single,
+        protocol: args.protocol.map(|p| match p {
+            ProtocolArg::Gcd => benchmark::Protocol::Gcd,
+            ProtocolArg::Dycheck => benchmark::Protocol::Dycheck,
+        }),
+        top_k: args.top_k.map(|k| k as usize),
+        lpips: args.lpips_weights.filter(|_| args.metrics.is_empty() || wants(MetricArg::Lpips)),
+        lpips_net: match args.lpips_net {
+            LpipsNetArg::Alex => lpips::LpipsNet::Alex,
+            LpipsNetArg::Vgg => lpips::LpipsNet::Vgg,
+        },
+        inception: args.inception_weights.filter(|_| fid_requested),
+        kid: args.metrics.is_empty() || wants(MetricArg::Kid),
+        kid_subsets: args.kid_subsets,
+        kid_subset_size: args.kid_subset_size,
+        seed: args.seed,
+        device: forward::parse_device(&args.device)?,
+    };
+    let bar = indicatif::ProgressBar::new(0).with_style(
+        indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} videos [{elapsed_precise}, eta {eta}]")
+            .expect("valid template"),
+    );
+    let report = benchmark::run(&request, |done, total| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    })?;
+    bar.finish_and_clear();
+    let json = serde_json::to_string_pretty(&report)?;
+    let table = benchmark::markdown(&report);
+    write(&args.out, &json)?;
+    write(&args.markdown, &table)?;
+    println!("{table}\n{json}");
     Ok(())
 }
 

@@ -27,8 +27,7 @@ pub struct AdamW {
 impl AdamW {
     /// Optimizes every trainable variable of `vs`.
     pub fn new(vs: &nn::VarStore, config: OptimConfig) -> Self {
-        let mut params: Vec<(String, Tensor)> = vs.variables().into_iter().filter(|(_, t)| t.requires_grad()).collect();
-        params.sort_by(|a, b| a.0.cmp(&b.0));
+        let params = trainable_parameters(vs);
         let zeros = |p: &Tensor| p.zeros_like();
         let exp_avg = params.iter().map(|(_, p)| zeros(p)).collect();
         let exp_avg_sq = params.iter().map(|(_, p)| zeros(p)).collect();
@@ -93,8 +92,6 @@ impl AdamW {
     pub fn step(&mut self, lr: f64) -> Result<()> {
         self.step += 1;
         let c = &self.config;
-        let bias1 = 1.0 - c.beta1.powi(self.step as i32);
-        let bias2 = 1.0 - c.beta2.powi(self.step as i32);
         tch::no_grad(|| -> Result<()> {
             for (i, (_, param)) in self.params.iter().enumerate() {
                 let grad = param.grad();
@@ -105,13 +102,7 @@ impl AdamW {
                     Some(master) => (master[i].shallow_clone(), grad.f_to_kind(Kind::Float)?),
                     None => (param.shallow_clone(), grad),
                 };
-                let _ = p.f_mul_scalar_(1.0 - lr * c.weight_decay)?;
-                let _ = self.exp_avg[i].f_mul_scalar_(c.beta1)?.f_add_(&grad.f_mul_scalar(1.0 - c.beta1)?)?;
-                let _ = self.exp_avg_sq[i]
-                    .f_mul_scalar_(c.beta2)?
-                    .f_add_(&grad.f_square()?.f_mul_scalar(1.0 - c.beta2)?)?;
-                let denom = self.exp_avg_sq[i].f_sqrt()?.f_div_scalar(bias2.sqrt())?.f_add_scalar(c.eps)?;
-                let _ = p.f_sub_(&self.exp_avg[i].f_div(&denom)?.f_mul_scalar(lr / bias1)?)?;
+                update(&mut p, &grad, &mut self.exp_avg[i], &mut self.exp_avg_sq[i], lr, c, self.step)?;
                 if self.master.is_some() {
                     param.shallow_clone().f_copy_(&p)?;
                 }
@@ -123,6 +114,31 @@ impl AdamW {
     /// Optimizer steps taken.
     pub fn steps(&self) -> u64 {
         self.step
+    }
+
+    /// Loads the state from ZeRO-2 shards (any world size) in checkpoint folder `dir`.
+    fn load_flat(&mut self, dir: &Path, with_params: bool) -> Result<()> {
+        let state = crate::distributed::FlatState::open(dir, &self.params)?;
+        let mut offset = 0;
+        for (i, (_, p)) in self.params.iter().enumerate() {
+            let numel = p.numel() as i64;
+            let read = |name: &str| -> Result<Tensor> {
+                Ok(state
+                    .read(name, offset, numel)?
+                    .f_view(p.size().as_slice())?
+                    .f_to_kind(p.kind())?
+                    .f_to_device(p.device())?)
+            };
+            self.exp_avg[i] = read("exp_avg")?;
+            self.exp_avg_sq[i] = read("exp_avg_sq")?;
+            if with_params {
+                let value = read("master")?;
+                tch::no_grad(|| p.shallow_clone().f_copy_(&value))?;
+            }
+            offset += numel;
+        }
+        self.step = state.step;
+        Ok(())
     }
 
     /// Writes the moments and the step count, and with `with_params` the parameters' own fp32
@@ -148,6 +164,12 @@ impl AdamW {
     /// Reads what [`Self::save`] wrote; with `with_params` also copies the saved parameter
     /// values into the parameters (before any master copies are taken).
     pub(super) fn load(&mut self, path: &Path, with_params: bool) -> Result<()> {
+        if !path.is_file()
+            && let Some(dir) = path.parent()
+        {
+            // A ZeRO-2 checkpoint: per-rank shards of the flat state.
+            return self.load_flat(dir, with_params);
+        }
         let tensors: BTreeMap<String, Tensor> = Tensor::read_safetensors(path)
             .map_err(|e| Error::Safetensors { path: path.to_path_buf(), reason: e.to_string() })?
             .into_iter()
@@ -172,6 +194,36 @@ impl AdamW {
         self.step = tensors.get("step").map(|t| t.int64_value(&[0]) as u64).unwrap_or(0);
         Ok(())
     }
+}
+
+/// The parameters of `vs` that train, sorted by name: the order of the optimizer state, and of
+/// the flat parameter space the distributed engine buckets and shards.
+pub(crate) fn trainable_parameters(vs: &nn::VarStore) -> Vec<(String, Tensor)> {
+    let mut params: Vec<(String, Tensor)> = vs.variables().into_iter().filter(|(_, t)| t.requires_grad()).collect();
+    params.sort_by(|a, b| a.0.cmp(&b.0));
+    params
+}
+
+/// One AdamW update (PyTorch's `torch.optim.AdamW` formula) of `p` at optimizer step `step`
+/// (1-based), in place, elementwise: whole parameters here, flat ZeRO shards in
+/// [`crate::distributed::ShardedAdamW`], with identical values either way.
+pub(crate) fn update(
+    p: &mut Tensor,
+    grad: &Tensor,
+    exp_avg: &mut Tensor,
+    exp_avg_sq: &mut Tensor,
+    lr: f64,
+    c: &OptimConfig,
+    step: u64,
+) -> Result<()> {
+    let bias1 = 1.0 - c.beta1.powi(step as i32);
+    let bias2 = 1.0 - c.beta2.powi(step as i32);
+    let _ = p.f_mul_scalar_(1.0 - lr * c.weight_decay)?;
+    let _ = exp_avg.f_mul_scalar_(c.beta1)?.f_add_(&grad.f_mul_scalar(1.0 - c.beta1)?)?;
+    let _ = exp_avg_sq.f_mul_scalar_(c.beta2)?.f_add_(&grad.f_square()?.f_mul_scalar(1.0 - c.beta2)?)?;
+    let denom = exp_avg_sq.f_sqrt()?.f_div_scalar(bias2.sqrt())?.f_add_scalar(c.eps)?;
+    let _ = p.f_sub_(&exp_avg.f_div(&denom)?.f_mul_scalar(lr / bias1)?)?;
+    Ok(())
 }
 
 #[cfg(test)]

@@ -7,9 +7,11 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 use tch::{Kind, Tensor};
 
-use super::{AdamW, CogNvsModel};
+use super::CogNvsModel;
+use super::parallel::StepOptimizer;
 use crate::cogvideox_transformer_3d as transformer;
 use crate::data::DataPosition;
+use crate::distributed::ProcessGroup;
 use crate::error::{Error, Result};
 use crate::weights;
 
@@ -22,6 +24,19 @@ pub struct TrainState {
     pub data_position: DataPosition,
     /// The run seed.
     pub seed: u64,
+    /// How the ranks that wrote the checkpoint shared the optimizer state (absent: one process).
+    /// Any world size and stage resumes from any checkpoint.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub layout: Option<CheckpointLayout>,
+}
+
+/// The world that wrote a checkpoint.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct CheckpointLayout {
+    /// Ranks.
+    pub world_size: usize,
+    /// ZeRO stage (0: `optimizer.safetensors`; 2: one `optimizer-rank-R-of-N.safetensors` per rank).
+    pub zero_stage: u8,
 }
 
 fn checkpoints_dir(run: &Path) -> PathBuf {
@@ -47,9 +62,10 @@ pub fn list_checkpoints(run: &Path) -> Vec<(u64, PathBuf)> {
 pub(super) fn save_checkpoint(
     run: &Path,
     model: &CogNvsModel,
-    optimizer: &AdamW,
+    optimizer: &StepOptimizer,
     state: &TrainState,
     keep: usize,
+    pg: Option<&ProcessGroup>,
 ) -> Result<PathBuf> {
     let dir = checkpoints_dir(run);
     let final_dir = dir.join(format!("step-{:08}", state.step));
@@ -58,10 +74,29 @@ pub(super) fn save_checkpoint(
         let path = path.to_path_buf();
         move |source| Error::Io { path, error: source }
     };
-    let _ = std::fs::remove_dir_all(&temp);
-    std::fs::create_dir_all(&temp).map_err(io(&temp))?;
-    // fp32 throughout: a mixed-precision run's master weights replace its bf16 parameters.
-    let masters: BTreeMap<String, Tensor> = optimizer.master_weights().into_iter().flatten().collect();
+    let rank = pg.map_or(0, |pg| pg.rank);
+    // fp32 throughout: a mixed-precision run's master weights replace its bf16 parameters
+    // (under ZeRO-2 every rank takes part in gathering them).
+    let masters: BTreeMap<String, Tensor> = optimizer.master_weights(pg)?.into_iter().flatten().collect();
+    if rank == 0 {
+        let _ = std::fs::remove_dir_all(&temp);
+        std::fs::create_dir_all(&temp).map_err(io(&temp))?;
+    }
+    if let Some(pg) = pg {
+        pg.barrier("checkpoint folder created")?;
+    }
+    // A LoRA run keeps its adapters' exact values here too (the LoRA file holds B scaled).
+    optimizer.save(&temp, model.lora_vs.is_some(), rank)?;
+    if let Some(pg) = pg {
+        // Every shard is in before rank 0 marks the checkpoint complete.
+        pg.barrier("optimizer state written")?;
+    }
+    if rank != 0 {
+        if let Some(pg) = pg {
+            pg.barrier("checkpoint complete")?;
+        }
+        return Ok(final_dir);
+    }
     match (&model.lora_vs, &model.lora) {
         (Some(lora_vs), Some(lora)) => {
             crate::lora::save(lora_vs, &masters, lora.scale(), &temp.join(crate::lora::LORA_WEIGHTS_NAME))?;
@@ -82,8 +117,6 @@ pub(super) fn save_checkpoint(
             )?;
         }
     }
-    // A LoRA run keeps its adapters' exact values here too (the LoRA file holds B scaled).
-    optimizer.save(&temp.join("optimizer.safetensors"), model.lora_vs.is_some())?;
     let json = serde_json::to_vec_pretty(state).expect("state serialises");
     std::fs::write(temp.join("state.json"), json).map_err(io(&temp))?;
     let _ = std::fs::remove_dir_all(&final_dir);
@@ -91,6 +124,9 @@ pub(super) fn save_checkpoint(
     let all = list_checkpoints(run);
     for (_, old) in all.iter().take(all.len().saturating_sub(keep)) {
         let _ = std::fs::remove_dir_all(old);
+    }
+    if let Some(pg) = pg {
+        pg.barrier("checkpoint complete")?;
     }
     Ok(final_dir)
 }

@@ -176,6 +176,33 @@ pub struct PretrainConfig {
     /// `pytorch_lora_weights.safetensors` instead of `transformer/`.
     #[serde(default)]
     pub lora: Option<LoraConfig>,
+    /// Multi-process training (ignored at world size 1).
+    #[serde(default)]
+    pub distributed: DistributedConfig,
+}
+
+/// `[distributed]`: how ranks share the work when the launcher starts several processes
+/// (torchrun, Slurm `srun`, or RANK/WORLD_SIZE by hand; see `trainer::distributed`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DistributedConfig {
+    /// 0: plain data parallel (every rank keeps all gradients and optimizer state); 2: ZeRO-2
+    /// (each rank keeps the reduced gradients and the AdamW moments and master weights of its
+    /// 1/N of the parameters only, and the updated weights are all-gathered). Same results.
+    /// Valid: 0 or 2.
+    pub zero_stage: u8,
+    /// Seconds any collective may wait for the other ranks before the job fails naming the
+    /// collective and the ranks that did not arrive. Valid: finite, > 0.
+    pub timeout_seconds: f64,
+    /// Gradient bucket size in MiB: gradients are flattened into buckets of about this size and
+    /// each bucket is reduced in one collective (PyTorch DDP's default is 25). Valid: finite, > 0.
+    pub bucket_mib: f64,
+}
+
+impl Default for DistributedConfig {
+    fn default() -> Self {
+        Self { zero_stage: 0, timeout_seconds: 300.0, bucket_mib: 25.0 }
+    }
 }
 
 /// Largest |log σ| of the condition noise augmentation: σ = e^±30 is already far outside any
@@ -270,6 +297,17 @@ impl PretrainConfig {
                 "loop.validation_steps",
                 format!("{} must be in 1..={timesteps} (the scheduler's training timesteps)", t.validation_steps),
             ));
+        }
+        let d = &self.distributed;
+        if ![0, 2].contains(&d.zero_stage) {
+            return Err(bad("distributed.zero_stage", format!("{} must be 0 or 2", d.zero_stage)));
+        }
+        for (field, value) in
+            [("distributed.timeout_seconds", d.timeout_seconds), ("distributed.bucket_mib", d.bucket_mib)]
+        {
+            if !(value.is_finite() && value > 0.0) {
+                return Err(bad(field, format!("{value} must be finite and > 0")));
+            }
         }
         self.data.validate(source_name)?;
         self.check_models(source_name)

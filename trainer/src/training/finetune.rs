@@ -4,7 +4,8 @@ use std::path::PathBuf;
 
 use tch::Device;
 
-use super::{PretrainConfig, RunSummary, StepMetrics, pretrain};
+use super::{PretrainConfig, RunSummary, StepMetrics, pretrain_on};
+use crate::distributed::ProcessGroup;
 use crate::error::{Error, Result};
 
 /// What `trainer finetune` trains.
@@ -32,6 +33,21 @@ pub struct FinetuneRequest {
 /// `init` is trained on them for `steps` steps with the init run's settings (its `config.json`,
 /// or `config` when given) and the init run's VAE. Checkpoints and metrics go to `run`.
 pub fn finetune(request: &FinetuneRequest, device: Device, progress: impl FnMut(&StepMetrics)) -> Result<RunSummary> {
+    finetune_on(request, device, None, progress)
+}
+
+/// [`finetune`] as one rank of `pg` (None: one process). Rank 0 builds the video's pairs (one
+/// shard in `RUN/pairs/`) while the others wait at a barrier; then every rank trains on its
+/// share of each global batch as in [`super::pretrain_on`]. The pairs, the global batch and every
+/// draw are those of a single process, so the result does not depend on the world size (up to
+/// fp32 reduction order), provided the global batch divides by it.
+pub fn finetune_on(
+    request: &FinetuneRequest,
+    device: Device,
+    pg: Option<&ProcessGroup>,
+    progress: impl FnMut(&StepMetrics),
+) -> Result<RunSummary> {
+    let (rank, world) = pg.map_or((0, 1), |pg| (pg.rank, pg.world_size));
     let FinetuneRequest { init, sequence: sequence_dir, out: run, steps, trajectories, config, lora: _ } = request;
     let (steps, trajectories) = (*steps, *trajectories);
     let mut config = match config {
@@ -68,21 +84,42 @@ pub fn finetune(request: &FinetuneRequest, device: Device, progress: impl FnMut(
     config.train.steps = steps;
     config.train.checkpoint_every = config.train.checkpoint_every.min(steps.max(1));
 
-    let sequence = datagen::sequence::read_sequence(sequence_dir)?;
-    let frames = config.data.frames as u32;
-    let pairs_config = datagen::pairs::PairsConfig {
-        clip: datagen::pairs::ClipConfig { length: frames, stride: frames, max_clips: 0 },
-        ..Default::default()
-    };
-    let request = datagen::pairs::TrajectoryRequest { sampled: trajectories, explicit: Vec::new() };
-    let records = datagen::pairs::generate_clips(&sequence, "finetune", &pairs_config, &request, config.data.seed)?;
-    let digest = schemas::InputDigest {
-        source_path: sequence_dir.display().to_string(),
-        content_hash: datagen::corpus::build::hash_tree(sequence_dir)?,
-    };
+    if let Some(pg) = pg {
+        // Every rank has checked the folder before rank 0 writes into it.
+        pg.barrier("finetune start")?;
+    }
     let pairs_dir = run.join("pairs");
-    datagen::pairs::write_shard(&pairs_dir, &sequence.source_id, &records, digest)?;
-    // Small test videos have few clips: never ask for more per batch than there are.
-    config.data.batch_size = config.data.batch_size.min(records.len()).max(1);
-    pretrain(&config, &[pairs_dir], run, false, device, progress)
+    if rank == 0 {
+        let sequence = datagen::sequence::read_sequence(sequence_dir)?;
+        let frames = config.data.frames as u32;
+        let pairs_config = datagen::pairs::PairsConfig {
+            clip: datagen::pairs::ClipConfig { length: frames, stride: frames, max_clips: 0 },
+            ..Default::default()
+        };
+        let request = datagen::pairs::TrajectoryRequest { sampled: trajectories, explicit: Vec::new() };
+        let records = datagen::pairs::generate_clips(&sequence, "finetune", &pairs_config, &request, config.data.seed)?;
+        let digest = schemas::InputDigest {
+            source_path: sequence_dir.display().to_string(),
+            content_hash: datagen::corpus::build::hash_tree(sequence_dir)?,
+        };
+        datagen::pairs::write_shard(&pairs_dir, &sequence.source_id, &records, digest)?;
+    }
+    if let Some(pg) = pg {
+        pg.barrier("pairs written by rank 0")?;
+    }
+    // Small test videos have few clips: never ask for more per batch than there are, and with
+    // several ranks keep the global batch a multiple of the world size.
+    let clips = crate::data::ClipIndex::open(std::slice::from_ref(&pairs_dir))?.len();
+    if clips < world {
+        return Err(Error::InvalidArgument {
+            name: "world size".to_string(),
+            reason: format!(
+                "{} gives {clips} clips, fewer than the {world} ranks: finetune on fewer ranks",
+                sequence_dir.display()
+            ),
+        });
+    }
+    let batch = config.data.batch_size.min(clips).max(1);
+    config.data.batch_size = (batch / world).max(1) * world;
+    pretrain_on(&config, &[pairs_dir], run, false, device, pg, progress)
 }

@@ -109,6 +109,17 @@ impl CogNvsModel {
     }
 
     /// A VAE latent `[B, C, F', h, w]` scaled and laid out for the transformer `[B, F', C, h, w]`.
+    /// [`Self::encode`] with the posterior's noise drawn by `pick` (for the global batch).
+    fn encode_with(&self, video: &Tensor, pick: &Picker) -> Result<Tensor> {
+        let latent = tch::no_grad(|| -> Result<Tensor> {
+            let posterior = self.vae.encode_posterior(&video.f_to_kind(self.kind)?)?;
+            let std = posterior.logvar.f_mul_scalar(0.5)?.f_exp()?;
+            let eps = pick.randn(&posterior.mean.size(), posterior.mean.kind())?;
+            Ok(posterior.mean.f_add(&std.f_mul(&eps)?)?.f_to_kind(Kind::Float)?)
+        })?;
+        self.scale_latent(&latent)
+    }
+
     pub(super) fn scale_latent(&self, latent: &Tensor) -> Result<Tensor> {
         Ok(latent.f_mul_scalar(self.vae.config().scaling_factor)?.f_permute([0, 2, 1, 3, 4])?.f_contiguous()?)
     }
@@ -122,7 +133,7 @@ impl CogNvsModel {
         noise_log_std: f64,
         cache: Option<&LatentCache>,
     ) -> Result<Tensor> {
-        Ok(self.loss_graph(batch, noise_log_mean, noise_log_std, cache, false)?.0)
+        Ok(self.loss_graph(batch, noise_log_mean, noise_log_std, cache, false, Draws::SINGLE)?.0)
     }
 
     /// The loss of one batch, as [`loss`](Self::loss), back-propagated with the gradient divided
@@ -131,16 +142,19 @@ impl CogNvsModel {
     /// during the backward (see
     /// [`forward_checkpointed`](CogVideoXTransformer3DModel::forward_checkpointed)): the same
     /// gradients for a fraction of the activation memory.
+    /// `condition_noise` is (mean, std) of log σ; `draws` says which samples of the global batch
+    /// this process holds.
     pub fn loss_backward(
         &self,
         batch: &Batch,
-        noise_log_mean: f64,
-        noise_log_std: f64,
+        condition_noise: (f64, f64),
         cache: Option<&LatentCache>,
         divisor: f64,
         checkpointing: bool,
+        draws: Draws,
     ) -> Result<f64> {
-        let (loss, tape) = self.loss_graph(batch, noise_log_mean, noise_log_std, cache, checkpointing)?;
+        let (noise_log_mean, noise_log_std) = condition_noise;
+        let (loss, tape) = self.loss_graph(batch, noise_log_mean, noise_log_std, cache, checkpointing, draws)?;
         let value = loss.double_value(&[]);
         if value.is_finite() {
             loss.f_div_scalar(divisor)?.f_backward()?;
@@ -158,17 +172,19 @@ impl CogNvsModel {
         noise_log_std: f64,
         cache: Option<&LatentCache>,
         checkpointing: bool,
+        draws: Draws,
     ) -> Result<(Tensor, Option<BlockTape<'_>>)> {
         let device = self.text.device();
         let b = batch.target.size()[0];
+        let pick = draws.picker(b, device)?;
         let (x0, cond) = match cache {
             None => {
                 let target = batch.target.f_to_device(device)?;
                 let condition = batch.condition.f_to_device(device)?;
-                let sigma = (Tensor::f_randn([b, 1, 1, 1, 1], (Kind::Float, device))? * noise_log_std + noise_log_mean)
-                    .f_exp()?;
-                let noisy_condition = condition.f_add(&condition.f_randn_like()?.f_mul(&sigma)?)?;
-                (self.encode(&target)?, self.encode(&noisy_condition)?)
+                let sigma = (pick.randn(&[b, 1, 1, 1, 1], Kind::Float)? * noise_log_std + noise_log_mean).f_exp()?;
+                let noise = pick.randn(&condition.size(), condition.kind())?;
+                let noisy_condition = condition.f_add(&noise.f_mul(&sigma)?)?;
+                (self.encode_with(&target, &pick)?, self.encode_with(&noisy_condition, &pick)?)
             }
             Some(cache) => {
                 // Cache look-ups and fills draw from their own seeds; the step's generator state is
@@ -182,7 +198,18 @@ impl CogNvsModel {
                     posteriors.push(entry);
                 }
                 tch::manual_seed(resume_seed);
-                for (mean, logvar, condition) in posteriors {
+                // One posterior draw per sample of the global batch, in its order; this rank's
+                // samples keep theirs.
+                let (shape, posterior_device) =
+                    posteriors.first().map(|(mean, _, _)| (mean.size(), mean.device())).expect("a batch has samples");
+                let mut posteriors = posteriors.into_iter();
+                for global in 0..b * draws.world {
+                    let Some(local) = draws.local_index(global) else {
+                        let _ = Tensor::f_randn(shape.as_slice(), (Kind::Float, posterior_device))?;
+                        continue;
+                    };
+                    debug_assert_eq!(local, x0.len() as i64);
+                    let (mean, logvar, condition) = posteriors.next().expect("one posterior per local sample");
                     let (mean, logvar) = (mean.f_to_kind(Kind::Float)?, logvar.f_to_kind(Kind::Float)?);
                     let std = logvar.f_mul_scalar(0.5)?.f_exp()?;
                     let sample = mean.f_add(&std.f_mul(&mean.f_randn_like()?)?)?;
@@ -193,8 +220,8 @@ impl CogNvsModel {
             }
         };
         let steps = self.schedule.alphas_cumprod().len() as i64;
-        let t = Tensor::f_randint(steps, [b], (Kind::Int64, device))?;
-        let noise = x0.f_randn_like()?;
+        let t = pick.randint(steps, b)?;
+        let noise = pick.randn(&x0.size(), x0.kind())?;
         let xt = self.schedule.add_noise(&x0, &noise, &t)?;
         let input = Tensor::f_cat(&[&xt, &cond], 2)?.f_to_kind(self.kind)?;
         let text = self.text.f_to_kind(self.kind)?.f_expand([b, -1, -1], false)?;
@@ -223,5 +250,71 @@ impl CogNvsModel {
         let weight = per_sample(|a| 1.0 / (1.0 - a).max(1e-12))?;
         let x0_hat = xt.f_mul(&sqrt_alpha)?.f_sub(&v.f_mul(&sqrt_one_minus)?)?;
         Ok((x0_hat.f_sub(&x0)?.f_square()?.f_mul(&weight)?.f_mean(Kind::Float)?, tape))
+    }
+}
+
+/// Which samples of the step's global batch this process computes: with `world` ranks of `b`
+/// samples each, rank r holds global samples `k·world + r` (the data loader's interleaving).
+/// Every random draw of the objective is made for the whole global batch, in the order a single
+/// process makes it, and each rank keeps its samples' values: a run's draws, and so its losses
+/// and gradients, do not depend on the world size. With one rank this is exactly the
+/// single-process draw.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Draws {
+    /// This rank.
+    pub rank: i64,
+    /// Number of ranks.
+    pub world: i64,
+}
+
+impl Draws {
+    /// One process.
+    pub const SINGLE: Self = Self { rank: 0, world: 1 };
+
+    /// The local index of global sample `global`, when this rank holds it.
+    fn local_index(&self, global: i64) -> Option<i64> {
+        (global % self.world == self.rank).then_some(global / self.world)
+    }
+
+    fn picker(self, b: i64, device: Device) -> Result<Picker> {
+        let index = if self.world == 1 {
+            None
+        } else {
+            let rows: Vec<i64> = (0..b).map(|k| k * self.world + self.rank).collect();
+            Some(Tensor::from_slice(&rows).f_to_device(device)?)
+        };
+        Ok(Picker { world: self.world, device, index })
+    }
+}
+
+/// Draws for the global batch, keeping this rank's rows.
+struct Picker {
+    world: i64,
+    device: Device,
+    index: Option<Tensor>,
+}
+
+impl Picker {
+    fn keep(&self, global: Tensor) -> Result<Tensor> {
+        Ok(match &self.index {
+            None => global,
+            Some(index) => global.f_index_select(0, index)?,
+        })
+    }
+
+    fn global(&self, local: &[i64]) -> Vec<i64> {
+        let mut shape = local.to_vec();
+        shape[0] *= self.world;
+        shape
+    }
+
+    /// Standard normal values of `local` shape (batch first).
+    fn randn(&self, local: &[i64], kind: Kind) -> Result<Tensor> {
+        self.keep(Tensor::f_randn(self.global(local).as_slice(), (kind, self.device))?)
+    }
+
+    /// Integers in `0..high`, one per local sample.
+    fn randint(&self, high: i64, b: i64) -> Result<Tensor> {
+        self.keep(Tensor::f_randint(high, [b * self.world], (Kind::Int64, self.device))?)
     }
 }

@@ -9,9 +9,11 @@ use serde::{Deserialize, Serialize};
 use tch::{Device, Kind};
 
 use super::checkpoint::{list_checkpoints, save_checkpoint};
-use super::{AdamW, CogNvsModel, LatentCache, PretrainConfig, TrainState, learning_rate};
+use super::parallel::StepOptimizer;
+use super::{CheckpointLayout, CogNvsModel, Draws, LatentCache, PretrainConfig, TrainState, learning_rate};
 use crate::autoencoder_kl_cogvideox as vae;
 use crate::data::{Batch, DataConfig, DataPosition, ShardLoader};
+use crate::distributed::ProcessGroup;
 use crate::error::{Error, Result};
 use crate::weights;
 
@@ -49,12 +51,32 @@ pub fn pretrain(
     run: &Path,
     resume: bool,
     device: Device,
+    progress: impl FnMut(&StepMetrics),
+) -> Result<RunSummary> {
+    pretrain_on(config, shards, run, resume, device, None, progress)
+}
+
+/// [`pretrain`] as one rank of `pg` (None: one process). `config.data.batch_size` is the global
+/// batch: each rank takes `batch_size / world_size` samples of it (the loader's interleaved
+/// partition), draws every random value for the whole global batch and keeps its own
+/// ([`Draws`]), and gradients are averaged over ranks once per optimizer step, so the run
+/// computes what one process would at that batch size. Only rank 0 writes the run folder
+/// (config, metrics, TensorBoard events, samples, checkpoints); the others meet it at barriers.
+pub fn pretrain_on(
+    config: &PretrainConfig,
+    shards: &[PathBuf],
+    run: &Path,
+    resume: bool,
+    device: Device,
+    pg: Option<&ProcessGroup>,
     mut progress: impl FnMut(&StepMetrics),
 ) -> Result<RunSummary> {
+    let (rank, world) = pg.map_or((0, 1), |pg| (pg.rank, pg.world_size));
+    let lead = rank == 0;
     // A bad config or bad shard folders fail before the run folder is touched.
     config.validate("training config")?;
-    crate::data::describe(shards, &config.data)?;
-    std::fs::create_dir_all(run).map_err(|source| Error::Io { path: run.to_path_buf(), error: source })?;
+    let data = rank_data_config(config, rank, world)?;
+    crate::data::describe(shards, &data)?;
     let run_config = run.join("config.json");
     let text = serde_json::to_vec_pretty(config).expect("config serialises");
     let latest = if resume { list_checkpoints(run).pop() } else { None };
@@ -67,29 +89,37 @@ pub fn pretrain(
             ),
         });
     }
-    std::fs::write(&run_config, text).map_err(|source| Error::Io { path: run_config.clone(), error: source })?;
+    if let Some(pg) = pg {
+        // Ranks that disagree stop here, before anything is written.
+        let shard_list: Vec<String> = shards.iter().map(|p| p.display().to_string()).collect();
+        pg.agree(&[
+            ("the training config", blake3::hash(&text).to_hex()[..16].to_string()),
+            ("the shard folders", blake3::hash(shard_list.join("\n").as_bytes()).to_hex()[..16].to_string()),
+            ("the world size", world.to_string()),
+            ("the checkpoint resumed", latest.as_ref().map_or("none".to_string(), |(step, _)| format!("step {step}"))),
+        ])?;
+    }
+    if lead {
+        std::fs::create_dir_all(run).map_err(|source| Error::Io { path: run.to_path_buf(), error: source })?;
+        std::fs::write(&run_config, &text).map_err(|source| Error::Io { path: run_config.clone(), error: source })?;
+    }
 
     let mut model = CogNvsModel::load(&config.model, config.lora.as_ref(), config.train.seed, device)?;
-    // The frozen VAE goes with the run once (sampling and finetuning find it there).
-    let vae_dir = run.join("vae");
-    if !vae_dir.join("config.json").exists() {
-        weights::save(&model.vae_vs, model.vae.config(), vae::CLASS_NAME, &vae_dir, weights::DEFAULT_MAX_SHARD_BYTES)?;
+    if let Some(pg) = pg {
+        // Every rank starts from rank 0's weights, whatever its own initialisation gave.
+        let trainable: Vec<tch::Tensor> = model.trainable().trainable_variables();
+        tch::no_grad(|| pg.broadcast_from_zero(&trainable, "initial weights"))?;
     }
-    // A LoRA run's checkpoints hold only adapters: the base they sit on is kept once, unless it is
-    // simply the configured model folder.
-    let base_is_folder = Path::new(&config.model.transformer).is_dir() && config.model.transformer_lora.is_none();
-    let base_dir = run.join(crate::lora::BASE_TRANSFORMER_DIR);
-    if model.lora_vs.is_some() && !base_is_folder && !base_dir.join("config.json").exists() {
-        weights::save(
-            &model.vs,
-            model.transformer.config(),
-            crate::cogvideox_transformer_3d::CLASS_NAME,
-            &base_dir,
-            weights::DEFAULT_MAX_SHARD_BYTES,
-        )?;
+    if lead {
+        write_run_models(run, config, &model)?;
     }
-    let mut optimizer = AdamW::new(model.trainable(), config.optim.clone());
-    let mut state = TrainState { step: 0, data_position: DataPosition::default(), seed: config.train.seed };
+    let mut optimizer = StepOptimizer::new(&model, config, pg)?;
+    let mut state = TrainState {
+        step: 0,
+        data_position: DataPosition::default(),
+        seed: config.train.seed,
+        layout: pg.map(|_| CheckpointLayout { world_size: world, zero_stage: config.distributed.zero_stage }),
+    };
     if let Some((_, dir)) = &latest {
         // A LoRA run's adapters resume from the optimizer file's exact values; its base is the
         // configured model, loaded above.
@@ -111,14 +141,15 @@ pub fn pretrain(
                 });
             }
         }
-        optimizer.load(&dir.join("optimizer.safetensors"), model.lora_vs.is_some())?;
+        optimizer.load(dir, model.lora_vs.is_some(), pg)?;
         let path = dir.join("state.json");
         let text = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), error: source })?;
-        state = serde_json::from_str(&text).map_err(|e| Error::InvalidConfig {
+        let saved: TrainState = serde_json::from_str(&text).map_err(|e| Error::InvalidConfig {
             source_name: path.display().to_string(),
             field: "(json)".to_string(),
             reason: e.to_string(),
         })?;
+        state = TrainState { layout: state.layout, ..saved };
     }
     let kind = config.train.precision.kind(device);
     if kind != Kind::Float {
@@ -127,19 +158,28 @@ pub fn pretrain(
         model.set_kind(kind);
     }
     let resumed_from = state.step;
-    rewrite_metrics(run, resumed_from)?;
-    let mut metrics_file = std::fs::OpenOptions::new()
-        .create(true)
-        .append(true)
-        .open(run.join("metrics.jsonl"))
-        .map_err(|source| Error::Io { path: run.join("metrics.jsonl"), error: source })?;
-    let mut loader = ShardLoader::open(shards, config.data.clone(), state.data_position)?;
+    let mut metrics_file = if lead {
+        rewrite_metrics(run, resumed_from)?;
+        let path = run.join("metrics.jsonl");
+        Some(
+            std::fs::OpenOptions::new()
+                .create(true)
+                .append(true)
+                .open(&path)
+                .map_err(|source| Error::Io { path: path.clone(), error: source })?,
+        )
+    } else {
+        None
+    };
+    let mut events = if lead { Some(crate::tensorboard::EventWriter::create(run)?) } else { None };
+    let mut loader = ShardLoader::open(shards, data.clone(), state.data_position)?;
     let mut last_checkpoint = latest.map(|(_, d)| d);
     let accumulation = config.optim.grad_accumulation;
     let cache = match &config.train.latent_cache {
         Some(dir) => Some(LatentCache::open(dir, &model, &config.data)?),
         None => None,
     };
+    let draws = Draws { rank: rank as i64, world: world as i64 };
     let mut validation: Option<Result<Batch>> = None;
     while state.step < config.train.steps {
         let started = Instant::now();
@@ -147,59 +187,143 @@ pub fn pretrain(
         tch::manual_seed(step_seed(config.train.seed, state.step));
         optimizer.zero_grad();
         let mut loss_sum = 0.0;
+        let mut bad_batch = None;
         for _ in 0..accumulation {
             let batch = loader.next_batch()?;
             let value = model.loss_backward(
                 &batch,
-                config.train.condition_noise_log_mean,
-                config.train.condition_noise_log_std,
+                (config.train.condition_noise_log_mean, config.train.condition_noise_log_std),
                 cache.as_ref(),
                 accumulation as f64,
                 config.train.gradient_checkpointing,
+                draws,
             )?;
-            if !value.is_finite() {
-                return Err(Error::InvalidArgument {
-                    name: "loss".to_string(),
-                    reason: format!(
-                        "non-finite loss {value} at step {} on batch {:?}; last good checkpoint: {}",
-                        state.step + 1,
-                        batch.provenance,
-                        last_checkpoint.as_ref().map_or("none".to_string(), |p| p.display().to_string())
-                    ),
-                });
+            if !value.is_finite() && bad_batch.is_none() {
+                bad_batch = Some((value, batch.provenance.clone()));
+                if pg.is_none() {
+                    break;
+                }
             }
             loss_sum += value;
         }
-        let grad_norm = optimizer.clip_grad_norm(config.optim.max_grad_norm)?;
+        // The mean over ranks (one process: itself); a non-finite loss anywhere stops every rank.
+        let loss = match pg {
+            Some(pg) => pg.sum_f64(loss_sum, "loss")? / world as f64,
+            None => loss_sum,
+        };
+        if !loss.is_finite() {
+            let (value, where_) = match bad_batch {
+                Some((value, provenance)) => (value, format!("on batch {provenance:?}")),
+                None => (loss, "on another rank".to_string()),
+            };
+            return Err(Error::InvalidArgument {
+                name: "loss".to_string(),
+                reason: format!(
+                    "non-finite loss {value} at step {} {where_}; last good checkpoint: {}",
+                    state.step + 1,
+                    last_checkpoint.as_ref().map_or("none".to_string(), |p| p.display().to_string())
+                ),
+            });
+        }
         let lr = learning_rate(&config.optim, state.step, config.train.steps);
-        optimizer.step(lr)?;
+        let grad_norm = optimizer.step(lr, config.optim.max_grad_norm, pg)?;
         state.step += 1;
         state.data_position = loader.position();
         let metrics = StepMetrics {
             step: state.step,
-            loss: loss_sum / accumulation as f64,
+            loss: loss / accumulation as f64,
             lr,
             grad_norm,
             seconds: started.elapsed().as_secs_f64(),
         };
-        writeln!(metrics_file, "{}", serde_json::to_string(&metrics).expect("metrics serialise"))
-            .map_err(|source| Error::Io { path: run.join("metrics.jsonl"), error: source })?;
-        progress(&metrics);
+        if let Some(file) = metrics_file.as_mut() {
+            writeln!(file, "{}", serde_json::to_string(&metrics).expect("metrics serialise"))
+                .map_err(|source| Error::Io { path: run.join("metrics.jsonl"), error: source })?;
+        }
+        if let Some(events) = events.as_mut() {
+            let samples = (config.data.batch_size as u64 * accumulation) as f64;
+            events.scalars(
+                state.step as i64,
+                &[
+                    ("train/loss", metrics.loss as f32),
+                    ("train/lr", metrics.lr as f32),
+                    ("train/grad_norm", metrics.grad_norm as f32),
+                    ("train/step_seconds", metrics.seconds as f32),
+                    ("train/samples_per_second", (samples / metrics.seconds.max(f64::MIN_POSITIVE)) as f32),
+                ],
+            )?;
+            events.flush()?;
+        }
+        if lead {
+            progress(&metrics);
+        }
         if config.train.validate_every > 0 && state.step.is_multiple_of(config.train.validate_every) {
-            let batch = validation.get_or_insert_with(|| {
-                ShardLoader::open(shards, DataConfig { batch_size: 1, ..config.data.clone() }, DataPosition::default())
+            if lead {
+                let batch = validation.get_or_insert_with(|| {
+                    ShardLoader::open(
+                        shards,
+                        DataConfig { batch_size: 1, ..config.data.clone() },
+                        DataPosition::default(),
+                    )
                     .and_then(|mut l| l.next_batch())
-            });
-            let batch = batch
-                .as_ref()
-                .map_err(|e| Error::InvalidArgument { name: "validation".to_string(), reason: e.to_string() })?;
-            write_validation_sample(run, state.step, &model, batch, config)?;
+                });
+                let batch = batch
+                    .as_ref()
+                    .map_err(|e| Error::InvalidArgument { name: "validation".to_string(), reason: e.to_string() })?;
+                let sheet = write_validation_sample(run, state.step, &model, batch, config)?;
+                if let Some(events) = events.as_mut() {
+                    events.image("validation/contact_sheet", state.step as i64, &sheet)?;
+                    events.flush()?;
+                }
+            }
+            // The other ranks wait for rank 0's sample here, within the collective timeout.
+            if let Some(pg) = pg {
+                pg.barrier("validation sample on rank 0")?;
+            }
         }
         if state.step.is_multiple_of(config.train.checkpoint_every) || state.step == config.train.steps {
-            last_checkpoint = Some(save_checkpoint(run, &model, &optimizer, &state, config.train.keep_last)?);
+            last_checkpoint = Some(save_checkpoint(run, &model, &optimizer, &state, config.train.keep_last, pg)?);
         }
     }
     Ok(RunSummary { resumed_from, steps: state.step, last_checkpoint })
+}
+
+/// This rank's data config: its share of the global batch, its rank and the world size.
+fn rank_data_config(config: &PretrainConfig, rank: usize, world: usize) -> Result<DataConfig> {
+    let global = config.data.batch_size;
+    if world > 1 && !global.is_multiple_of(world) {
+        return Err(Error::InvalidConfig {
+            source_name: "training config".to_string(),
+            field: "data.batch_size".to_string(),
+            reason: format!(
+                "the global batch {global} must be a multiple of the world size {world} (each rank takes an equal share)"
+            ),
+        });
+    }
+    Ok(DataConfig { batch_size: global / world, rank, world_size: world, ..config.data.clone() })
+}
+
+/// The run's frozen VAE, and a LoRA run's base transformer, saved once with the run.
+fn write_run_models(run: &Path, config: &PretrainConfig, model: &CogNvsModel) -> Result<()> {
+    // The frozen VAE goes with the run once (sampling and finetuning find it there).
+    let vae_dir = run.join("vae");
+    if !vae_dir.join("config.json").exists() {
+        weights::save(&model.vae_vs, model.vae.config(), vae::CLASS_NAME, &vae_dir, weights::DEFAULT_MAX_SHARD_BYTES)?;
+    }
+    // A LoRA run's checkpoints hold only adapters: the base they sit on is kept once, unless it is
+    // simply the configured model folder.
+    let base_is_folder = Path::new(&config.model.transformer).is_dir() && config.model.transformer_lora.is_none();
+    let base_dir = run.join(crate::lora::BASE_TRANSFORMER_DIR);
+    if model.lora_vs.is_some() && !base_is_folder && !base_dir.join("config.json").exists() {
+        weights::save(
+            &model.vs,
+            model.transformer.config(),
+            crate::cogvideox_transformer_3d::CLASS_NAME,
+            &base_dir,
+            weights::DEFAULT_MAX_SHARD_BYTES,
+        )?;
+    }
+    Ok(())
 }
 
 /// Samples the validation pair's conditioning and writes the video and a contact sheet. Its
@@ -211,7 +335,7 @@ fn write_validation_sample(
     model: &CogNvsModel,
     batch: &Batch,
     config: &PretrainConfig,
-) -> Result<()> {
+) -> Result<image::RgbImage> {
     let dir = run.join("samples").join(format!("step-{step:08}"));
     std::fs::create_dir_all(&dir).map_err(|source| Error::Io { path: dir.clone(), error: source })?;
     let device = model.text.device();
@@ -233,11 +357,17 @@ fn write_validation_sample(
     let picked: Vec<usize> = (0..SHEET_ROWS).map(|k| k * (sample.len() - 1) / (SHEET_ROWS - 1)).collect();
     let rows: Vec<Vec<image::RgbImage>> =
         picked.iter().map(|&i| vec![target[i].clone(), cond[i].clone(), sample[i].clone()]).collect();
-    datagen::contact_sheet::write_contact_sheet(&dir.join("contact_sheet.png"), &rows)?;
+    let sheet = datagen::contact_sheet::contact_sheet(&rows);
+    let sheet_path = dir.join("contact_sheet.png");
+    sheet.save(&sheet_path).map_err(|e| Error::InvalidInput {
+        path: sheet_path.clone(),
+        what: "contact sheet".to_string(),
+        reason: e.to_string(),
+    })?;
     let provenance = serde_json::json!({ "step": step, "pair": batch.provenance[0] });
     std::fs::write(dir.join("pair.json"), provenance.to_string())
         .map_err(|source| Error::Io { path: dir, error: source })?;
-    Ok(())
+    Ok(sheet)
 }
 
 /// Mixed into the seed of validation sampling (so it differs from the training draws).

@@ -83,7 +83,9 @@ fn frozen_vae_and_text_embedding_hold_no_autograd_state() {
     let batch = loader.next_batch().unwrap();
     let cache_dir = dir.path().join("latents");
     for cache in [None, Some(LatentCache::open(&cache_dir, &model, &config.data).unwrap())] {
-        let value = model.loss_backward(&batch, -3.0, 0.5, cache.as_ref(), 1.0, true).unwrap();
+        let value = model
+            .loss_backward(&batch, (-3.0, 0.5), cache.as_ref(), 1.0, true, trainer::training::Draws::SINGLE)
+            .unwrap();
         assert!(value.is_finite());
         for (name, variable) in model.vae_vs.variables() {
             assert!(!variable.requires_grad() && !variable.grad().defined(), "VAE variable {name} holds a gradient");

@@ -2,13 +2,18 @@
 
 mod checkpointing;
 mod data;
+mod distributed;
+mod eval_benchmark;
 mod eval_cli;
+mod eval_parity;
 mod forward_cli;
 mod hostile_inputs;
 mod libtorch;
 mod lora;
 mod parity;
+mod plan;
 mod pretrain;
 mod scheduler;
+mod tensorboard;
 mod transformer;
 mod vae;

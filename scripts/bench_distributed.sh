@@ -1,0 +1,65 @@
+#!/usr/bin/env bash
+# Multi-process training on this CPU (issue 13's benchmark): step time of the mid-size config
+# (scripts/bench_train.sh's: 8 blocks, 12 heads x 64, tiny VAE, 9 frames at 64x80) at global
+# batch 2 on 1 rank (2 threads) and on 2 ranks x 1 thread (Gloo, ZeRO-0 and ZeRO-2) — the same
+# arithmetic, so the difference is the cost of synchronization — with each rank's peak RSS, then
+# the all-reduce bandwidth between 2 local processes (`trainer comm-check`).
+# Usage: scripts/bench_distributed.sh [STEPS (8)]   (PROFILE=release for a release build)
+set -euo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")/.."
+
+steps="${1:-8}"
+work="$(mktemp -d)"
+trap 'rm -rf "$work"' EXIT
+profile="${PROFILE:-dev}"
+cargo build --profile "$profile" -p datagen -p trainer --quiet
+bin_dir=target/$([[ "$profile" == dev ]] && echo debug || echo "$profile")
+datagen=$bin_dir/datagen
+trainer=$bin_dir/trainer
+"$datagen" synth --width 80 --height 64 --frames 33 --out "$work/seq" >/dev/null
+printf '[clip]\nlength = 9\nstride = 4\n' >"$work/clips.toml"
+"$datagen" pairs "$work/seq" --out "$work/pairs" --trajectories 2 --config "$work/clips.toml" >/dev/null
+cat >"$work/mid.json" <<'JSON'
+{"_class_name": "CogVideoXTransformer3DModel", "num_attention_heads": 12, "attention_head_dim": 64,
+ "in_channels": 32, "out_channels": 16, "num_layers": 8, "text_embed_dim": 4096, "max_text_seq_length": 226,
+ "sample_width": 10, "sample_height": 8, "sample_frames": 9,
+ "use_rotary_positional_embeddings": true, "use_learned_positional_embeddings": true}
+JSON
+for stage in 0 2; do
+    sed -e "s|^transformer = .*|transformer = \"$work/mid.json\"|" -e "s|^steps = .*|steps = $steps|" \
+        -e "s|^batch_size = .*|batch_size = 2|" -e "s|^checkpoint_every = .*|checkpoint_every = 1000000|" \
+        -e "s|^validate_every = .*|validate_every = 0|" configs/pretrain_tiny.toml >"$work/zero$stage.toml"
+    printf '\n[distributed]\nzero_stage = %s\n' "$stage" >>"$work/zero$stage.toml"
+done
+
+median_step() {
+    python3 -c "
+import json, statistics
+s = [json.loads(l)['seconds'] for l in open('$1/metrics.jsonl')][2:]
+print(f'{statistics.median(s):.3f} s (range {min(s):.3f}-{max(s):.3f})')"
+}
+
+OMP_NUM_THREADS=2 /usr/bin/time -f '%M' -o "$work/single.rss" "$trainer" pretrain --config "$work/zero0.toml" \
+    --shards "$work/pairs" --out "$work/single" >/dev/null 2>&1
+echo "1 rank x batch 2 (2 threads): median step $(median_step "$work/single"), peak RSS $(( $(cat "$work/single.rss") / 1024 )) MiB"
+port=29650
+for stage in 0 2; do
+    port=$((port + 1))
+    for rank in 0 1; do
+        RANK=$rank WORLD_SIZE=2 MASTER_ADDR=127.0.0.1 MASTER_PORT=$port OMP_NUM_THREADS=1 \
+            /usr/bin/time -f '%M' -o "$work/zero$stage-$rank.rss" "$trainer" pretrain --config "$work/zero$stage.toml" \
+            --shards "$work/pairs" --out "$work/zero$stage" >/dev/null 2>&1 &
+    done
+    wait
+    echo "2 ranks x batch 1 (1 thread each), ZeRO-$stage: median step $(median_step "$work/zero$stage"), peak RSS rank 0 $(( $(cat "$work/zero$stage-0.rss") / 1024 )) MiB, rank 1 $(( $(cat "$work/zero$stage-1.rss") / 1024 )) MiB"
+done
+python3 - "$work" <<'PY'
+import json, sys
+work = sys.argv[1]
+def losses(run): return [json.loads(l)["loss"] for l in open(f"{work}/{run}/metrics.jsonl")]
+a, b, c = losses("single"), losses("zero0"), losses("zero2")
+print("max relative loss difference: 2 ranks vs 1 %.2e, ZeRO-2 vs ZeRO-0 %.2e" % (
+    max(abs(x - y) / abs(y) for x, y in zip(b, a)), max(abs(x - y) / abs(y) for x, y in zip(c, b))))
+PY
+.venv/bin/torchrun --nproc-per-node 2 --master-port $((port + 1)) --no-python "$trainer" comm-check --mib 64 --iterations 9 2>/dev/null \
+    | grep '^all-reduce [0-9]'

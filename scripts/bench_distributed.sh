@@ -11,20 +11,7 @@ cd "$(dirname "${BASH_SOURCE[0]}")/.."
 steps="${1:-8}"
 work="$(mktemp -d)"
 trap 'rm -rf "$work"' EXIT
-profile="${PROFILE:-dev}"
-cargo build --profile "$profile" -p datagen -p trainer --quiet
-bin_dir=target/$([[ "$profile" == dev ]] && echo debug || echo "$profile")
-datagen=$bin_dir/datagen
-trainer=$bin_dir/trainer
-"$datagen" synth --width 80 --height 64 --frames 33 --out "$work/seq" >/dev/null
-printf '[clip]\nlength = 9\nstride = 4\n' >"$work/clips.toml"
-"$datagen" pairs "$work/seq" --out "$work/pairs" --trajectories 2 --config "$work/clips.toml" >/dev/null
-cat >"$work/mid.json" <<'JSON'
-{"_class_name": "CogVideoXTransformer3DModel", "num_attention_heads": 12, "attention_head_dim": 64,
- "in_channels": 32, "out_channels": 16, "num_layers": 8, "text_embed_dim": 4096, "max_text_seq_length": 226,
- "sample_width": 10, "sample_height": 8, "sample_frames": 9,
- "use_rotary_positional_embeddings": true, "use_learned_positional_embeddings": true}
-JSON
+PROFILE="${PROFILE:-dev}" source scripts/bench_common.sh
 for stage in 0 2; do
     sed -e "s|^transformer = .*|transformer = \"$work/mid.json\"|" -e "s|^steps = .*|steps = $steps|" \
         -e "s|^batch_size = .*|batch_size = 2|" -e "s|^checkpoint_every = .*|checkpoint_every = 1000000|" \

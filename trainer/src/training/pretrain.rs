@@ -198,13 +198,13 @@ pub fn pretrain_on(
                 config.train.gradient_checkpointing,
                 draws,
             )?;
+            loss_sum += value;
             if !value.is_finite() && bad_batch.is_none() {
                 bad_batch = Some((value, batch.provenance.clone()));
                 if pg.is_none() {
                     break;
                 }
             }
-            loss_sum += value;
         }
         // The mean over ranks (one process: itself); a non-finite loss anywhere stops every rank.
         let loss = match pg {

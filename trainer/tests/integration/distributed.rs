@@ -275,9 +275,13 @@ fn finetune_on_two_ranks_equals_one_and_logs_tensorboard_events() {
         .output()
         .unwrap());
     let init = base.join("checkpoints/step-00000002");
+    // Finetuning cuts the test video into clips of 9 frames: 27 frames give 3, one per rank and more.
+    let video = dir.path().join("video");
+    let scene = datagen::synth::SynthConfig { width: 96, height: 64, frames: 27, seed: 5, ..Default::default() };
+    datagen::synth::write_sequence(&scene, &video, |_| {}).unwrap();
     let finetune = |out: &Path| -> Vec<std::ffi::OsString> {
         let mut args: Vec<std::ffi::OsString> = vec!["finetune".into(), "--init".into(), init.clone().into()];
-        args.extend(["--sequence".into(), dir.path().join("seq").into(), "--out".into(), out.into()]);
+        args.extend(["--sequence".into(), video.clone().into(), "--out".into(), out.into()]);
         args.extend(["--steps".into(), "3".into(), "--trajectories".into(), "2".into()]);
         args
     };

@@ -245,7 +245,7 @@ fn non_finite_loss_stops_naming_the_step_batch_and_last_checkpoint() {
     let out = dir.path().join("run");
     let output = pretrain(&config_path, &shards, &out, false);
     let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(!output.status.success(), "{stderr}");
+    assert!(!output.status.success(), "{}{stderr}", String::from_utf8_lossy(&output.stdout));
     assert!(stderr.contains("non-finite loss") && stderr.contains("step 1"), "{stderr}");
     assert!(stderr.contains("synth/seq/") && stderr.contains("last good checkpoint: none"), "{stderr}");
     assert!(trainer::training::list_checkpoints(&out).is_empty(), "no checkpoint of a poisoned model");

@@ -502,7 +502,10 @@ impl BlockTape<'_> {
         if grad_emb.defined() {
             surrogate = surrogate.f_add(&self.embedded_emb.f_mul(&grad_emb)?.f_sum(Kind::Float)?)?;
         }
-        surrogate.f_backward()?;
+        // With LoRA (or any frozen embedding) nothing below the blocks trains: no graph to walk.
+        if surrogate.requires_grad() {
+            surrogate.f_backward()?;
+        }
         Ok(())
     }
 }

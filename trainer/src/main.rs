@@ -464,7 +464,7 @@ fn run_finetune(args: FinetuneArgs) -> anyhow::Result<()> {
         None => trainer::training::DistributedConfig::default().timeout_seconds,
     };
     let (device, pg) = join_job(device, timeout)?;
-    let (plan_config, source_name) = trainer::plan::finetune_config(&request)?;
+    let (plan_config, source_name) = trainer::training::finetune_config(&request)?;
     check_plan(&plan_config, device, pg.as_ref(), &source_name)?;
     let bar = if pg.as_ref().is_some_and(|pg| pg.rank != 0) { indicatif::ProgressBar::hidden() } else { bar };
     let summary = trainer::training::finetune_on(&request, device, pg.as_ref(), |m| show_step(&bar, m))?;

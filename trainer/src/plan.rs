@@ -26,7 +26,7 @@ use crate::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoXConfig}
 use crate::cogvideox_transformer_3d::{CogVideoXTransformer3DModelConfig, variable_shapes};
 use crate::error::{Error, Result};
 use crate::lora::LoraConfig;
-use crate::training::{FinetuneRequest, PretrainConfig};
+use crate::training::PretrainConfig;
 
 /// Bytes of one fp32 value (AdamW moments, master weights, the loader's frames).
 const FP32_BYTES: u64 = 4;
@@ -548,31 +548,6 @@ pub fn human_bytes(bytes: u64) -> String {
     } else {
         format!("{:.1} MiB", bytes as f64 / MIB)
     }
-}
-
-/// The training config `trainer finetune` will run `request` with, and the name of the file it
-/// came from: the request's TOML or the init run's `config.json`, with the init checkpoint's
-/// transformer (or a LoRA checkpoint's base) in `model.transformer`, as
-/// [`finetune`](crate::training::finetune) resolves it, without writing anything. The data's
-/// batch may still shrink to the number of pairs the video gives; the plan takes the config's.
-pub fn finetune_config(request: &FinetuneRequest) -> Result<(PretrainConfig, String)> {
-    let (mut config, source_name) = match &request.config {
-        Some(path) => (PretrainConfig::from_toml_file(path)?, path.display().to_string()),
-        None => {
-            let path = request.init.join("../../config.json");
-            (PretrainConfig::from_json_file(&path)?, path.display().to_string())
-        }
-    };
-    match crate::lora::lora_checkpoint(&request.init)? {
-        Some((base, file)) => {
-            config.model.transformer = base.display().to_string();
-            config.model.transformer_lora = Some(file);
-        }
-        None => config.model.transformer = crate::sampling::transformer_dir(&request.init).display().to_string(),
-    }
-    config.model.vae = crate::sampling::find_vae(&request.init, None)?.display().to_string();
-    config.train.steps = request.steps;
-    Ok((config, source_name))
 }
 
 /// Checks `plan` against the free memory of its device: on CUDA, the predicted peak must fit in

@@ -111,16 +111,6 @@ impl GradientBuckets {
         Self { params, buckets }
     }
 
-    /// Number of buckets (one collective each per step).
-    pub fn len(&self) -> usize {
-        self.buckets.len()
-    }
-
-    /// Whether there is nothing to reduce.
-    pub fn is_empty(&self) -> bool {
-        self.buckets.is_empty()
-    }
-
     /// Replaces every gradient by its mean over ranks.
     pub fn average(&self, pg: &ProcessGroup) -> Result<()> {
         tch::no_grad(|| -> Result<()> {
@@ -179,6 +169,8 @@ pub struct ShardedAdamW {
     world: usize,
     /// Where bucket b's owned slice starts in the local vectors.
     local_offsets: Vec<i64>,
+    /// Each parameter's start in the flat parameter space.
+    offsets: Vec<i64>,
     master: Tensor,
     exp_avg: Tensor,
     exp_avg_sq: Tensor,
@@ -199,6 +191,7 @@ impl ShardedAdamW {
         }
         let device = params.first().map_or(tch::Device::Cpu, |(_, p)| p.device());
         let zeros = || Tensor::f_zeros([local], (Kind::Float, device));
+        let flat_offsets = offsets(&params);
         let mut this = Self {
             config,
             params,
@@ -206,6 +199,7 @@ impl ShardedAdamW {
             rank,
             world,
             local_offsets,
+            offsets: flat_offsets,
             master: zeros()?,
             exp_avg: zeros()?,
             exp_avg_sq: zeros()?,
@@ -232,7 +226,7 @@ impl ShardedAdamW {
 
     /// This rank's slices of the current parameter values, as fp32.
     fn owned_from_parameters(&self) -> Result<Tensor> {
-        let offsets = offsets(&self.params);
+        let offsets = &self.offsets;
         let out = self.master.f_zeros_like()?;
         for (start, len, local) in self.owned_ranges() {
             for (i, (_, p)) in self.params.iter().enumerate() {
@@ -315,7 +309,7 @@ impl ShardedAdamW {
     /// gathering at once).
     fn gather_parameters(&self, pg: &ProcessGroup) -> Result<()> {
         let total = self.buckets.len();
-        let offsets = offsets(&self.params);
+        let offsets = &self.offsets;
         let copy_back = |b: usize, output: &Tensor| -> Result<()> {
             let bucket = &self.buckets[b];
             for &i in &bucket.members {
@@ -354,7 +348,7 @@ impl ShardedAdamW {
     /// The full fp32 master weights, gathered from every rank (all ranks take part).
     pub fn gather_masters(&self, pg: &ProcessGroup) -> Result<Vec<(String, Tensor)>> {
         let total = self.buckets.len();
-        let offsets = offsets(&self.params);
+        let offsets = &self.offsets;
         let mut out = Vec::with_capacity(self.params.len());
         for (b, bucket) in self.buckets.iter().enumerate() {
             let shard = bucket.shard(self.world);

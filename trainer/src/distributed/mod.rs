@@ -19,7 +19,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
-use tch::{Device, Kind, Tensor};
+use tch::{Device, Tensor};
 
 pub use data_parallel::{FlatState, GradientBuckets, ShardedAdamW};
 pub use ffi::{Backend, cuda_mem_get_info, has_nccl};
@@ -138,7 +138,7 @@ impl ProcessGroup {
         };
         pg.mark(0)?;
         let group = ffi::Group::new(backend, pg.store(), launch.rank, launch.world_size, timeout_ms)
-            .map_err(|e| pg.failure("process-group rendezvous", 0, pg.started_now(), &e))?;
+            .map_err(|e| pg.failure("process-group rendezvous", 0, Instant::now(), &e))?;
         pg.group = Some(group);
         Ok(pg)
     }
@@ -149,10 +149,6 @@ impl ProcessGroup {
 
     fn group(&self) -> &ffi::Group {
         self.group.as_ref().expect("group lives until drop")
-    }
-
-    fn started_now(&self) -> Instant {
-        Instant::now()
     }
 
     /// The device collectives run on (tensors passed in must live there).
@@ -327,11 +323,6 @@ impl ProcessGroup {
             }
         }
         Ok(())
-    }
-
-    /// A 1-element f64 tensor on the group's device (for scalar reductions).
-    pub fn scalar(&self, value: f64) -> Result<Tensor> {
-        Ok(Tensor::from_slice(&[value]).f_to_kind(Kind::Double)?.f_to_device(self.device)?)
     }
 }
 

@@ -48,42 +48,15 @@ pub fn finetune_on(
     progress: impl FnMut(&StepMetrics),
 ) -> Result<RunSummary> {
     let (rank, world) = pg.map_or((0, 1), |pg| (pg.rank, pg.world_size));
-    let FinetuneRequest { init, sequence: sequence_dir, out: run, steps, trajectories, config, lora: _ } = request;
-    let (steps, trajectories) = (*steps, *trajectories);
-    let mut config = match config {
-        Some(path) => PretrainConfig::from_toml_file(path)?,
-        None => PretrainConfig::from_json_file(&init.join("../../config.json"))?,
-    };
+    let FinetuneRequest { sequence: sequence_dir, out: run, trajectories, .. } = request;
+    let trajectories = *trajectories;
+    let (mut config, _) = finetune_config(request)?;
     if run.join("config.json").exists() {
         return Err(Error::InvalidArgument {
             name: "out".to_string(),
             reason: format!("{} already holds a run; choose another folder", run.display()),
         });
     }
-    match crate::lora::lora_checkpoint(init)? {
-        // A LoRA checkpoint: its base with its adapter merged is where finetuning starts.
-        Some((base, file)) => {
-            config.model.transformer = base.display().to_string();
-            config.model.transformer_lora = Some(file);
-        }
-        None => config.model.transformer = crate::sampling::transformer_dir(init).display().to_string(),
-    }
-    if let Some(file) = &request.lora {
-        if config.model.transformer_lora.is_some() {
-            return Err(Error::InvalidArgument {
-                name: "lora".to_string(),
-                reason: format!(
-                    "{} is a LoRA checkpoint already; pass its base to combine it with another LoRA file",
-                    init.display()
-                ),
-            });
-        }
-        config.model.transformer_lora = Some(file.clone());
-    }
-    config.model.vae = crate::sampling::find_vae(init, None)?.display().to_string();
-    config.train.steps = steps;
-    config.train.checkpoint_every = config.train.checkpoint_every.min(steps.max(1));
-
     if let Some(pg) = pg {
         // Every rank has checked the folder before rank 0 writes into it.
         pg.barrier("finetune start")?;
@@ -122,4 +95,44 @@ pub fn finetune_on(
     let batch = config.data.batch_size.min(clips).max(1);
     config.data.batch_size = (batch / world).max(1) * world;
     pretrain_on(&config, &[pairs_dir], run, false, device, pg, progress)
+}
+
+/// The training config `trainer finetune` runs `request` with, and the name of the file it came
+/// from: the request's TOML or the init run's `config.json`, with the init checkpoint's
+/// transformer (or a LoRA checkpoint's base plus its adapter, or `--lora`'s) and VAE, and the
+/// request's steps. Nothing is written. The data's batch may still shrink to the number of clips
+/// the video gives (see [`finetune_on`]).
+pub fn finetune_config(request: &FinetuneRequest) -> Result<(PretrainConfig, String)> {
+    let init = &request.init;
+    let (mut config, source_name) = match &request.config {
+        Some(path) => (PretrainConfig::from_toml_file(path)?, path.display().to_string()),
+        None => {
+            let path = init.join("../../config.json");
+            (PretrainConfig::from_json_file(&path)?, path.display().to_string())
+        }
+    };
+    match crate::lora::lora_checkpoint(init)? {
+        // A LoRA checkpoint: its base with its adapter merged is where finetuning starts.
+        Some((base, file)) => {
+            config.model.transformer = base.display().to_string();
+            config.model.transformer_lora = Some(file);
+        }
+        None => config.model.transformer = crate::sampling::transformer_dir(init).display().to_string(),
+    }
+    if let Some(file) = &request.lora {
+        if config.model.transformer_lora.is_some() {
+            return Err(Error::InvalidArgument {
+                name: "lora".to_string(),
+                reason: format!(
+                    "{} is a LoRA checkpoint already; pass its base to combine it with another LoRA file",
+                    init.display()
+                ),
+            });
+        }
+        config.model.transformer_lora = Some(file.clone());
+    }
+    config.model.vae = crate::sampling::find_vae(init, None)?.display().to_string();
+    config.train.steps = request.steps;
+    config.train.checkpoint_every = config.train.checkpoint_every.min(request.steps.max(1));
+    Ok((config, source_name))
 }

@@ -38,7 +38,7 @@ pub use adamw::AdamW;
 pub(crate) use adamw::{trainable_parameters, update as adamw_update};
 pub use checkpoint::{CheckpointLayout, TrainState, list_checkpoints};
 pub use config::{DistributedConfig, LoopConfig, ModelConfig, OptimConfig, Precision, PretrainConfig};
-pub use finetune::{FinetuneRequest, finetune, finetune_on};
+pub use finetune::{FinetuneRequest, finetune, finetune_config, finetune_on};
 pub use latent_cache::LatentCache;
 pub use lr_schedule::learning_rate;
 pub use objective::{CogNvsModel, Draws};

@@ -157,9 +157,10 @@ fn two_ranks_equal_one_rank_and_zero2_equals_zero0_and_relaunch_resumes() {
         assert!(Instant::now() < deadline && job.try_wait().unwrap().is_none(), "the job ended before step 4");
         std::thread::sleep(Duration::from_millis(100));
     }
-    // SIGKILL to torchrun's whole process group (agent and workers).
-    Command::new("kill").args(["-KILL", &format!("-{}", job.id())]).status().unwrap();
-    let _ = job.kill();
+    // SIGKILL to the agent and its workers at once (each worker runs in a session of its own).
+    let mut tree = descendants(job.id());
+    tree.push(job.id());
+    signal("KILL", &tree);
     let _ = job.wait();
     // The workers may outlive the agent for an instant.
     std::thread::sleep(Duration::from_secs(1));
@@ -176,6 +177,30 @@ fn two_ranks_equal_one_rank_and_zero2_equals_zero0_and_relaunch_resumes() {
         .unwrap());
     assert_losses_close("1 rank resuming a 2-rank checkpoint", &losses(&copy), &losses(&sharded), LOSS_TOLERANCE);
     assert!(max_weight_difference(&copy, &sharded, steps) <= WEIGHT_TOLERANCE);
+}
+
+/// The processes below `pid`, children before their own children, read from `/proc`.
+fn descendants(pid: u32) -> Vec<u32> {
+    let mut found = Vec::new();
+    let Ok(tasks) = std::fs::read_dir(format!("/proc/{pid}/task")) else { return found };
+    for task in tasks.flatten() {
+        let children = std::fs::read_to_string(task.path().join("children")).unwrap_or_default();
+        for child in children.split_whitespace().map(|c| c.parse::<u32>().unwrap()) {
+            found.push(child);
+            found.extend(descendants(child));
+        }
+    }
+    found
+}
+
+/// Sends SIG`name` to each of `pids`, one positive process id at a time. Never a process group:
+/// Debian 12's procps `kill` misreads `-PGID` (`kill -0 -20108` makes the call `kill(-2, 0)`), and
+/// a group id starting with 1 becomes `kill(-1, …)`, every process the caller may signal.
+fn signal(name: &str, pids: &[u32]) {
+    for &pid in pids {
+        assert!(pid > 1, "refusing to signal process {pid}");
+        let _ = Command::new("kill").args([format!("-{name}"), pid.to_string()]).status().unwrap();
+    }
 }
 
 fn copy_tree(from: &Path, to: &Path) {
@@ -206,8 +231,8 @@ fn a_dead_or_stalled_rank_fails_the_others_naming_it() {
     let dir = tempfile::tempdir().unwrap();
     let shards = super::pretrain::pairs(dir.path());
     let config = config(dir.path(), "long", 10_000, 0, LR);
-    for (signal, port, words) in [("KILL", 29541, "rank 1"), ("STOP", 29542, "no heartbeat")] {
-        let out = dir.path().join(format!("run-{signal}"));
+    for (signal_name, port, words) in [("KILL", 29541, "rank 1"), ("STOP", 29542, "no heartbeat")] {
+        let out = dir.path().join(format!("run-{signal_name}"));
         let mut ranks = by_hand(2, |_| pretrain_args(&config, &shards, &out, false), port);
         let metrics = out.join("metrics.jsonl");
         let deadline = Instant::now() + Duration::from_secs(300);
@@ -215,10 +240,10 @@ fn a_dead_or_stalled_rank_fails_the_others_naming_it() {
             assert!(Instant::now() < deadline, "no progress");
             std::thread::sleep(Duration::from_millis(100));
         }
-        Command::new("kill").args([&format!("-{signal}"), &ranks[1].id().to_string()]).status().unwrap();
+        signal(signal_name, &[ranks[1].id()]);
         // The timeout is 20 s; a dead peer is noticed at once, a stalled one within the timeout.
         let (status, stderr, took) = wait_within(&mut ranks[0], Duration::from_secs(60));
-        println!("after SIG{signal} of rank 1, rank 0 exited in {took:.1?}:\n{stderr}");
+        println!("after SIG{signal_name} of rank 1, rank 0 exited in {took:.1?}:\n{stderr}");
         assert!(!status.success());
         assert!(stderr.contains(words) && stderr.contains("collective"), "{stderr}");
         let _ = ranks[1].kill();

@@ -51,9 +51,17 @@ fn attribute(out: &mut Vec<u8>, name: &str, kind: &str, value: &[u8]) {
     out.extend_from_slice(value);
 }
 
-/// A ZIP block's payload: the scanlines' bytes split into even and odd positions, delta-coded
-/// (the OpenEXR predictor), zlib-compressed; stored raw when compression does not shrink them.
-fn zip_block(raw: &[u8], scratch: &mut Vec<u8>) -> Vec<u8> {
+/// Appends a ZIP block's payload to `out`: the scanlines' bytes split into even and odd
+/// positions, delta-coded (the OpenEXR predictor), zlib-compressed; stored raw when compression
+/// does not shrink them. `zlib` is reset after each block, so its state (hundreds of KB) is
+/// allocated once per file; `compressed` is reused the same way.
+fn zip_block(
+    raw: &[u8],
+    scratch: &mut Vec<u8>,
+    zlib: &mut ZlibEncoder<Vec<u8>>,
+    compressed: &mut Vec<u8>,
+    out: &mut Vec<u8>,
+) {
     scratch.clear();
     scratch.extend(raw.iter().step_by(2));
     scratch.extend(raw.iter().skip(1).step_by(2));
@@ -63,10 +71,12 @@ fn zip_block(raw: &[u8], scratch: &mut Vec<u8>) -> Vec<u8> {
         *byte = current.wrapping_sub(previous).wrapping_add(128);
         previous = current;
     }
-    let mut encoder = ZlibEncoder::new(Vec::with_capacity(raw.len() / 2), ZlibLevel::new(ZLIB_LEVEL));
-    encoder.write_all(scratch).expect("compression into memory");
-    let compressed = encoder.finish().expect("compression into memory");
-    if compressed.len() < raw.len() { compressed } else { raw.to_vec() }
+    zlib.write_all(scratch).expect("compression into memory");
+    compressed.clear();
+    *compressed = zlib.reset(std::mem::take(compressed)).expect("compression into memory");
+    let payload = if compressed.len() < raw.len() { compressed.as_slice() } else { raw };
+    out.extend_from_slice(&(payload.len() as i32).to_le_bytes());
+    out.extend_from_slice(payload);
 }
 
 /// Encodes `depth` as an EXR file in memory (single part, scanlines, increasing line order).
@@ -105,16 +115,17 @@ pub fn encode_depth_exr(depth: &DepthMap) -> Result<Vec<u8>> {
     let blocks = height.div_ceil(ZIP_LINES);
     let table = out.len();
     out.resize(table + 8 * blocks, 0);
-    let (mut raw, mut scratch) = (Vec::new(), Vec::new());
+    // Room for the worst case (every block stored raw), so the file is never moved as it grows.
+    out.reserve(blocks * 8 + 4 * width * height);
+    let (mut raw, mut scratch, mut compressed) = (Vec::new(), Vec::new(), Vec::new());
+    let mut zlib = ZlibEncoder::new(Vec::new(), ZlibLevel::new(ZLIB_LEVEL));
     for (block, rows) in depth.values.chunks(ZIP_LINES * width).enumerate() {
         raw.clear();
         raw.extend(rows.iter().flat_map(|v| v.to_le_bytes()));
-        let payload = zip_block(&raw, &mut scratch);
         let offset = out.len() as u64;
         out[table + 8 * block..table + 8 * block + 8].copy_from_slice(&offset.to_le_bytes());
         out.extend_from_slice(&((block * ZIP_LINES) as i32).to_le_bytes());
-        out.extend_from_slice(&(payload.len() as i32).to_le_bytes());
-        out.extend_from_slice(&payload);
+        zip_block(&raw, &mut scratch, &mut zlib, &mut compressed, &mut out);
     }
     Ok(out)
 }

@@ -153,12 +153,13 @@ impl DepthMesh {
             let in_camera = camera_from_pixel * DVec3::new((p % width) as f64, (p / width) as f64, 1.0);
             camera.world_from_camera.transform_vector3(in_camera)
         };
-        let rays: Vec<DVec3> = (0..width * height).into_par_iter().map(pixel_ray).collect();
+        // Rays are recomputed where needed (the same arithmetic each time), not stored: an array
+        // of them is 8 MB a frame at 480×720 for one pass over the pixels and the rare skirts.
         let points: Vec<Option<DVec3>> = depth
             .values
             .par_iter()
-            .zip(&rays)
-            .map(|(&d, ray)| valid(d).then(|| center + f64::from(d) * *ray))
+            .enumerate()
+            .map(|(p, &d)| valid(d).then(|| center + f64::from(d) * pixel_ray(p)))
             .collect();
         let vertices: Vec<Vec3A> = points.par_iter().map(|p| p.map_or(Vec3A::ZERO, to_vec3a)).collect();
         // Per row of quads: each quad's kind, and the skirt triangles of the row.
@@ -178,8 +179,8 @@ impl DepthMesh {
                         *surface = true;
                     } else if config.occluder_thickness > 0.0 {
                         let limit = near * (1.0 + config.occluder_thickness);
-                        let skirt =
-                            SPLIT.map(|tri| triangle(tri.map(|k| center + (d[k] as f64).min(limit) * rays[index[k]])));
+                        let skirt = SPLIT
+                            .map(|tri| triangle(tri.map(|k| center + (d[k] as f64).min(limit) * pixel_ray(index[k]))));
                         skirts.push((u, skirt));
                     }
                 }

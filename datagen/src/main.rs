@@ -259,8 +259,11 @@ fn pairs(args: PairsArgs) -> anyhow::Result<()> {
     }
     let (records, times) =
         datagen::pairs::generate_clips_timed(&sequence, &args.dataset, &config, &request, args.seed)?;
+    // The decoded frames and depth are not needed for writing: their memory goes first.
+    let source_id = std::mem::take(&mut sequence.source_id);
+    drop(sequence);
     let clock = std::time::Instant::now();
-    let (path, stats) = datagen::pairs::write_shard(&args.out, &sequence.source_id, &records, input)?;
+    let (path, stats) = datagen::pairs::write_shard(&args.out, &source_id, &records, input)?;
     if args.timings {
         eprintln!(
             "timings (wall s; phases in brackets run concurrently and overlap): [read+decode, hash] \

@@ -8,7 +8,7 @@ use tch::Device;
 use trainer::data::{DataPosition, ShardLoader};
 use trainer::training::{CogNvsModel, LatentCache, PretrainConfig, read_metrics};
 
-use super::parity::{read_tensors, repo_root};
+use super::parity::{assert_success, read_tensors, repo_root};
 use super::pretrain::pairs;
 
 /// Relative tolerance of the losses between the two runs: only the summation order of the
@@ -38,6 +38,24 @@ fn config_with(dir: &Path, steps: u64, checkpointing: bool, extra: &str) -> Path
     path
 }
 
+/// The plain and the checkpointed run agree: `steps` losses within [`TOLERANCE`], and the
+/// tensors of `file` in their last checkpoint (`what` they are) within [`WEIGHT_TOLERANCE`].
+fn assert_runs_agree(plain: &Path, checkpointed: &Path, steps: u64, file: &str, what: &str) {
+    let losses = |run: &Path| read_metrics(run).unwrap().iter().map(|m| m.loss).collect::<Vec<_>>();
+    let (a, b) = (losses(plain), losses(checkpointed));
+    assert_eq!(a.len(), steps as usize);
+    for (step, (x, y)) in a.iter().zip(&b).enumerate() {
+        assert!((x - y).abs() <= TOLERANCE * x.abs(), "step {}: loss {x} plain, {y} checkpointed", step + 1);
+    }
+    let tensors = |run: &Path| read_tensors(&run.join(format!("checkpoints/step-{steps:08}/{file}")));
+    let (wa, wb) = (tensors(plain), tensors(checkpointed));
+    assert!(!wa.is_empty() && wa.len() == wb.len());
+    for (name, x) in &wa {
+        let diff = (x - &wb[name]).abs().max().double_value(&[]);
+        assert!(diff <= WEIGHT_TOLERANCE, "{name}: {what} differ by {diff}");
+    }
+}
+
 fn pretrain(config: &Path, shards: &Path, out: &Path) {
     let output = Command::new(env!("CARGO_BIN_EXE_trainer"))
         .arg("pretrain")
@@ -49,7 +67,7 @@ fn pretrain(config: &Path, shards: &Path, out: &Path) {
         .arg(out)
         .output()
         .unwrap();
-    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    assert_success(&output);
 }
 
 #[test]
@@ -60,22 +78,8 @@ fn checkpointed_run_repeats_the_plain_run() {
     let (plain, checkpointed) = (dir.path().join("plain"), dir.path().join("checkpointed"));
     pretrain(&config(dir.path(), steps, false), &shards, &plain);
     pretrain(&config(dir.path(), steps, true), &shards, &checkpointed);
-    let losses = |run: &Path| read_metrics(run).unwrap().iter().map(|m| m.loss).collect::<Vec<_>>();
-    let (a, b) = (losses(&plain), losses(&checkpointed));
-    assert_eq!(a.len(), steps as usize);
-    for (step, (x, y)) in a.iter().zip(&b).enumerate() {
-        assert!((x - y).abs() <= TOLERANCE * x.abs(), "step {}: loss {x} plain, {y} checkpointed", step + 1);
-    }
-    let weights = |run: &Path| {
-        read_tensors(&run.join(format!("checkpoints/step-{steps:08}/transformer/diffusion_pytorch_model.safetensors")))
-    };
-    let (wa, wb) = (weights(&plain), weights(&checkpointed));
-    assert_eq!(wa.len(), wb.len());
-    for (name, x) in &wa {
-        let y = &wb[name];
-        let diff = (x - y).abs().max().double_value(&[]);
-        assert!(diff <= WEIGHT_TOLERANCE, "{name}: final weights differ by {diff}");
-    }
+    let weights = "transformer/diffusion_pytorch_model.safetensors";
+    assert_runs_agree(&plain, &checkpointed, steps, weights, "final weights");
 }
 
 /// LoRA with checkpointing: the frozen embeddings below the blocks have no graph, and the
@@ -89,21 +93,7 @@ fn checkpointed_lora_run_repeats_the_plain_lora_run() {
     let (plain, checkpointed) = (dir.path().join("plain"), dir.path().join("checkpointed"));
     pretrain(&config_with(dir.path(), steps, false, lora), &shards, &plain);
     pretrain(&config_with(dir.path(), steps, true, lora), &shards, &checkpointed);
-    let losses = |run: &Path| read_metrics(run).unwrap().iter().map(|m| m.loss).collect::<Vec<_>>();
-    let (a, b) = (losses(&plain), losses(&checkpointed));
-    assert_eq!(a.len(), steps as usize);
-    for (step, (x, y)) in a.iter().zip(&b).enumerate() {
-        assert!((x - y).abs() <= TOLERANCE * x.abs(), "step {}: loss {x} plain, {y} checkpointed", step + 1);
-    }
-    let adapters = |run: &Path| {
-        read_tensors(&run.join(format!("checkpoints/step-{steps:08}/{}", trainer::lora::LORA_WEIGHTS_NAME)))
-    };
-    let (wa, wb) = (adapters(&plain), adapters(&checkpointed));
-    assert!(!wa.is_empty() && wa.len() == wb.len());
-    for (name, x) in &wa {
-        let diff = (x - &wb[name]).abs().max().double_value(&[]);
-        assert!(diff <= WEIGHT_TOLERANCE, "{name}: adapters differ by {diff}");
-    }
+    assert_runs_agree(&plain, &checkpointed, steps, trainer::lora::LORA_WEIGHTS_NAME, "adapters");
 }
 
 #[test]

@@ -4,12 +4,12 @@
 //! ranks that disagree or bad launcher variables fail at start with nothing written.
 
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
+use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use trainer::training::read_metrics;
 
-use super::parity::{python, read_tensors, repo_root};
+use super::parity::{assert_success, python, read_tensors, repo_root};
 
 /// The tiny config at global batch 2, with a `[distributed]` section.
 fn config(dir: &Path, name: &str, steps: u64, zero_stage: u8, lr: &str) -> PathBuf {
@@ -65,15 +65,6 @@ fn by_hand(ranks: usize, args: impl Fn(usize) -> Vec<std::ffi::OsString>, port: 
         .collect()
 }
 
-fn ok(output: &Output) {
-    assert!(
-        output.status.success(),
-        "{}{}",
-        String::from_utf8_lossy(&output.stdout),
-        String::from_utf8_lossy(&output.stderr)
-    );
-}
-
 fn losses(run: &Path) -> Vec<f64> {
     read_metrics(run).unwrap().iter().map(|m| m.loss).collect()
 }
@@ -114,14 +105,16 @@ fn two_ranks_equal_one_rank_and_zero2_equals_zero0_and_relaunch_resumes() {
     let zero2 = config(dir.path(), "zero2", steps, 2, LR);
 
     let single = dir.path().join("single");
-    ok(&Command::new(env!("CARGO_BIN_EXE_trainer"))
-        .args(pretrain_args(&zero0, &shards, &single, false))
-        .output()
-        .unwrap());
+    assert_success(
+        &Command::new(env!("CARGO_BIN_EXE_trainer"))
+            .args(pretrain_args(&zero0, &shards, &single, false))
+            .output()
+            .unwrap(),
+    );
     let ddp = dir.path().join("ddp");
-    ok(&torchrun(2, &pretrain_args(&zero0, &shards, &ddp, false), 29531).output().unwrap());
+    assert_success(&torchrun(2, &pretrain_args(&zero0, &shards, &ddp, false), 29531).output().unwrap());
     let sharded = dir.path().join("zero2");
-    ok(&torchrun(2, &pretrain_args(&zero2, &shards, &sharded, false), 29532).output().unwrap());
+    assert_success(&torchrun(2, &pretrain_args(&zero2, &shards, &sharded, false), 29532).output().unwrap());
 
     let reference = losses(&single);
     println!("1 rank x batch 2: {reference:?}\n2 ranks x batch 1: {:?}\nZeRO-2: {:?}", losses(&ddp), losses(&sharded));
@@ -166,15 +159,17 @@ fn two_ranks_equal_one_rank_and_zero2_equals_zero0_and_relaunch_resumes() {
     std::thread::sleep(Duration::from_secs(1));
     let copy = dir.path().join("killed-copy");
     copy_tree(&killed, &copy);
-    ok(&torchrun(2, &pretrain_args(&zero2, &shards, &killed, true), 29534).output().unwrap());
+    assert_success(&torchrun(2, &pretrain_args(&zero2, &shards, &killed, true), 29534).output().unwrap());
     assert_eq!(losses(&killed), losses(&sharded), "relaunched 2-rank run must repeat the uninterrupted one");
     assert_eq!(max_weight_difference(&killed, &sharded, steps), 0.0);
 
     // The same ZeRO-2 checkpoint resumed by one process (per-rank shards into one AdamW).
-    ok(&Command::new(env!("CARGO_BIN_EXE_trainer"))
-        .args(pretrain_args(&zero0, &shards, &copy, true))
-        .output()
-        .unwrap());
+    assert_success(
+        &Command::new(env!("CARGO_BIN_EXE_trainer"))
+            .args(pretrain_args(&zero0, &shards, &copy, true))
+            .output()
+            .unwrap(),
+    );
     assert_losses_close("1 rank resuming a 2-rank checkpoint", &losses(&copy), &losses(&sharded), LOSS_TOLERANCE);
     assert!(max_weight_difference(&copy, &sharded, steps) <= WEIGHT_TOLERANCE);
 }
@@ -295,10 +290,12 @@ fn finetune_on_two_ranks_equals_one_and_logs_tensorboard_events() {
     let shards = super::pretrain::pairs(dir.path());
     let zero0 = config(dir.path(), "zero0", 2, 0, LR);
     let base = dir.path().join("base");
-    ok(&Command::new(env!("CARGO_BIN_EXE_trainer"))
-        .args(pretrain_args(&zero0, &shards, &base, false))
-        .output()
-        .unwrap());
+    assert_success(
+        &Command::new(env!("CARGO_BIN_EXE_trainer"))
+            .args(pretrain_args(&zero0, &shards, &base, false))
+            .output()
+            .unwrap(),
+    );
     let init = base.join("checkpoints/step-00000002");
     // Finetuning cuts the test video into clips of 9 frames: 27 frames give 3, one per rank and more.
     let video = dir.path().join("video");
@@ -311,9 +308,9 @@ fn finetune_on_two_ranks_equals_one_and_logs_tensorboard_events() {
         args
     };
     let single = dir.path().join("ft-single");
-    ok(&Command::new(env!("CARGO_BIN_EXE_trainer")).args(finetune(&single)).output().unwrap());
+    assert_success(&Command::new(env!("CARGO_BIN_EXE_trainer")).args(finetune(&single)).output().unwrap());
     let ranks = dir.path().join("ft-ranks");
-    ok(&torchrun(2, &finetune(&ranks), 29561).output().unwrap());
+    assert_success(&torchrun(2, &finetune(&ranks), 29561).output().unwrap());
     assert_losses_close("finetune on 2 ranks vs 1", &losses(&ranks), &losses(&single), LOSS_TOLERANCE);
     assert!(max_weight_difference(&ranks, &single, 3) <= WEIGHT_TOLERANCE);
 

@@ -7,7 +7,7 @@ use std::process::Output;
 
 use trainer::tch::Tensor;
 
-use super::parity::{assert_close, read_tensors};
+use super::parity::{assert_close, assert_success, read_tensors};
 
 fn trainer(args: &[&dyn AsRef<std::ffi::OsStr>]) -> Output {
     let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_trainer"));
@@ -41,15 +41,6 @@ fn write_inputs(path: &Path, io: &BTreeMap<String, Tensor>, pairs: &[(&str, &str
     Tensor::write_safetensors(&named, path).unwrap();
 }
 
-fn ok(output: &Output) {
-    assert!(
-        output.status.success(),
-        "trainer forward failed: {}\n{}",
-        String::from_utf8_lossy(&output.stdout),
-        String::from_utf8_lossy(&output.stderr)
-    );
-}
-
 #[test]
 fn transformer_forward_matches_diffusers() {
     let goldens = super::transformer::goldens();
@@ -65,11 +56,11 @@ fn transformer_forward_matches_diffusers() {
     let out = dir.path().join("out.safetensors");
     let model = goldens.join("cognvs_tiny_sharded");
     let index = model.join("diffusion_pytorch_model.safetensors.index.json");
-    ok(&transformer(&model, &index, &inputs, &out, &[]));
+    assert_success(&transformer(&model, &index, &inputs, &out, &[]));
     assert_close("trainer forward transformer", &read_tensors(&out)["sample"], &io["cognvs.sample"], 1e-4);
 
     let bf16 = dir.path().join("bf16.safetensors");
-    ok(&transformer(&model, &index, &inputs, &bf16, &["--dtype", "bf16"]));
+    assert_success(&transformer(&model, &index, &inputs, &bf16, &["--dtype", "bf16"]));
     assert_close("trainer forward transformer bf16", &read_tensors(&bf16)["sample"], &io["cognvs_bf16.sample"], 3e-2);
 }
 
@@ -82,7 +73,7 @@ fn vae_forward_matches_diffusers() {
     let weights = vae.join("diffusion_pytorch_model.safetensors");
     let (enc_in, enc_out) = (dir.path().join("enc_in.safetensors"), dir.path().join("enc_out.safetensors"));
     write_inputs(&enc_in, &io, &[("sample", "encode.sample")]);
-    ok(&trainer(&[
+    assert_success(&trainer(&[
         &"--module",
         &"vae_encoder",
         &"--config",
@@ -97,7 +88,7 @@ fn vae_forward_matches_diffusers() {
     assert_close("trainer forward vae_encoder", &read_tensors(&enc_out)["latent"], &io["encode.latent"], 1e-4);
     let (dec_in, dec_out) = (dir.path().join("dec_in.safetensors"), dir.path().join("dec_out.safetensors"));
     write_inputs(&dec_in, &io, &[("latent", "decode.latent")]);
-    ok(&trainer(&[
+    assert_success(&trainer(&[
         &"--module",
         &"vae_decoder",
         &"--config",

@@ -35,6 +35,16 @@ pub fn run_script(script: &str) -> tempfile::TempDir {
 }
 
 /// Named tensors of a safetensors file.
+/// Asserts that a finished command exited 0, showing its stdout and stderr when it did not.
+pub fn assert_success(output: &std::process::Output) {
+    assert!(
+        output.status.success(),
+        "command failed: {}\n{}",
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    );
+}
+
 pub fn read_tensors(path: &Path) -> BTreeMap<String, Tensor> {
     Tensor::read_safetensors(path).unwrap_or_else(|e| panic!("{}: {e}", path.display())).into_iter().collect()
 }

@@ -3,12 +3,15 @@
 use std::path::Path;
 use std::sync::Arc;
 
-use arrow::array::{
-    Array, ArrayRef, AsArray, BooleanArray, FixedSizeListArray, Float64Array, LargeBinaryBuilder, ListArray,
-    RecordBatch, StringArray, StructArray, UInt32Array, UInt64Array,
+use arrow_array::builder::LargeBinaryBuilder;
+use arrow_array::cast::AsArray;
+use arrow_array::types::{Float64Type, UInt32Type, UInt64Type};
+use arrow_array::{
+    Array, ArrayRef, BooleanArray, FixedSizeListArray, Float64Array, ListArray, RecordBatch, StringArray, StructArray,
+    UInt32Array, UInt64Array,
 };
-use arrow::buffer::{NullBuffer, OffsetBuffer};
-use arrow::datatypes::{DataType, FieldRef, Float64Type, SchemaRef, UInt32Type, UInt64Type};
+use arrow_buffer::{NullBuffer, OffsetBuffer};
+use arrow_schema::{DataType, FieldRef, SchemaRef};
 
 use crate::error::{Error, Result};
 use crate::pairs::{
@@ -29,7 +32,7 @@ fn offsets<I: IntoIterator<Item = usize>>(lengths: I) -> OffsetBuffer<i32> {
 }
 
 /// `list<large_binary>` from per-row byte lists; a `None` row is null.
-fn bytes_list(data_type: &DataType, rows: &[Option<&[Vec<u8>]>]) -> Result<ListArray, arrow::error::ArrowError> {
+fn bytes_list(data_type: &DataType, rows: &[Option<&[Vec<u8>]>]) -> Result<ListArray, arrow_schema::ArrowError> {
     // Sized up front: the frames of a clip are tens of megabytes, copied once.
     let items = || rows.iter().flatten().flat_map(|row| row.iter());
     let mut values = LargeBinaryBuilder::with_capacity(items().count(), items().map(Vec::len).sum());
@@ -44,7 +47,7 @@ fn bytes_list(data_type: &DataType, rows: &[Option<&[Vec<u8>]>]) -> Result<ListA
 pub(crate) fn matrix_list<const N: usize>(
     data_type: &DataType,
     rows: &[&[[f64; N]]],
-) -> Result<ListArray, arrow::error::ArrowError> {
+) -> Result<ListArray, arrow_schema::ArrowError> {
     let item = item_field(data_type);
     let DataType::FixedSizeList(scalar, size) = item.data_type() else {
         unreachable!("matrix column items are fixed-size lists")
@@ -55,7 +58,7 @@ pub(crate) fn matrix_list<const N: usize>(
 }
 
 /// `list<float64>` from per-row value lists.
-fn f64_list(data_type: &DataType, rows: &[&[f64]]) -> Result<ListArray, arrow::error::ArrowError> {
+fn f64_list(data_type: &DataType, rows: &[&[f64]]) -> Result<ListArray, arrow_schema::ArrowError> {
     let flat = Float64Array::from_iter_values(rows.iter().flat_map(|row| row.iter().copied()));
     ListArray::try_new(item_field(data_type), offsets(rows.iter().map(|row| row.len())), Arc::new(flat), None)
 }
@@ -135,7 +138,7 @@ pub fn records_to_batch(records: &[ClipRecord]) -> Result<RecordBatch> {
     RecordBatch::try_new(schema, columns).map_err(arrow_err)
 }
 
-fn trajectories_column(data_type: &DataType, records: &[ClipRecord]) -> Result<ListArray, arrow::error::ArrowError> {
+fn trajectories_column(data_type: &DataType, records: &[ClipRecord]) -> Result<ListArray, arrow_schema::ArrowError> {
     let all: Vec<&TrajectoryRecord> = records.iter().flat_map(|r| &r.trajectories).collect();
     let fields = trajectory_fields();
     let dt = |name: &str| fields.find(name).expect("trajectory field").1.data_type().clone();
@@ -169,7 +172,7 @@ fn trajectories_column(data_type: &DataType, records: &[ClipRecord]) -> Result<L
 }
 
 /// The nullable `bank_entry` struct column: one element per trajectory, null unless drawn from a bank.
-fn bank_entry_column(all: &[&TrajectoryRecord]) -> Result<StructArray, arrow::error::ArrowError> {
+fn bank_entry_column(all: &[&TrajectoryRecord]) -> Result<StructArray, arrow_schema::ArrowError> {
     // Null rows still need a value in each child; they hold defaults nobody reads.
     let entries: Vec<Option<&BankProvenance>> = all.iter().map(|t| t.bank_entry.as_ref()).collect();
     let nulls = entries.iter().any(Option::is_none).then(|| NullBuffer::from_iter(entries.iter().map(Option::is_some)));
@@ -257,10 +260,7 @@ impl<'a> Columns<'a> {
         column.as_string_opt::<i32>().ok_or_else(|| self.wrong_type(name, column))
     }
 
-    fn primitive<T: arrow::datatypes::ArrowPrimitiveType>(
-        &self,
-        name: &str,
-    ) -> Result<&'a arrow::array::PrimitiveArray<T>> {
+    fn primitive<T: arrow_array::ArrowPrimitiveType>(&self, name: &str) -> Result<&'a arrow_array::PrimitiveArray<T>> {
         let column = self.column(name)?;
         column.as_primitive_opt::<T>().ok_or_else(|| self.wrong_type(name, column))
     }

@@ -27,7 +27,7 @@ pub enum Error {
         /// The shard file.
         path: PathBuf,
         /// The Arrow error.
-        source: arrow::error::ArrowError,
+        source: arrow_schema::ArrowError,
     },
     /// The file is a Parquet file but not a shard of a schema version this code reads.
     #[error("{path}: field `{field}`: {reason}")]

@@ -24,7 +24,7 @@ pub use shard::{
 pub use status::{InputStatus, StatusRecord, read_status_table, status_schema, write_status_table};
 pub use trajectory_bank::{BANK_SCHEMA_NAME, BANK_SCHEMA_VERSION, BankEntry, bank_schema, read_bank, write_bank};
 
-use arrow::datatypes::{DataType, Field};
+use arrow_schema::{DataType, Field};
 
 /// The field-by-field reference of the shard schema as Markdown (the content of `SCHEMA.md`).
 pub fn reference_markdown() -> String {

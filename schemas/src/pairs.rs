@@ -9,7 +9,7 @@
 use std::collections::HashMap;
 use std::sync::Arc;
 
-use arrow::datatypes::{DataType, Field, Fields, Schema};
+use arrow_schema::{DataType, Field, Fields, Schema};
 
 /// Parquet key-value metadata key naming which schema a file follows.
 pub const SCHEMA_NAME_KEY: &str = "cognvs.schema";

@@ -7,7 +7,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use arrow::datatypes::Schema;
+use arrow_schema::Schema;
 use parquet::arrow::arrow_reader::{
     ParquetRecordBatchReader, ParquetRecordBatchReaderBuilder, RowSelection, RowSelector,
 };
@@ -401,18 +401,18 @@ mod tests {
 
     /// A v1 shard of `records` (no `trajectories[].bank_entry`), written as a v1 writer did.
     fn write_v1(path: &Path, records: &[ClipRecord], version: &str) {
-        use arrow::array::{Array, ArrayRef, AsArray, ListArray, RecordBatch, StructArray};
+        use arrow_array::cast::AsArray;
+        use arrow_array::{Array, ArrayRef, ListArray, RecordBatch, StructArray};
         use std::sync::Arc;
         let batch = records_to_batch(records).unwrap();
         let index = batch.schema().index_of("trajectories").unwrap();
         let list = batch.column(index).as_list::<i32>();
         let structs = list.values().as_struct();
         let v1 = pair_schema_of_version(1);
-        let arrow::datatypes::DataType::List(item) = v1.field_with_name("trajectories").unwrap().data_type().clone()
-        else {
+        let arrow_schema::DataType::List(item) = v1.field_with_name("trajectories").unwrap().data_type().clone() else {
             unreachable!()
         };
-        let arrow::datatypes::DataType::Struct(fields) = item.data_type().clone() else { unreachable!() };
+        let arrow_schema::DataType::Struct(fields) = item.data_type().clone() else { unreachable!() };
         let children: Vec<ArrayRef> = structs.columns()[..fields.len()].to_vec();
         let structs = StructArray::try_new(fields, children, None).unwrap();
         let list = ListArray::try_new(item, list.offsets().clone(), Arc::new(structs), list.nulls().cloned()).unwrap();

@@ -157,9 +157,9 @@ mod versions {
     fn foreign_parquet_is_rejected() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("other.parquet");
-        let batch = arrow::array::RecordBatch::try_from_iter([(
+        let batch = arrow_array::RecordBatch::try_from_iter([(
             "x",
-            Arc::new(arrow::array::Int32Array::from(vec![1, 2])) as arrow::array::ArrayRef,
+            Arc::new(arrow_array::Int32Array::from(vec![1, 2])) as arrow_array::ArrayRef,
         )])
         .unwrap();
         let mut writer =

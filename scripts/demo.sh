@@ -4,9 +4,12 @@
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 out="${1:-out}"
-# The dev profile (optimized: opt-level 2, dependencies 3) is the one the tests build too, so the
-# demo's build is not repeated by `scripts/test.sh`.
-cargo build -p datagen --quiet
+# The dev profile (optimized: opt-level 2, dependencies 3) is the one the tests build too. The
+# binary is built with the whole workspace selected (`--workspace --bin`, not `-p datagen`): Cargo
+# enables a dependency's features by the packages selected, and `-p datagen` alone would leave out
+# features the trainer turns on (serde's `alloc`, ...), giving serde, arrow, parquet, image and
+# dozens more a second build in `scripts/test.sh`. Selected like this, the test build reuses them.
+cargo build --workspace --bin datagen --quiet
 datagen=./target/debug/datagen
 echo "==> datagen synth: a ray-traced dynamic scene with exact ground truth"
 "$datagen" synth --out "$out/synth"

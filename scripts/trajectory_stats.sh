@@ -16,7 +16,7 @@ videos="${2:-4}"
 trajectories=4
 
 cd "$root"
-cargo build -q -p datagen
+cargo build -q --workspace --bin datagen  # the features of the tests build: see scripts/demo.sh
 datagen="$root/target/debug/datagen"
 
 rm -rf "$out"

@@ -4,7 +4,7 @@
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 out="${1:-out}"
-# The dev profile (optimized: opt-level 2, dependencies 3) is the one the tests build too. The
+# The dev profile (optimised; see Cargo.toml) is the one the tests build too. The
 # binary is built with the whole workspace selected (`--workspace --bin`, not `-p datagen`): Cargo
 # enables a dependency's features by the packages selected, and `-p datagen` alone would leave out
 # features the trainer turns on (serde's `alloc`, ...), giving serde, arrow, parquet, image and

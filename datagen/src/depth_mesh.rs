@@ -506,10 +506,7 @@ impl MeshView<'_> {
 
     /// [`DepthMesh::segment_blocked`] from the camera's centre to `to`.
     pub fn segment_blocked(&self, to: DVec3, exclude: Option<u32>, epsilon: f64) -> bool {
-        let fallback = || self.mesh.segment_blocked(self.eye, to, exclude, epsilon);
-        let Some(projection) = &self.projection else { return fallback() };
-        let Some(blocks) = self.occluder_test(projection, to, exclude, epsilon) else { return false };
-        projection.bins.any_towards(to, blocks).unwrap_or_else(fallback)
+        self.segment_blocked_with(to, None, exclude, epsilon)
     }
 
     /// [`Self::segment_blocked`] for a point already projected into the novel camera: `pixel` =
@@ -518,27 +515,24 @@ impl MeshView<'_> {
     pub fn segment_blocked_projected(
         &self,
         to: DVec3,
-        (pixel, depth): (DVec2, f64),
+        projected: (DVec2, f64),
+        exclude: Option<u32>,
+        epsilon: f64,
+    ) -> bool {
+        self.segment_blocked_with(to, Some(projected), exclude, epsilon)
+    }
+
+    /// The query of [`Self::segment_blocked`], with `to`'s projection when the caller has it.
+    fn segment_blocked_with(
+        &self,
+        to: DVec3,
+        projected: Option<(DVec2, f64)>,
         exclude: Option<u32>,
         epsilon: f64,
     ) -> bool {
         let fallback = || self.mesh.segment_blocked(self.eye, to, exclude, epsilon);
         let Some(projection) = &self.projection else { return fallback() };
-        let Some(blocks) = self.occluder_test(projection, to, exclude, epsilon) else { return false };
-        projection.bins.any_towards_projected(pixel, depth, blocks).unwrap_or_else(fallback)
-    }
-
-    /// The test the bins' candidates of [`Self::segment_blocked`] get: `test(quad, binned)`,
-    /// whether that quad crosses the segment to `to`. None for a zero-length segment (never
-    /// blocked). A closure of its own type, not a trait object, so the bin scan inlines it.
-    fn occluder_test(
-        &self,
-        projection: &Projection,
-        to: DVec3,
-        exclude: Option<u32>,
-        epsilon: f64,
-    ) -> Option<impl FnMut(u32, bool) -> bool> {
-        let ray = segment_ray_for_triangles(self.eye, to, epsilon)?;
+        let Some(ray) = segment_ray_for_triangles(self.eye, to, epsilon) else { return false };
         // The four quads around the excluded pixel reach its bin for every view. It is corner 1
         // or 2 of two of them and in both their triangles; corner 0 or 3 of the other two and in
         // one triangle, the other one missed if their diagonal separates them.
@@ -547,11 +541,17 @@ impl MeshView<'_> {
             Some(p) => ([p.wrapping_sub(1), p.wrapping_sub(width)], [p, p.wrapping_sub(width + 1)]),
             None => ([u32::MAX; 2], [u32::MAX; 2]),
         };
-        let diagonal_separates = &projection.diagonal_separates;
-        Some(move |quad: u32, binned: bool| {
-            let skipped = both.contains(&quad) || (binned && one.contains(&quad) && diagonal_separates[quad as usize]);
+        // A closure of its own type, not a trait object: the bin scan inlines it.
+        let blocks = |quad: u32, binned: bool| {
+            let skipped =
+                both.contains(&quad) || (binned && one.contains(&quad) && projection.diagonal_separates[quad as usize]);
             !skipped && self.mesh.hit_quad(quad as usize, &ray, true, exclude) < ray.tmax
-        })
+        };
+        let answer = match projected {
+            Some((pixel, depth)) => projection.bins.any_towards_projected(pixel, depth, blocks),
+            None => projection.bins.any_towards(to, blocks),
+        };
+        answer.unwrap_or_else(fallback)
     }
 
     /// [`DepthMesh::first_surface_hit`] from the camera's centre along the unit `direction`.

@@ -120,8 +120,31 @@ struct LazyPyramid {
     camera: PinholeCamera,
 }
 
-/// Per row of quads: whether each is a surface quad, and the row's skirts by column.
-type QuadRow = (Vec<bool>, Vec<(usize, [Triangle; 2])>);
+/// Per row of quads: its number of surface quads, and its skirts by column.
+type QuadRow = (usize, Vec<(usize, [Triangle; 2])>);
+
+/// The per-pixel arrays of a [`DepthMesh`]: the size of the image, so reused across frames
+/// ([`MESH_POOL`]) rather than allocated anew, for the same reason as the per-view arrays.
+#[derive(Default)]
+struct MeshArrays {
+    points: Vec<Option<DVec3>>,
+    vertices: Vec<Vec3A>,
+    quads: Vec<u32>,
+}
+
+/// Arrays of dropped meshes; at most as many as meshes were ever alive at once.
+static MESH_POOL: Mutex<Vec<MeshArrays>> = Mutex::new(Vec::new());
+
+impl Drop for DepthMesh {
+    fn drop(&mut self) {
+        let arrays = MeshArrays {
+            points: std::mem::take(&mut self.points),
+            vertices: std::mem::take(&mut self.vertices),
+            quads: std::mem::take(&mut self.quads),
+        };
+        MESH_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push(arrays);
+    }
+}
 
 /// The mesh of one frame and its ray-query structure.
 pub struct DepthMesh {
@@ -155,19 +178,28 @@ impl DepthMesh {
         };
         // Rays are recomputed where needed (the same arithmetic each time), not stored: an array
         // of them is 8 MB a frame at 480×720 for one pass over the pixels and the rare skirts.
-        let points: Vec<Option<DVec3>> = depth
+        let MeshArrays { mut points, mut vertices, mut quads } =
+            MESH_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).pop().unwrap_or_default();
+        depth
             .values
             .par_iter()
             .enumerate()
             .map(|(p, &d)| valid(d).then(|| center + f64::from(d) * pixel_ray(p)))
-            .collect();
-        let vertices: Vec<Vec3A> = points.par_iter().map(|p| p.map_or(Vec3A::ZERO, to_vec3a)).collect();
-        // Per row of quads: each quad's kind, and the skirt triangles of the row.
-        let rows: Vec<QuadRow> = (0..height.saturating_sub(1))
-            .into_par_iter()
-            .map(|v| {
-                let (mut kinds, mut skirts) = (vec![false; width], Vec::new());
-                for (u, surface) in kinds.iter_mut().enumerate().take(width - 1) {
+            .collect_into_vec(&mut points);
+        points.par_iter().map(|p| p.map_or(Vec3A::ZERO, to_vec3a)).collect_into_vec(&mut vertices);
+        // Per row of quads, written in place: each quad's kind, with the skirt triangles of the
+        // row collected aside (numbered in row order below).
+        quads.resize(width * height, NO_TRIANGLES);
+        let rows: Vec<QuadRow> = quads
+            .par_chunks_mut(width.max(1))
+            .enumerate()
+            .map(|(v, kinds)| {
+                let (mut surface, mut skirts) = (0, Vec::new());
+                kinds.fill(NO_TRIANGLES);
+                if v + 1 == height {
+                    return (0, skirts);
+                }
+                for (u, kind) in kinds.iter_mut().enumerate().take(width.saturating_sub(1)) {
                     let index = corner_indices(v * width + u, width);
                     let d = index.map(|i| depth.values[i]);
                     if !d.iter().all(|&x| valid(x)) {
@@ -176,7 +208,8 @@ impl DepthMesh {
                     let near = d.iter().copied().fold(f32::INFINITY, f32::min) as f64;
                     let far = d.iter().copied().fold(0.0f32, f32::max) as f64;
                     if far <= near * config.discontinuity_ratio {
-                        *surface = true;
+                        *kind = SURFACE;
+                        surface += 1;
                     } else if config.occluder_thickness > 0.0 {
                         let limit = near * (1.0 + config.occluder_thickness);
                         let skirt = SPLIT
@@ -184,24 +217,20 @@ impl DepthMesh {
                         skirts.push((u, skirt));
                     }
                 }
-                (kinds, skirts)
+                (surface, skirts)
             })
             .collect();
-        let mut quads = vec![NO_TRIANGLES; width * height];
         let mut skirts = Vec::new();
-        for (v, (kinds, row_skirts)) in rows.into_iter().enumerate() {
-            for (u, surface) in kinds.into_iter().enumerate() {
-                if surface {
-                    quads[v * width + u] = SURFACE;
-                }
-            }
+        let mut surface_quads = 0;
+        for (v, (surface, row_skirts)) in rows.into_iter().enumerate() {
+            surface_quads += surface;
             for (u, skirt) in row_skirts {
                 quads[v * width + u] = skirts.len() as u32;
                 skirts.push(skirt);
             }
         }
-        let surface_quads = quads.iter().filter(|&&q| q == SURFACE).count();
-        let nearest_depth = depth.values.iter().filter(|&&d| valid(d)).fold(f64::INFINITY, |a, &d| a.min(f64::from(d)));
+        let nearest_depth =
+            depth.values.par_iter().filter(|&&d| valid(d)).map(|&d| f64::from(d)).reduce(|| f64::INFINITY, f64::min);
         let acceleration =
             Acceleration::ImageGrids(Box::new(LazyPyramid { pyramid: OnceLock::new(), camera: *camera }));
         let mut mesh =
@@ -314,40 +343,61 @@ impl DepthMesh {
                 let pixel = novel.intrinsics * (in_novel / in_novel.z);
                 DVec3::new(pixel.x, pixel.y, in_novel.z)
             };
-            let (mut projected, mut diagonal_separates) =
-                PROJECTION_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).pop().unwrap_or_default();
-            self.vertices.par_iter().map(|&v| project(v)).collect_into_vec(&mut projected);
-            // One bin entry per quad: its two triangles share most of their footprint.
-            let corners = |quad: u32| {
-                let quad = quad as usize;
-                match self.quads[quad] {
-                    NO_TRIANGLES => None,
-                    SURFACE => Some(corner_indices(quad, self.width).map(|i| projected[i])),
-                    skirt => {
-                        let [a, b] = self.skirts[skirt as usize];
-                        // Corners 0..3 of the quad, pulled onto the skirt (see SPLIT).
-                        Some([a.v0, a.v1, a.v2, b.v1].map(project))
-                    }
-                }
-            };
+            let mut diagonal_separates =
+                DIAGONAL_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).pop().unwrap_or_default();
+            // Every element is written below; only growth initialises.
+            diagonal_separates.resize(self.quads.len(), false);
             let size = (novel.width as usize, novel.height as usize);
-            let count = self.quads.len() as u32;
-            let bins = ViewBins::new(count, corners, novel_from_world, novel.intrinsics, size, self.nearest_depth);
-            // Per surface quad: whether its diagonal separates corners 0 and 3 in the image.
-            (0..self.quads.len())
-                .into_par_iter()
-                .map(|quad| {
-                    self.quads[quad] == SURFACE && {
-                        let c = corner_indices(quad, self.width).map(|i| projected[i]);
-                        let [c0, c1, c2, c3] = c.map(|p| p.truncate());
-                        // Twice the margin covers the f32 rounding of the corners' positions.
-                        c.iter().all(|p| p.z > 0.0)
-                            && view_bins::line_separates(c1, c2, c0, c3, 2.0)
-                            && view_bins::line_separates(c1, c2, c3, c0, 2.0)
-                    }
-                })
-                .collect_into_vec(&mut diagonal_separates);
-            Projection { bins, projected, diagonal_separates }
+            let near = ViewBins::near_limit(self.nearest_depth);
+            let width = self.width;
+            // One bin entry per quad (its two triangles share most of their footprint), and per
+            // surface quad whether its diagonal separates corners 0 and 3 in the image. Bands of
+            // quad rows in parallel, each projecting its vertex rows once.
+            let fill = |footprints: &mut [view_bins::Footprint]| {
+                let band = (QUAD_ROWS_PER_BAND * width).max(1);
+                footprints.par_chunks_mut(band).zip(diagonal_separates.par_chunks_mut(band)).enumerate().for_each(
+                    |(index, (footprints, separates))| {
+                        let first = index * band;
+                        let rows = footprints.len().div_ceil(width);
+                        let vertex_end = (first + (rows + 1) * width).min(self.vertices.len());
+                        let projected: Vec<DVec3> =
+                            self.vertices[first..vertex_end].iter().map(|&v| project(v)).collect();
+                        for (offset, (footprint, separates)) in footprints.iter_mut().zip(separates).enumerate() {
+                            let quad = first + offset;
+                            *separates = false;
+                            let corners = match self.quads[quad] {
+                                NO_TRIANGLES => None,
+                                SURFACE => {
+                                    let c = [
+                                        projected[offset],
+                                        projected[offset + 1],
+                                        projected[offset + width],
+                                        projected[offset + width + 1],
+                                    ];
+                                    let [c0, c1, c2, c3] =
+                                        [c[0].truncate(), c[1].truncate(), c[2].truncate(), c[3].truncate()];
+                                    // Twice the margin covers the f32 rounding of the corners' positions.
+                                    *separates = c[0].z > 0.0
+                                        && c[1].z > 0.0
+                                        && c[2].z > 0.0
+                                        && c[3].z > 0.0
+                                        && view_bins::line_separates(c1, c2, c0, c3, 2.0)
+                                        && view_bins::line_separates(c1, c2, c3, c0, 2.0);
+                                    Some(c)
+                                }
+                                skirt => {
+                                    let [a, b] = self.skirts[skirt as usize];
+                                    // Corners 0..3 of the quad, pulled onto the skirt (see SPLIT).
+                                    Some([project(a.v0), project(a.v1), project(a.v2), project(b.v1)])
+                                }
+                            };
+                            *footprint = view_bins::Footprint::of(corners, near, size);
+                        }
+                    },
+                );
+            };
+            let bins = ViewBins::new(self.quads.len(), fill, novel_from_world, novel.intrinsics, size);
+            Projection { bins, diagonal_separates }
         });
         MeshView { mesh: self, eye: novel.center(), projection }
     }
@@ -475,9 +525,6 @@ pub struct MeshView<'a> {
 /// The per-view structures of the image-grid accelerator.
 struct Projection {
     bins: ViewBins,
-    /// Every vertex in the novel camera: pixel coordinates and depth (kept only to give the
-    /// allocation back to [`PROJECTION_POOL`]).
-    projected: Vec<DVec3>,
     /// Per surface quad (by its corner-0 pixel): whether, in the novel image, the diagonal shared
     /// by its two triangles separates corners 0 and 3 beyond the bins' margin. Then neither corner
     /// can be hidden by the quad's triangle opposite it ([`view_bins::line_separates`]). A source
@@ -486,15 +533,18 @@ struct Projection {
     diagonal_separates: Vec<bool>,
 }
 
-/// The per-vertex and per-quad arrays of dropped views ([`Projection`]), reused for the same
-/// reason as the bins' ([`view_bins`]): fresh image-sized allocations per view cost the kernel's
-/// page clearing.
-static PROJECTION_POOL: Mutex<Vec<(Vec<DVec3>, Vec<bool>)>> = Mutex::new(Vec::new());
+/// The per-quad arrays of dropped views ([`Projection`]), reused for the same reason as the
+/// bins' ([`view_bins`]): fresh image-sized allocations per view cost the kernel's page clearing.
+static DIAGONAL_POOL: Mutex<Vec<Vec<bool>>> = Mutex::new(Vec::new());
+
+/// Quad rows per parallel task of [`DepthMesh::view`]: each task projects its vertex rows and
+/// the next one, so bands of many rows keep the repeated row a small share.
+const QUAD_ROWS_PER_BAND: usize = 16;
 
 impl Drop for Projection {
     fn drop(&mut self) {
-        let arrays = (std::mem::take(&mut self.projected), std::mem::take(&mut self.diagonal_separates));
-        PROJECTION_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push(arrays);
+        let array = std::mem::take(&mut self.diagonal_separates);
+        DIAGONAL_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push(array);
     }
 }
 
@@ -532,7 +582,6 @@ impl MeshView<'_> {
     ) -> bool {
         let fallback = || self.mesh.segment_blocked(self.eye, to, exclude, epsilon);
         let Some(projection) = &self.projection else { return fallback() };
-        let Some(ray) = segment_ray_for_triangles(self.eye, to, epsilon) else { return false };
         // The four quads around the excluded pixel reach its bin for every view. It is corner 1
         // or 2 of two of them and in both their triangles; corner 0 or 3 of the other two and in
         // one triangle, the other one missed if their diagonal separates them.
@@ -541,17 +590,28 @@ impl MeshView<'_> {
             Some(p) => ([p.wrapping_sub(1), p.wrapping_sub(width)], [p, p.wrapping_sub(width + 1)]),
             None => ([u32::MAX; 2], [u32::MAX; 2]),
         };
-        // A closure of its own type, not a trait object: the bin scan inlines it.
-        let blocks = |quad: u32, binned: bool| {
-            let skipped =
-                both.contains(&quad) || (binned && one.contains(&quad) && projection.diagonal_separates[quad as usize]);
-            !skipped && self.mesh.hit_quad(quad as usize, &ray, true, exclude) < ray.tmax
+        // Most queries reach no exact test (their own quads are skipped), so the ray is made at
+        // the first. A zero-length segment (None) is never blocked; its point is at the camera's
+        // centre, which the bins never bin, so the fallback gives that answer.
+        let mut ray = None;
+        let mut blocks = |quad: u32| {
+            ray.get_or_insert_with(|| segment_ray_for_triangles(self.eye, to, epsilon))
+                .is_some_and(|ray| self.mesh.hit_quad(quad as usize, &ray, true, exclude) < ray.tmax)
         };
+        // The bin scan skips all four; unbinned ones are tested but for `both`; binned `one`
+        // quads whose diagonal does not separate are tested here (a quad that is no candidate is
+        // missed by the exact test too).
+        let skip = [both[0], both[1], one[0], one[1]];
+        let scan = |quad: u32, binned: bool| (binned || !both.contains(&quad)) && blocks(quad);
         let answer = match projected {
-            Some((pixel, depth)) => projection.bins.any_towards_projected(pixel, depth, blocks),
-            None => projection.bins.any_towards(to, blocks),
+            Some((pixel, depth)) => projection.bins.any_towards_projected(pixel, depth, skip, scan),
+            None => projection.bins.any_towards(to, skip, scan),
         };
-        answer.unwrap_or_else(fallback)
+        let Some(blocked) = answer else { return fallback() };
+        blocked
+            || one.iter().any(|&quad| {
+                projection.diagonal_separates.get(quad as usize).is_some_and(|&separates| !separates) && blocks(quad)
+            })
     }
 
     /// [`DepthMesh::first_surface_hit`] from the camera's centre along the unit `direction`.

@@ -2,9 +2,15 @@
 //! DESIGN §4, the co-visibility segments from the novel camera to every source point and the
 //! render rays through every novel pixel. All those rays leave the novel camera's centre, so a
 //! triangle can only be hit by the rays whose image point falls inside the triangle's projection.
-//! Binning each triangle into the novel pixels its projected bounding box overlaps (a counting
-//! sort, linear in the triangles) leaves each ray a handful of candidates, nearly all culled by
-//! comparing depths before the exact f32 triangle test runs.
+//! Each primitive's projected box (widened) is recorded once, in the bin of the novel pixel at its
+//! top-left corner (a counting sort, linear in the primitives), together with the box and depth; a
+//! ray scans the bins of the 2 × 2 pixels (`WINDOW`) up to and including its own, where
+//! every box reaching its pixel is anchored. Boxes spanning more pixels in a direction are cut
+//! into tiles of at most that many, each anchored alike, so that no box escapes the window. A
+//! ray's candidates are then one contiguous run of the sorted array per row of the window, read
+//! without indirection and nearly all culled by comparing box and depth before the exact f32
+//! triangle test runs. (The earlier layout put each box's id into every bin it covers, about six
+//! per box: three times the entries to sort, and a lookup per candidate.)
 //!
 //! Exactness: boxes are widened by [`MARGIN_PIXELS`], depths by [`DEPTH_SLACK`], and triangles
 //! reaching close to or behind the camera's image plane (whose projection is unbounded or
@@ -13,8 +19,7 @@
 
 use std::sync::Mutex;
 
-use glam::{DMat3, DMat4, DVec2, DVec3};
-use rayon::prelude::*;
+use glam::{DMat3, DMat4, DVec2, DVec3, Vec4};
 
 /// Widening of every triangle's projected box. f32 corners and rays place a hit's projection
 /// within ~1e-3 px of the exact one for triangles beyond the near limit; this leaves ×50.
@@ -28,6 +33,12 @@ pub const DEPTH_SLACK: f64 = 1e-4;
 /// round-off beyond the margin.
 pub const NEAR_FRACTION: f64 = 0.1;
 
+/// Pixels per side of the window a ray scans, and most pixels per side of one tile of a box.
+/// At 2 a box of about a pixel (a quad seen at the source's scale) is mostly one tile, and a ray
+/// scans about 7 entries on the benchmark clip; 3 × 3 would scan about twice as many to save the
+/// few tiles.
+const WINDOW: usize = 2;
+
 /// The bins of one novel view.
 pub struct ViewBins {
     width: usize,
@@ -38,17 +49,96 @@ pub struct ViewBins {
     buffers: BinBuffers,
 }
 
-/// A primitive's widened projected box (x0, y0, x1, y1) and nearest corner depth, read by the
-/// rays of its bins (outside the box or ending before that depth: no exact test), and the
-/// inclusive pixel range it is binned into ([`UNBINNED`] in `x0` when it is not).
+/// A primitive as the bins see it: its widened projected box (x0, y0, x1, y1, in pixel
+/// coordinates) and nearest corner depth, read by the rays of its bins (outside the box or ending
+/// before that depth: no exact test), and where its box is anchored.
 #[derive(Clone, Copy)]
-struct Footprint {
+pub struct Footprint {
     bounds: [f32; 5],
-    pixels: [u32; 4],
+    anchor: u32,
 }
 
-/// `Footprint::pixels[0]` of a primitive in no bin (outside the image, or tested by every ray).
+/// [`Footprint::anchor`] of a primitive in no bin (outside the image, or tested by every ray).
 const UNBINNED: u32 = u32::MAX;
+/// [`Footprint::anchor`] of a box cut into several tiles ([`Footprint::for_each_tile`]).
+const TILED: u32 = u32::MAX - 1;
+
+impl Footprint {
+    /// A primitive no ray meets (none with that id, or its box is outside the image).
+    const OUTSIDE: Self = Self { bounds: [0.0; 5], anchor: UNBINNED };
+    /// A primitive every ray is tested against (see [`NEAR_FRACTION`]).
+    const EVERYWHERE: Self = Self { bounds: [f32::NAN; 5], anchor: UNBINNED };
+
+    /// The footprint of a primitive with `corners` as (pixel x, pixel y, depth) in the novel
+    /// camera, None for no primitive; `near` is [`ViewBins::near_limit`], `size` the image's.
+    #[inline]
+    pub fn of<const N: usize>(corners: Option<[DVec3; N]>, near: f64, (width, height): (usize, usize)) -> Self {
+        let Some(corners) = corners else { return Self::OUTSIDE };
+        let (mut lo, mut hi, mut nearest) = (DVec2::INFINITY, DVec2::NEG_INFINITY, f64::INFINITY);
+        for c in corners {
+            (lo, hi, nearest) = (lo.min(c.truncate()), hi.max(c.truncate()), nearest.min(c.z));
+        }
+        if nearest.is_nan() || nearest <= near {
+            return Self::EVERYWHERE;
+        }
+        let (lo, hi) = (lo - MARGIN_PIXELS, hi + MARGIN_PIXELS);
+        // Pixel k owns [k − 0.5, k + 0.5); truncation is floor once clamped at 0.
+        if !(hi.x + 0.5 >= 0.0 && hi.y + 0.5 >= 0.0) {
+            return Self::OUTSIDE;
+        }
+        let (x0, y0) = ((lo.x + 0.5).max(0.0) as usize, (lo.y + 0.5).max(0.0) as usize);
+        let x1 = ((hi.x + 0.5) as usize).min(width - 1);
+        let y1 = ((hi.y + 0.5) as usize).min(height - 1);
+        if x0 > x1 || y0 > y1 {
+            return Self::OUTSIDE;
+        }
+        let anchor = if x1 - x0 < WINDOW && y1 - y0 < WINDOW { (y0 * width + x0) as u32 } else { TILED };
+        Self { bounds: [lo.x as f32, lo.y as f32, hi.x as f32, hi.y as f32, nearest as f32], anchor }
+    }
+
+    /// Calls `visit` with the anchor pixels (row-major index) of the tiles of a [`TILED`] box
+    /// (recomputing its pixel range from the f32 box: a hit lies far inside the box, so the
+    /// rounding is harmless).
+    fn for_each_tile(&self, width: usize, height: usize, mut visit: impl FnMut(usize)) {
+        let [x0, y0, x1, y1, _] = self.bounds;
+        let first = |v: f32| (v + 0.5).max(0.0) as usize;
+        let last = |v: f32, size: usize| ((v + 0.5).max(0.0) as usize).min(size - 1);
+        let (x0, x1, y0, y1) = (first(x0), last(x1, width), first(y0), last(y1, height));
+        let mut y = y0;
+        while y <= y1 {
+            let mut x = x0;
+            while x <= x1 {
+                visit(y * width + x);
+                x += WINDOW;
+            }
+            y += WINDOW;
+        }
+    }
+
+    /// Calls `visit` with every anchor of the box.
+    #[inline]
+    fn for_each_anchor(&self, width: usize, height: usize, mut visit: impl FnMut(usize)) {
+        match self.anchor {
+            UNBINNED => {}
+            TILED => self.for_each_tile(width, height, visit),
+            anchor => visit(anchor as usize),
+        }
+    }
+
+    fn everywhere(&self) -> bool {
+        self.bounds[4].is_nan()
+    }
+}
+
+/// One anchored tile of a primitive's box: the footprint, copied next to the id so that a ray's
+/// scan reads one contiguous array. The box is (x0, y0, −x1, −y1): a point (x, y) is inside when
+/// the box is ≤ (x, y, −x, −y), one SIMD comparison.
+#[derive(Clone, Copy, Default)]
+struct Entry {
+    bounds: [f32; 4],
+    nearest: f32,
+    id: u32,
+}
 
 /// The arrays of one view's bins. They are the size of the image and of the mesh, tens of MB at
 /// 480×720: allocating them anew per view had the kernel clear ~40 MB of fresh pages per view
@@ -57,11 +147,9 @@ const UNBINNED: u32 = u32::MAX;
 struct BinBuffers {
     /// Per primitive id.
     footprints: Vec<Footprint>,
-    /// Per pixel (row-major) its entries: `ids[starts[p]..starts[p + 1]]`.
+    /// Per pixel (row-major) the tiles anchored there: `entries[starts[p]..starts[p + 1]]`.
     starts: Vec<u32>,
-    ids: Vec<u32>,
-    /// The next free slot of each pixel while the bins are filled.
-    next: Vec<u32>,
+    entries: Vec<Entry>,
     /// Primitives every ray is tested against (see [`NEAR_FRACTION`]).
     everywhere: Vec<u32>,
 }
@@ -77,125 +165,118 @@ impl Drop for ViewBins {
 }
 
 impl ViewBins {
+    /// The depth below which [`Footprint::of`] has a primitive tested by every ray, for a scene
+    /// whose smallest depth is `nearest_surface`.
+    pub fn near_limit(nearest_surface: f64) -> f64 {
+        nearest_surface * NEAR_FRACTION
+    }
+
     /// Bins primitives `0..count` for a camera at `novel_from_world` with intrinsics K and image
-    /// size. `corners(id)` gives the corners of a primitive (a triangle or a group of them) as
-    /// (pixel x, pixel y, depth) in the novel camera, None for no primitive with that id;
-    /// `nearest_surface`, the smallest depth of the scene, scales the near limit.
-    pub fn new<const N: usize>(
-        count: u32,
-        corners: impl Fn(u32) -> Option<[DVec3; N]> + Sync,
+    /// size. `fill` must write every primitive's [`Footprint`] ([`Footprint::of`]) into the slice
+    /// it is given (index = id; it holds a previous view's values), in whatever order and
+    /// parallelism suits the caller.
+    pub fn new(
+        count: usize,
+        fill: impl FnOnce(&mut [Footprint]),
         novel_from_world: DMat4,
         intrinsics: DMat3,
         (width, height): (usize, usize),
-        nearest_surface: f64,
     ) -> Self {
-        let near = nearest_surface * NEAR_FRACTION;
         let mut buffers = POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).pop().unwrap_or_default();
-        let outside = Footprint { bounds: [0.0; 5], pixels: [UNBINNED; 4] };
-        let everywhere = Footprint { bounds: [f32::NAN; 5], pixels: [UNBINNED; 4] };
-        (0..count)
-            .into_par_iter()
-            .map(|id| {
-                let Some(corners) = corners(id) else { return outside };
-                let nearest = corners.iter().map(|c| c.z).fold(f64::INFINITY, f64::min);
-                if nearest.is_nan() || nearest <= near {
-                    return everywhere;
-                }
-                let pixels = corners.map(|c| DVec2::new(c.x, c.y));
-                let lo = pixels.iter().fold(DVec2::INFINITY, |a, &p| a.min(p)) - MARGIN_PIXELS;
-                let hi = pixels.iter().fold(DVec2::NEG_INFINITY, |a, &p| a.max(p)) + MARGIN_PIXELS;
-                // Pixel k owns [k − 0.5, k + 0.5); truncation is floor once clamped at 0.
-                if hi.x + 0.5 < 0.0 || hi.y + 0.5 < 0.0 {
-                    return outside;
-                }
-                let (x0, y0) = ((lo.x + 0.5).max(0.0) as u32, (lo.y + 0.5).max(0.0) as u32);
-                let x1 = ((hi.x + 0.5) as u32).min(width as u32 - 1);
-                let y1 = ((hi.y + 0.5) as u32).min(height as u32 - 1);
-                if x0 > x1 || y0 > y1 {
-                    return outside;
-                }
-                let bounds = [lo.x as f32, lo.y as f32, hi.x as f32, hi.y as f32, nearest as f32];
-                Footprint { bounds, pixels: [x0, x1, y0, y1] }
-            })
-            .collect_into_vec(&mut buffers.footprints);
-        let BinBuffers { footprints, starts, ids, next, everywhere } = &mut buffers;
+        // Pooled arrays keep their length: `fill` and the scatter below overwrite every element,
+        // so only growth initialises (writing 20 MB per view that is overwritten anyway costs).
+        buffers.footprints.resize(count, Footprint::OUTSIDE);
+        fill(&mut buffers.footprints);
+        let BinBuffers { footprints, starts, entries, everywhere } = &mut buffers;
+        // Counting sort by anchor: counts at `anchor + 1`, summed into each bin's end, then every
+        // tile written at its bin's decremented end (in reverse, so ids ascend within a bin),
+        // which leaves the ends at the starts.
         starts.clear();
         starts.resize(width * height + 1, 0);
         everywhere.clear();
         for (id, footprint) in footprints.iter().enumerate() {
-            let [x0, x1, y0, y1] = footprint.pixels;
-            if x0 != UNBINNED {
-                for y in y0..=y1 {
-                    let row = y as usize * width + 1;
-                    for count in &mut starts[row + x0 as usize..=row + x1 as usize] {
-                        *count += 1;
-                    }
-                }
-            } else if footprint.bounds[4].is_nan() {
+            if footprint.everywhere() {
                 everywhere.push(id as u32);
             }
+            footprint.for_each_anchor(width, height, |anchor| starts[anchor + 1] += 1);
         }
         for p in 0..width * height {
             starts[p + 1] += starts[p];
         }
-        ids.clear();
-        ids.resize(starts[width * height] as usize, 0);
-        next.clear();
-        next.extend_from_slice(&starts[..width * height]);
-        for (id, footprint) in footprints.iter().enumerate() {
-            let [x0, x1, y0, y1] = footprint.pixels;
-            if x0 == UNBINNED {
-                continue;
-            }
-            for y in y0..=y1 {
-                let row = y as usize * width;
-                for slot in &mut next[row + x0 as usize..=row + x1 as usize] {
-                    ids[*slot as usize] = id as u32;
-                    *slot += 1;
-                }
-            }
+        entries.resize(starts[width * height] as usize, Entry::default());
+        for (id, footprint) in footprints.iter().enumerate().rev() {
+            footprint.for_each_anchor(width, height, |anchor| {
+                let slot = &mut starts[anchor + 1];
+                *slot -= 1;
+                let [x0, y0, x1, y1, nearest] = footprint.bounds;
+                entries[*slot as usize] = Entry { bounds: [x0, y0, -x1, -y1], nearest, id: id as u32 };
+            });
         }
+        // Bin p's end, decremented once per entry of bin p, is now bin p's start: shift back.
+        starts.copy_within(1.., 0);
+        starts[width * height] = entries.len() as u32;
         Self { width, height, novel_from_world, intrinsics, buffers }
     }
 
     /// Where the rays towards `point` (world space) meet the image: pixel coordinates, the bin,
     /// and the point's depth; None outside the image or behind the camera.
-    fn bin_of(&self, point: DVec3) -> Option<(DVec2, usize, f64)> {
+    fn bin_of(&self, point: DVec3) -> Option<(DVec2, [usize; 2], f64)> {
         let in_novel = self.novel_from_world.transform_point3(point);
         let p = self.intrinsics * (in_novel / in_novel.z);
-        self.bin_of_projected(DVec2::new(p.x, p.y), in_novel.z).map(|bin| (DVec2::new(p.x, p.y), bin, in_novel.z))
+        let pixel = DVec2::new(p.x, p.y);
+        self.bin_of_projected(pixel, in_novel.z).map(|bin| (pixel, bin, in_novel.z))
     }
 
-    /// The bin of a point already projected: `pixel` = K · (p / p.z) and `depth` = p.z for the
-    /// point p in the novel camera; None outside the image or behind the camera.
-    fn bin_of_projected(&self, pixel: DVec2, depth: f64) -> Option<usize> {
+    /// The bin (x, y) of a point already projected: `pixel` = K · (p / p.z) and `depth` = p.z
+    /// for the point p in the novel camera; None outside the image or behind the camera.
+    fn bin_of_projected(&self, pixel: DVec2, depth: f64) -> Option<[usize; 2]> {
         if depth.is_nan() || depth <= 0.0 {
             return None;
         }
         let (x, y) = (pixel.x + 0.5, pixel.y + 0.5);
         // Pixel k owns [k − 0.5, k + 0.5): truncation is floor for the non-negative values kept.
         let inside = x >= 0.0 && y >= 0.0 && x < self.width as f64 && y < self.height as f64;
-        inside.then(|| y as usize * self.width + x as usize)
+        inside.then_some([x as usize, y as usize])
     }
 
-    /// The binned primitives whose box holds `pixel` and that reach nearer than `limit`.
-    fn candidates(&self, bin: usize, pixel: DVec2, limit: f64) -> impl Iterator<Item = u32> {
-        let (x, y, limit) = (pixel.x as f32, pixel.y as f32, limit as f32);
-        let BinBuffers { footprints, starts, ids, .. } = &self.buffers;
-        let range = starts[bin] as usize..starts[bin + 1] as usize;
-        ids[range].iter().copied().filter(move |&id| {
-            let [x0, y0, x1, y1, nearest] = footprints[id as usize].bounds;
-            nearest <= limit && x >= x0 && x <= x1 && y >= y0 && y <= y1
-        })
+    /// Calls `visit(id)` for the binned primitives whose box holds `pixel`, that reach nearer
+    /// than `limit` and are not in `skip`, in the window of bin `[x, y]`, until it returns true;
+    /// whether it did.
+    fn any_candidate(
+        &self,
+        [x, y]: [usize; 2],
+        pixel: DVec2,
+        limit: f64,
+        skip: [u32; 4],
+        mut visit: impl FnMut(u32) -> bool,
+    ) -> bool {
+        let (px, py, limit) = (pixel.x as f32, pixel.y as f32, limit as f32);
+        let point = Vec4::new(px, py, -px, -py);
+        let BinBuffers { starts, entries, .. } = &self.buffers;
+        let first_column = x.saturating_sub(WINDOW - 1);
+        for row in y.saturating_sub(WINDOW - 1)..=y {
+            let base = row * self.width;
+            let run = &entries[starts[base + first_column] as usize..starts[base + x + 1] as usize];
+            for entry in run {
+                // Branch-free: which entries pass is unpredictable, and most are the query's own.
+                let inside = Vec4::from_array(entry.bounds).cmple(point).all();
+                let id = entry.id;
+                let skipped = (id == skip[0]) | (id == skip[1]) | (id == skip[2]) | (id == skip[3]);
+                if inside & (entry.nearest <= limit) & !skipped && visit(id) {
+                    return true;
+                }
+            }
+        }
+        false
     }
 
     /// Calls `test(id, binned)` for each primitive that may cross the segment from the camera's
-    /// centre to `point`, until it returns true; whether it did. `binned` is false for the
-    /// primitives tested by every ray. None when `point` is outside the image or behind the
-    /// camera (not binned).
-    pub fn any_towards(&self, point: DVec3, test: impl FnMut(u32, bool) -> bool) -> Option<bool> {
+    /// centre to `point`, except binned ones in `skip`, until it returns true; whether it did.
+    /// `binned` is false for the primitives tested by every ray (never skipped). None when `point`
+    /// is outside the image or behind the camera (not binned).
+    pub fn any_towards(&self, point: DVec3, skip: [u32; 4], test: impl FnMut(u32, bool) -> bool) -> Option<bool> {
         let (pixel, _, depth) = self.bin_of(point)?;
-        self.any_towards_projected(pixel, depth, test)
+        self.any_towards_projected(pixel, depth, skip, test)
     }
 
     /// [`Self::any_towards`] for a point already projected into the novel camera: `pixel` =
@@ -205,11 +286,12 @@ impl ViewBins {
         &self,
         pixel: DVec2,
         depth: f64,
+        skip: [u32; 4],
         mut test: impl FnMut(u32, bool) -> bool,
     ) -> Option<bool> {
         let bin = self.bin_of_projected(pixel, depth)?;
         let limit = depth * (1.0 + DEPTH_SLACK);
-        let binned = self.candidates(bin, pixel, limit).any(|id| test(id, true));
+        let binned = self.any_candidate(bin, pixel, limit, skip, |id| test(id, true));
         Some(binned || self.buffers.everywhere.iter().any(|&id| test(id, false)))
     }
 
@@ -217,13 +299,17 @@ impl ViewBins {
     /// cross the ray through `point`. None when `point` is not binned (see [`Self::any_towards`]).
     pub fn nearest_towards(&self, point: DVec3, hit: impl Fn(u32) -> f32) -> Option<f32> {
         let (pixel, bin, _) = self.bin_of(point)?;
-        let candidates = self.candidates(bin, pixel, f64::INFINITY).chain(self.buffers.everywhere.iter().copied());
-        Some(candidates.map(hit).fold(f32::INFINITY, f32::min))
+        let mut nearest = f32::INFINITY;
+        self.any_candidate(bin, pixel, f64::INFINITY, [u32::MAX; 4], |id| {
+            nearest = nearest.min(hit(id));
+            false
+        });
+        Some(self.buffers.everywhere.iter().map(|&id| hit(id)).fold(nearest, f32::min))
     }
 
-    /// Number of bin entries, and of primitives tested by every ray.
+    /// Number of bin entries (tiles), and of primitives tested by every ray.
     pub fn sizes(&self) -> (usize, usize) {
-        (self.buffers.ids.len(), self.buffers.everywhere.len())
+        (self.buffers.entries.len(), self.buffers.everywhere.len())
     }
 }
 

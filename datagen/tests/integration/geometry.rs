@@ -153,7 +153,7 @@ fn every_accelerator_equals_brute_force_pixel_for_pixel() {
     };
     for accelerator in [Accelerator::ImageGrids, Accelerator::Cwbvh] {
         let config = with_accelerator(accelerator);
-        let (mut blocked, mut unbinned) = (0, 0);
+        let (mut blocked, mut unbinned, mut most_tiles) = (0, 0, 0);
         for frame in 0..2u32 {
             let (source, mesh) = source_mesh(&scene, &rendered, frame, &config);
             for world_from_novel in [orbit(&scene, frame, 20.0), orbit(&scene, frame, -25.0), close(frame)] {
@@ -161,6 +161,7 @@ fn every_accelerator_equals_brute_force_pixel_for_pixel() {
                 let mask = covisibility_mask(&mesh, &source, &novel, &config);
                 let (view, eye) = (mesh.view(&novel), novel.center());
                 unbinned += view.bin_sizes().map_or(0, |s| s.1);
+                most_tiles = most_tiles.max(view.bin_sizes().map_or(0, |s| s.0));
                 for (index, &kept) in mask.iter().enumerate() {
                     let Some(point) = mesh.point(index) else { continue };
                     let exclude = Some(index as u32);
@@ -184,6 +185,8 @@ fn every_accelerator_equals_brute_force_pixel_for_pixel() {
         assert!(blocked > 100, "the view changes must hide something ({blocked})");
         if accelerator == Accelerator::ImageGrids {
             assert!(unbinned > 0, "the close view must reach the image plane");
+            // More tiles than quads: magnified boxes were cut into several tiles.
+            assert!(most_tiles > 64 * 48, "the close view must magnify quads over several bins ({most_tiles})");
         }
     }
 }

@@ -376,8 +376,26 @@ fn check_declared(
 /// Reads the data of a checked header as `f64`, in C order.
 fn read_values<R: Read>(declared: Declared, reader: R, source: Source<'_>) -> Result<NdArray<f64>> {
     let Declared { header, kind, info } = declared;
-    let npy = NpyFile::with_header(header, reader);
+    // Little-endian floats, nearly every depth or pose array, are converted from whole blocks of
+    // bytes: npyz's value-by-value reader took ~30 ns a value (0.5 s for a 49×480×720 depth).
+    let little = matches!(header.dtype(), DType::Plain(t) if t.endianness() == npyz::Endianness::Little);
+    let count = info.shape.iter().product::<usize>();
     let data: Vec<f64> = match kind {
+        Kind::F4 if little => read_little_endian(reader, count, |b| f64::from(f32::from_le_bytes(b))),
+        Kind::F8 if little => read_little_endian(reader, count, f64::from_le_bytes),
+        kind => read_with_npyz(NpyFile::with_header(header, reader), kind),
+    }
+    .map_err(|e| source.error(format!("cannot read array data (truncated or corrupt?): {e}")))?;
+    let shape = info.shape;
+    if data.len() != shape.iter().product::<usize>() {
+        return Err(source.error(format!("holds {} values for shape {shape:?}", data.len())));
+    }
+    Ok(NdArray { shape, data })
+}
+
+/// The values of any dtype [`Kind`] names, read by npyz.
+fn read_with_npyz<R: Read>(npy: NpyFile<R>, kind: Kind) -> std::io::Result<Vec<f64>> {
+    match kind {
         Kind::F2 => npy.into_vec::<half::f16>().map(|v| v.into_iter().map(f64::from).collect()),
         Kind::F4 => npy.into_vec::<f32>().map(|v| v.into_iter().map(f64::from).collect()),
         Kind::F8 => npy.into_vec::<f64>(),
@@ -391,12 +409,24 @@ fn read_values<R: Read>(declared: Declared, reader: R, source: Source<'_>) -> Re
         Kind::I8 => npy.into_vec::<i64>().map(|v| v.into_iter().map(|x| x as f64).collect()),
         Kind::U8 => npy.into_vec::<u64>().map(|v| v.into_iter().map(|x| x as f64).collect()),
     }
-    .map_err(|e| source.error(format!("cannot read array data (truncated or corrupt?): {e}")))?;
-    let shape = info.shape;
-    if data.len() != shape.iter().product::<usize>() {
-        return Err(source.error(format!("holds {} values for shape {shape:?}", data.len())));
+}
+
+/// The `count` values of N bytes each that `reader` holds next, converted by `convert`; read a
+/// block at a time (no second copy of the whole array).
+fn read_little_endian<const N: usize>(
+    mut reader: impl Read,
+    count: usize,
+    convert: impl Fn([u8; N]) -> f64,
+) -> std::io::Result<Vec<f64>> {
+    const BLOCK_VALUES: usize = 1 << 16;
+    let mut values = Vec::with_capacity(count);
+    let mut block = vec![0u8; BLOCK_VALUES.min(count) * N];
+    while values.len() < count {
+        let bytes = &mut block[..(count - values.len()).min(BLOCK_VALUES) * N];
+        reader.read_exact(bytes)?;
+        values.extend(bytes.chunks_exact(N).map(|c| convert(c.try_into().expect("chunks of N bytes"))));
     }
-    Ok(NdArray { shape, data })
+    Ok(values)
 }
 
 /// Reads any real-valued array (float16/32/64, signed or unsigned integers, bool) from a reader
@@ -598,6 +628,42 @@ mod tests {
         let bytes: Vec<u8> = (0..6).collect();
         write_npy(&path, &[6], &bytes).unwrap();
         assert_eq!(read_npy_f64(&path).unwrap().data, vec![0.0, 1.0, 2.0, 3.0, 4.0, 5.0]);
+    }
+
+    /// A version-1 `.npy` file of `descr`, `shape` and the raw `data` bytes, as numpy writes it.
+    fn npy_bytes(descr: &str, shape: &str, data: &[u8]) -> Vec<u8> {
+        let mut text = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape}, }}");
+        while (10 + text.len() + 1) % 64 != 0 {
+            text.push(' ');
+        }
+        text.push('\n');
+        let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
+        bytes.extend_from_slice(&(text.len() as u16).to_le_bytes());
+        bytes.extend_from_slice(text.as_bytes());
+        bytes.extend_from_slice(data);
+        bytes
+    }
+
+    #[test]
+    fn floats_of_either_byte_order_read_the_same_across_blocks() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("a.npy");
+        // More values than one block of the little-endian reader, and a partial last block.
+        let values: Vec<f64> = (0..150_001).map(|i| (i as f64 * 0.37).sin() * 1e3).collect();
+        let shape = format!("({},)", values.len());
+        let f32s: Vec<f32> = values.iter().map(|&v| v as f32).collect();
+        let as_f32: Vec<f64> = f32s.iter().map(|&v| f64::from(v)).collect();
+        let cases: [(&str, Vec<u8>, &Vec<f64>); 4] = [
+            ("<f8", values.iter().flat_map(|v| v.to_le_bytes()).collect(), &values),
+            (">f8", values.iter().flat_map(|v| v.to_be_bytes()).collect(), &values),
+            ("<f4", f32s.iter().flat_map(|v| v.to_le_bytes()).collect(), &as_f32),
+            (">f4", f32s.iter().flat_map(|v| v.to_be_bytes()).collect(), &as_f32),
+        ];
+        for (descr, data, expected) in cases {
+            std::fs::write(&path, npy_bytes(descr, &shape, &data)).unwrap();
+            let read = read_npy_f64(&path).unwrap();
+            assert_eq!((read.shape.as_slice(), &read.data), (&[values.len()][..], expected), "{descr}");
+        }
     }
 
     #[test]

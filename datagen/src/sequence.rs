@@ -690,12 +690,12 @@ pub fn resample_nearest(values: &[f64], width: usize, height: usize, to_width: u
     let map = |to: usize, to_size: usize, size: usize| {
         (((to as f64 + 0.5) * size as f64 / to_size as f64 - 0.5).round().max(0.0) as usize).min(size - 1)
     };
+    // The source column of each output column, computed once (not once per pixel).
+    let columns: Vec<usize> = (0..to_width).map(|u| map(u, to_width, width)).collect();
     let mut out = Vec::with_capacity(to_width * to_height);
     for v in 0..to_height {
-        let row = map(v, to_height, height) * width;
-        for u in 0..to_width {
-            out.push(values[row + map(u, to_width, width)] as f32);
-        }
+        let row = &values[map(v, to_height, height) * width..][..width];
+        out.extend(columns.iter().map(|&u| row[u] as f32));
     }
     DepthMap { width: to_width, height: to_height, values: out }
 }

@@ -630,42 +630,6 @@ mod tests {
         assert_eq!(read_npy_f64(&path).unwrap().data, vec![0.0, 1.0, 2.0, 3.0, 4.0, 5.0]);
     }
 
-    /// A version-1 `.npy` file of `descr`, `shape` and the raw `data` bytes, as numpy writes it.
-    fn npy_bytes(descr: &str, shape: &str, data: &[u8]) -> Vec<u8> {
-        let mut text = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape}, }}");
-        while (10 + text.len() + 1) % 64 != 0 {
-            text.push(' ');
-        }
-        text.push('\n');
-        let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
-        bytes.extend_from_slice(&(text.len() as u16).to_le_bytes());
-        bytes.extend_from_slice(text.as_bytes());
-        bytes.extend_from_slice(data);
-        bytes
-    }
-
-    #[test]
-    fn floats_of_either_byte_order_read_the_same_across_blocks() {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("a.npy");
-        // More values than one block of the little-endian reader, and a partial last block.
-        let values: Vec<f64> = (0..150_001).map(|i| (i as f64 * 0.37).sin() * 1e3).collect();
-        let shape = format!("({},)", values.len());
-        let f32s: Vec<f32> = values.iter().map(|&v| v as f32).collect();
-        let as_f32: Vec<f64> = f32s.iter().map(|&v| f64::from(v)).collect();
-        let cases: [(&str, Vec<u8>, &Vec<f64>); 4] = [
-            ("<f8", values.iter().flat_map(|v| v.to_le_bytes()).collect(), &values),
-            (">f8", values.iter().flat_map(|v| v.to_be_bytes()).collect(), &values),
-            ("<f4", f32s.iter().flat_map(|v| v.to_le_bytes()).collect(), &as_f32),
-            (">f4", f32s.iter().flat_map(|v| v.to_be_bytes()).collect(), &as_f32),
-        ];
-        for (descr, data, expected) in cases {
-            std::fs::write(&path, npy_bytes(descr, &shape, &data)).unwrap();
-            let read = read_npy_f64(&path).unwrap();
-            assert_eq!((read.shape.as_slice(), &read.data), (&[values.len()][..], expected), "{descr}");
-        }
-    }
-
     #[test]
     fn truncated_file_names_file_and_field() {
         let dir = tempfile::tempdir().unwrap();

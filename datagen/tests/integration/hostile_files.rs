@@ -26,6 +26,30 @@ fn npy_header(descr: &str, shape: &[u64]) -> Vec<u8> {
     bytes
 }
 
+/// Both paths of the reader (little-endian floats a block of bytes at a time, other byte orders
+/// through npyz) give the same values, across several blocks and a partial last one.
+#[test]
+fn npy_floats_of_either_byte_order_read_the_same_across_blocks() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("a.npy");
+    let values: Vec<f64> = (0..150_001).map(|i| (i as f64 * 0.37).sin() * 1e3).collect();
+    let f32s: Vec<f32> = values.iter().map(|&v| v as f32).collect();
+    let as_f32: Vec<f64> = f32s.iter().map(|&v| f64::from(v)).collect();
+    let cases: [(&str, Vec<u8>, &Vec<f64>); 4] = [
+        ("<f8", values.iter().flat_map(|v| v.to_le_bytes()).collect(), &values),
+        (">f8", values.iter().flat_map(|v| v.to_be_bytes()).collect(), &values),
+        ("<f4", f32s.iter().flat_map(|v| v.to_le_bytes()).collect(), &as_f32),
+        (">f4", f32s.iter().flat_map(|v| v.to_be_bytes()).collect(), &as_f32),
+    ];
+    for (descr, data, expected) in cases {
+        let mut bytes = npy_header(descr, &[values.len() as u64]);
+        bytes.extend_from_slice(&data);
+        std::fs::write(&path, bytes).unwrap();
+        let read = datagen::npy::read_npy_f64(&path).unwrap();
+        assert_eq!((read.shape.as_slice(), &read.data), (&[values.len()][..], expected), "{descr}");
+    }
+}
+
 fn npy_f32(shape: &[u64], values: &[f32]) -> Vec<u8> {
     let mut bytes = npy_header("<f4", shape);
     bytes.extend(values.iter().flat_map(|v| v.to_le_bytes()));

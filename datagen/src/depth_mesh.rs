@@ -349,50 +349,12 @@ impl DepthMesh {
             diagonal_separates.resize(self.quads.len(), false);
             let size = (novel.width as usize, novel.height as usize);
             let near = ViewBins::near_limit(self.nearest_depth);
-            let width = self.width;
-            // One bin entry per quad (its two triangles share most of their footprint), and per
-            // surface quad whether its diagonal separates corners 0 and 3 in the image. Bands of
-            // quad rows in parallel, each projecting its vertex rows once.
+            // Bands of quad rows in parallel, each projecting its vertex rows once.
             let fill = |footprints: &mut [view_bins::Footprint]| {
-                let band = (QUAD_ROWS_PER_BAND * width).max(1);
+                let band = (QUAD_ROWS_PER_BAND * self.width).max(1);
                 footprints.par_chunks_mut(band).zip(diagonal_separates.par_chunks_mut(band)).enumerate().for_each(
                     |(index, (footprints, separates))| {
-                        let first = index * band;
-                        let rows = footprints.len().div_ceil(width);
-                        let vertex_end = (first + (rows + 1) * width).min(self.vertices.len());
-                        let projected: Vec<DVec3> =
-                            self.vertices[first..vertex_end].iter().map(|&v| project(v)).collect();
-                        for (offset, (footprint, separates)) in footprints.iter_mut().zip(separates).enumerate() {
-                            let quad = first + offset;
-                            *separates = false;
-                            let corners = match self.quads[quad] {
-                                NO_TRIANGLES => None,
-                                SURFACE => {
-                                    let c = [
-                                        projected[offset],
-                                        projected[offset + 1],
-                                        projected[offset + width],
-                                        projected[offset + width + 1],
-                                    ];
-                                    let [c0, c1, c2, c3] =
-                                        [c[0].truncate(), c[1].truncate(), c[2].truncate(), c[3].truncate()];
-                                    // Twice the margin covers the f32 rounding of the corners' positions.
-                                    *separates = c[0].z > 0.0
-                                        && c[1].z > 0.0
-                                        && c[2].z > 0.0
-                                        && c[3].z > 0.0
-                                        && view_bins::line_separates(c1, c2, c0, c3, 2.0)
-                                        && view_bins::line_separates(c1, c2, c3, c0, 2.0);
-                                    Some(c)
-                                }
-                                skirt => {
-                                    let [a, b] = self.skirts[skirt as usize];
-                                    // Corners 0..3 of the quad, pulled onto the skirt (see SPLIT).
-                                    Some([project(a.v0), project(a.v1), project(a.v2), project(b.v1)])
-                                }
-                            };
-                            *footprint = view_bins::Footprint::of(corners, near, size);
-                        }
+                        self.band_footprints(index * band, &project, near, size, footprints, separates);
                     },
                 );
             };
@@ -400,6 +362,51 @@ impl DepthMesh {
             Projection { bins, diagonal_separates }
         });
         MeshView { mesh: self, eye: novel.center(), projection }
+    }
+
+    /// The footprints of the quads `first..first + footprints.len()` (whole rows) as the bins see
+    /// them, one entry per quad (its two triangles share most of their footprint), and per
+    /// surface quad whether its diagonal separates corners 0 and 3 in the image; `project` gives a
+    /// vertex's pixel coordinates and depth in the novel camera, `near` and `size` are the bins'.
+    fn band_footprints(
+        &self,
+        first: usize,
+        project: &impl Fn(Vec3A) -> DVec3,
+        near: f64,
+        size: (usize, usize),
+        footprints: &mut [view_bins::Footprint],
+        separates: &mut [bool],
+    ) {
+        let width = self.width;
+        let rows = footprints.len().div_ceil(width);
+        let vertex_end = (first + (rows + 1) * width).min(self.vertices.len());
+        let projected: Vec<DVec3> = self.vertices[first..vertex_end].iter().map(|&v| project(v)).collect();
+        for (offset, (footprint, separates)) in footprints.iter_mut().zip(separates).enumerate() {
+            *separates = false;
+            let corners = match self.quads[first + offset] {
+                NO_TRIANGLES => None,
+                SURFACE => {
+                    let c = [
+                        projected[offset],
+                        projected[offset + 1],
+                        projected[offset + width],
+                        projected[offset + width + 1],
+                    ];
+                    let [c0, c1, c2, c3] = [c[0].truncate(), c[1].truncate(), c[2].truncate(), c[3].truncate()];
+                    // Twice the margin covers the f32 rounding of the corners' positions.
+                    *separates = c.iter().all(|p| p.z > 0.0)
+                        && view_bins::line_separates(c1, c2, c0, c3, 2.0)
+                        && view_bins::line_separates(c1, c2, c3, c0, 2.0);
+                    Some(c)
+                }
+                skirt => {
+                    let [a, b] = self.skirts[skirt as usize];
+                    // Corners 0..3 of the quad, pulled onto the skirt (see SPLIT).
+                    Some([project(a.v0), project(a.v1), project(a.v2), project(b.v1)])
+                }
+            };
+            *footprint = view_bins::Footprint::of(corners, near, size);
+        }
     }
 
     /// The surface point of pixel `index` (row-major), if its depth is valid.

@@ -82,16 +82,7 @@ impl Footprint {
             return Self::EVERYWHERE;
         }
         let (lo, hi) = (lo - MARGIN_PIXELS, hi + MARGIN_PIXELS);
-        // Pixel k owns [k − 0.5, k + 0.5); truncation is floor once clamped at 0.
-        if !(hi.x + 0.5 >= 0.0 && hi.y + 0.5 >= 0.0) {
-            return Self::OUTSIDE;
-        }
-        let (x0, y0) = ((lo.x + 0.5).max(0.0) as usize, (lo.y + 0.5).max(0.0) as usize);
-        let x1 = ((hi.x + 0.5) as usize).min(width - 1);
-        let y1 = ((hi.y + 0.5) as usize).min(height - 1);
-        if x0 > x1 || y0 > y1 {
-            return Self::OUTSIDE;
-        }
+        let Some([x0, x1, y0, y1]) = pixel_range(lo, hi, (width, height)) else { return Self::OUTSIDE };
         let anchor = if x1 - x0 < WINDOW && y1 - y0 < WINDOW { (y0 * width + x0) as u32 } else { TILED };
         Self { bounds: [lo.x as f32, lo.y as f32, hi.x as f32, hi.y as f32, nearest as f32], anchor }
     }
@@ -99,19 +90,13 @@ impl Footprint {
     /// Calls `visit` with the anchor pixels (row-major index) of the tiles of a [`TILED`] box
     /// (recomputing its pixel range from the f32 box: a hit lies far inside the box, so the
     /// rounding is harmless).
-    fn for_each_tile(&self, width: usize, height: usize, mut visit: impl FnMut(usize)) {
-        let [x0, y0, x1, y1, _] = self.bounds;
-        let first = |v: f32| (v + 0.5).max(0.0) as usize;
-        let last = |v: f32, size: usize| ((v + 0.5).max(0.0) as usize).min(size - 1);
-        let (x0, x1, y0, y1) = (first(x0), last(x1, width), first(y0), last(y1, height));
-        let mut y = y0;
-        while y <= y1 {
-            let mut x = x0;
-            while x <= x1 {
-                visit(y * width + x);
-                x += WINDOW;
+    fn for_each_tile(&self, size: (usize, usize), mut visit: impl FnMut(usize)) {
+        let [x0, y0, x1, y1, _] = self.bounds.map(f64::from);
+        let Some([x0, x1, y0, y1]) = pixel_range(DVec2::new(x0, y0), DVec2::new(x1, y1), size) else { return };
+        for y in (y0..=y1).step_by(WINDOW) {
+            for x in (x0..=x1).step_by(WINDOW) {
+                visit(y * size.0 + x);
             }
-            y += WINDOW;
         }
     }
 
@@ -120,7 +105,7 @@ impl Footprint {
     fn for_each_anchor(&self, width: usize, height: usize, mut visit: impl FnMut(usize)) {
         match self.anchor {
             UNBINNED => {}
-            TILED => self.for_each_tile(width, height, visit),
+            TILED => self.for_each_tile((width, height), visit),
             anchor => visit(anchor as usize),
         }
     }
@@ -128,6 +113,20 @@ impl Footprint {
     fn everywhere(&self) -> bool {
         self.bounds[4].is_nan()
     }
+}
+
+/// The inclusive pixel ranges [x0, x1, y0, y1] of an image of `size` that the box from `lo` to
+/// `hi` (pixel coordinates) reaches; None when it misses the image.
+#[inline]
+fn pixel_range(lo: DVec2, hi: DVec2, (width, height): (usize, usize)) -> Option<[usize; 4]> {
+    // Pixel k owns [k − 0.5, k + 0.5); truncation is floor once clamped at 0.
+    if !(hi.x + 0.5 >= 0.0 && hi.y + 0.5 >= 0.0) {
+        return None;
+    }
+    let (x0, y0) = ((lo.x + 0.5).max(0.0) as usize, (lo.y + 0.5).max(0.0) as usize);
+    let x1 = ((hi.x + 0.5) as usize).min(width - 1);
+    let y1 = ((hi.y + 0.5) as usize).min(height - 1);
+    (x0 <= x1 && y0 <= y1).then_some([x0, x1, y0, y1])
 }
 
 /// One anchored tile of a primitive's box: the footprint, copied next to the id so that a ray's
@@ -218,13 +217,12 @@ impl ViewBins {
         Self { width, height, novel_from_world, intrinsics, buffers }
     }
 
-    /// Where the rays towards `point` (world space) meet the image: pixel coordinates, the bin,
-    /// and the point's depth; None outside the image or behind the camera.
-    fn bin_of(&self, point: DVec3) -> Option<(DVec2, [usize; 2], f64)> {
+    /// Where the rays towards `point` (world space) meet the image: pixel coordinates, and the
+    /// point's depth (what [`Self::bin_of_projected`] bins).
+    fn project(&self, point: DVec3) -> (DVec2, f64) {
         let in_novel = self.novel_from_world.transform_point3(point);
         let p = self.intrinsics * (in_novel / in_novel.z);
-        let pixel = DVec2::new(p.x, p.y);
-        self.bin_of_projected(pixel, in_novel.z).map(|bin| (pixel, bin, in_novel.z))
+        (DVec2::new(p.x, p.y), in_novel.z)
     }
 
     /// The bin (x, y) of a point already projected: `pixel` = K · (p / p.z) and `depth` = p.z
@@ -275,7 +273,7 @@ impl ViewBins {
     /// `binned` is false for the primitives tested by every ray (never skipped). None when `point`
     /// is outside the image or behind the camera (not binned).
     pub fn any_towards(&self, point: DVec3, skip: [u32; 4], test: impl FnMut(u32, bool) -> bool) -> Option<bool> {
-        let (pixel, _, depth) = self.bin_of(point)?;
+        let (pixel, depth) = self.project(point);
         self.any_towards_projected(pixel, depth, skip, test)
     }
 
@@ -298,7 +296,8 @@ impl ViewBins {
     /// The nearest of `hit(id)` (a ray distance, +∞ for a miss) over the primitives that may
     /// cross the ray through `point`. None when `point` is not binned (see [`Self::any_towards`]).
     pub fn nearest_towards(&self, point: DVec3, hit: impl Fn(u32) -> f32) -> Option<f32> {
-        let (pixel, bin, _) = self.bin_of(point)?;
+        let (pixel, depth) = self.project(point);
+        let bin = self.bin_of_projected(pixel, depth)?;
         let mut nearest = f32::INFINITY;
         self.any_candidate(bin, pixel, f64::INFINITY, [u32::MAX; 4], |id| {
             nearest = nearest.min(hit(id));

@@ -64,11 +64,11 @@ pub fn covisibility_mask(
             if in_novel.z <= 0.0 {
                 continue;
             }
-            let pixel = novel.intrinsics * (in_novel / in_novel.z);
-            if !novel.contains(glam::DVec2::new(pixel.x, pixel.y)) {
+            let pixel = crate::camera::pixel_of(&novel.intrinsics, in_novel);
+            if !novel.contains(pixel) {
                 continue;
             }
-            let projected = (glam::DVec2::new(pixel.x, pixel.y), in_novel.z);
+            let projected = (pixel, in_novel.z);
             *keep = !view.segment_blocked_projected(point, projected, Some(index as u32), config.epsilon);
         }
     });

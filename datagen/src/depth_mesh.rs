@@ -340,8 +340,7 @@ impl DepthMesh {
             // for depth ≤ 0, which the bins never project).
             let project = |v: Vec3A| {
                 let in_novel = novel_from_world.transform_point3(v.as_dvec3());
-                let pixel = novel.intrinsics * (in_novel / in_novel.z);
-                DVec3::new(pixel.x, pixel.y, in_novel.z)
+                crate::camera::pixel_of(&novel.intrinsics, in_novel).extend(in_novel.z)
             };
             let mut diagonal_separates =
                 DIAGONAL_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).pop().unwrap_or_default();
@@ -381,31 +380,38 @@ impl DepthMesh {
         let rows = footprints.len().div_ceil(width);
         let vertex_end = (first + (rows + 1) * width).min(self.vertices.len());
         let projected: Vec<DVec3> = self.vertices[first..vertex_end].iter().map(|&v| project(v)).collect();
-        for (offset, (footprint, separates)) in footprints.iter_mut().zip(separates).enumerate() {
-            *separates = false;
-            let corners = match self.quads[first + offset] {
-                NO_TRIANGLES => None,
-                SURFACE => {
-                    let c = [
-                        projected[offset],
-                        projected[offset + 1],
-                        projected[offset + width],
-                        projected[offset + width + 1],
-                    ];
-                    let [c0, c1, c2, c3] = [c[0].truncate(), c[1].truncate(), c[2].truncate(), c[3].truncate()];
-                    // Twice the margin covers the f32 rounding of the corners' positions.
-                    *separates = c.iter().all(|p| p.z > 0.0)
-                        && view_bins::line_separates(c1, c2, c0, c3, 2.0)
-                        && view_bins::line_separates(c1, c2, c3, c0, 2.0);
-                    Some(c)
-                }
-                skirt => {
-                    let [a, b] = self.skirts[skirt as usize];
-                    // Corners 0..3 of the quad, pulled onto the skirt (see SPLIT).
-                    Some([project(a.v0), project(a.v1), project(a.v2), project(b.v1)])
-                }
-            };
-            *footprint = view_bins::Footprint::of(corners, near, size);
+        // Per vertex column of a quad row, the smallest (x, y, depth) and largest (x, y) of its two
+        // corners: each column serves the quads on both sides.
+        let mut columns: Vec<(DVec3, DVec2)> = Vec::with_capacity(width);
+        let quad_rows = footprints.chunks_mut(width).zip(separates.chunks_mut(width));
+        for (row, (footprints, separates)) in quad_rows.enumerate() {
+            let upper = &projected[row * width..(row + 1) * width];
+            // The image's last row has no quads (nor a row below).
+            let lower = projected.get((row + 1) * width..(row + 2) * width).unwrap_or(&[]);
+            columns.clear();
+            columns.extend(upper.iter().zip(lower).map(|(a, b)| (a.min(*b), a.truncate().max(b.truncate()))));
+            for (u, (footprint, separates)) in footprints.iter_mut().zip(separates).enumerate() {
+                *separates = false;
+                *footprint = match self.quads[first + row * width + u] {
+                    NO_TRIANGLES => view_bins::Footprint::OUTSIDE,
+                    SURFACE => {
+                        let [c0, c1, c2, c3] = [upper[u], upper[u + 1], lower[u], lower[u + 1]];
+                        // Twice the margin covers the f32 rounding of the corners' positions.
+                        let (a, b, c, d) = (c0.truncate(), c1.truncate(), c2.truncate(), c3.truncate());
+                        *separates = [c0, c1, c2, c3].iter().all(|p| p.z > 0.0)
+                            && view_bins::line_separates(b, c, a, d, 2.0)
+                            && view_bins::line_separates(b, c, d, a, 2.0);
+                        let ((lo_left, hi_left), (lo_right, hi_right)) = (columns[u], columns[u + 1]);
+                        view_bins::Footprint::of_range(lo_left.min(lo_right), hi_left.max(hi_right), near, size)
+                    }
+                    skirt => {
+                        let [a, b] = self.skirts[skirt as usize];
+                        // Corners 0..3 of the quad, pulled onto the skirt (see SPLIT).
+                        let corners = [project(a.v0), project(a.v1), project(a.v2), project(b.v1)];
+                        view_bins::Footprint::of(corners, near, size)
+                    }
+                };
+            }
         }
     }
 

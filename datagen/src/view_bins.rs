@@ -49,50 +49,60 @@ pub struct ViewBins {
     buffers: BinBuffers,
 }
 
-/// A primitive as the bins see it: its widened projected box (x0, y0, x1, y1, in pixel
-/// coordinates) and nearest corner depth, read by the rays of its bins (outside the box or ending
-/// before that depth: no exact test), and where its box is anchored.
+/// A primitive as the bins see it: its widened projected box and nearest corner depth, read by
+/// the rays of its bins (outside the box or ending before that depth: no exact test), kept in
+/// the form the bins store ([`Entry`]), and where its box is anchored.
 #[derive(Clone, Copy)]
 pub struct Footprint {
-    bounds: [f32; 5],
+    entry: Entry,
     anchor: u32,
 }
 
-/// [`Footprint::anchor`] of a primitive in no bin (outside the image, or tested by every ray).
+/// [`Footprint::anchor`] of a primitive in no bin (outside the image).
 const UNBINNED: u32 = u32::MAX;
+/// [`Footprint::anchor`] of a primitive every ray is tested against (see [`NEAR_FRACTION`]).
+const EVERYWHERE: u32 = u32::MAX - 1;
 /// [`Footprint::anchor`] of a box cut into several tiles ([`Footprint::for_each_tile`]).
-const TILED: u32 = u32::MAX - 1;
+const TILED: u32 = u32::MAX - 2;
 
 impl Footprint {
     /// A primitive no ray meets (none with that id, or its box is outside the image).
-    const OUTSIDE: Self = Self { bounds: [0.0; 5], anchor: UNBINNED };
+    pub const OUTSIDE: Self = Self { entry: Entry { bounds: [0.0; 4], nearest: 0.0 }, anchor: UNBINNED };
     /// A primitive every ray is tested against (see [`NEAR_FRACTION`]).
-    const EVERYWHERE: Self = Self { bounds: [f32::NAN; 5], anchor: UNBINNED };
+    const EVERYWHERE: Self = Self { entry: Entry { bounds: [0.0; 4], nearest: 0.0 }, anchor: EVERYWHERE };
 
     /// The footprint of a primitive with `corners` as (pixel x, pixel y, depth) in the novel
-    /// camera, None for no primitive; `near` is [`ViewBins::near_limit`], `size` the image's.
+    /// camera; `near` is [`ViewBins::near_limit`], `size` the image's.
     #[inline]
-    pub fn of<const N: usize>(corners: Option<[DVec3; N]>, near: f64, (width, height): (usize, usize)) -> Self {
-        let Some(corners) = corners else { return Self::OUTSIDE };
-        let (mut lo, mut hi, mut nearest) = (DVec2::INFINITY, DVec2::NEG_INFINITY, f64::INFINITY);
+    pub fn of<const N: usize>(corners: [DVec3; N], near: f64, (width, height): (usize, usize)) -> Self {
+        let (mut lo, mut hi) = (DVec3::INFINITY, DVec2::NEG_INFINITY);
         for c in corners {
-            (lo, hi, nearest) = (lo.min(c.truncate()), hi.max(c.truncate()), nearest.min(c.z));
+            (lo, hi) = (lo.min(c), hi.max(c.truncate()));
         }
+        Self::of_range(lo, hi, near, (width, height))
+    }
+
+    /// [`Self::of`] from the corners' smallest (x, y, depth) and largest (x, y), each the
+    /// minimum or maximum over the corners (callers sharing them between neighbours).
+    #[inline]
+    pub fn of_range(lo: DVec3, hi: DVec2, near: f64, (width, height): (usize, usize)) -> Self {
+        let (nearest, lo) = (lo.z, lo.truncate());
         if nearest.is_nan() || nearest <= near {
             return Self::EVERYWHERE;
         }
         let (lo, hi) = (lo - MARGIN_PIXELS, hi + MARGIN_PIXELS);
         let Some([x0, x1, y0, y1]) = pixel_range(lo, hi, (width, height)) else { return Self::OUTSIDE };
         let anchor = if x1 - x0 < WINDOW && y1 - y0 < WINDOW { (y0 * width + x0) as u32 } else { TILED };
-        Self { bounds: [lo.x as f32, lo.y as f32, hi.x as f32, hi.y as f32, nearest as f32], anchor }
+        let bounds = [lo.x as f32, lo.y as f32, -hi.x as f32, -hi.y as f32];
+        Self { entry: Entry { bounds, nearest: nearest as f32 }, anchor }
     }
 
     /// Calls `visit` with the anchor pixels (row-major index) of the tiles of a [`TILED`] box
     /// (recomputing its pixel range from the f32 box: a hit lies far inside the box, so the
     /// rounding is harmless).
     fn for_each_tile(&self, size: (usize, usize), mut visit: impl FnMut(usize)) {
-        let [x0, y0, x1, y1, _] = self.bounds.map(f64::from);
-        let Some([x0, x1, y0, y1]) = pixel_range(DVec2::new(x0, y0), DVec2::new(x1, y1), size) else { return };
+        let [x0, y0, x1, y1] = self.entry.bounds.map(f64::from);
+        let Some([x0, x1, y0, y1]) = pixel_range(DVec2::new(x0, y0), DVec2::new(-x1, -y1), size) else { return };
         for y in (y0..=y1).step_by(WINDOW) {
             for x in (x0..=x1).step_by(WINDOW) {
                 visit(y * size.0 + x);
@@ -104,14 +114,10 @@ impl Footprint {
     #[inline]
     fn for_each_anchor(&self, width: usize, height: usize, mut visit: impl FnMut(usize)) {
         match self.anchor {
-            UNBINNED => {}
+            UNBINNED | EVERYWHERE => {}
             TILED => self.for_each_tile((width, height), visit),
             anchor => visit(anchor as usize),
         }
-    }
-
-    fn everywhere(&self) -> bool {
-        self.bounds[4].is_nan()
     }
 }
 
@@ -123,19 +129,34 @@ fn pixel_range(lo: DVec2, hi: DVec2, (width, height): (usize, usize)) -> Option<
     if !(hi.x + 0.5 >= 0.0 && hi.y + 0.5 >= 0.0) {
         return None;
     }
-    let (x0, y0) = ((lo.x + 0.5).max(0.0) as usize, (lo.y + 0.5).max(0.0) as usize);
-    let x1 = ((hi.x + 0.5) as usize).min(width - 1);
-    let y1 = ((hi.y + 0.5) as usize).min(height - 1);
+    let (x0, y0) = (index_of((lo.x + 0.5).max(0.0)), index_of((lo.y + 0.5).max(0.0)));
+    let x1 = index_of(hi.x + 0.5).min(width - 1);
+    let y1 = index_of(hi.y + 0.5).min(height - 1);
     (x0 <= x1 && y0 <= y1).then_some([x0, x1, y0, y1])
 }
 
-/// One anchored tile of a primitive's box: the footprint, copied next to the id so that a ray's
-/// scan reads one contiguous array. The box is (x0, y0, −x1, −y1): a point (x, y) is inside when
-/// the box is ≤ (x, y, −x, −y), one SIMD comparison.
+/// A non-negative coordinate truncated to an index, through i32: one conversion instruction and
+/// a saturation check, where f64 → usize is an emulated unsigned conversion of about twice the
+/// instructions (counted with callgrind, the conversions were a third of the footprint pass).
+/// Values past i32::MAX, far outside any image, saturate there and are clamped or rejected alike.
+#[inline]
+fn index_of(coordinate: f64) -> usize {
+    coordinate as i32 as usize
+}
+
+/// A primitive's box and depth as one anchored tile holds them, copied next to the id in the
+/// sorted array so that a ray's scan reads one contiguous run. The box is (x0, y0, −x1, −y1): a
+/// point (x, y) is inside when the box is ≤ (x, y, −x, −y), one SIMD comparison.
 #[derive(Clone, Copy, Default)]
 struct Entry {
     bounds: [f32; 4],
     nearest: f32,
+}
+
+/// An [`Entry`] in the sorted array, with its primitive's id.
+#[derive(Clone, Copy, Default)]
+struct Tile {
+    entry: Entry,
     id: u32,
 }
 
@@ -148,7 +169,7 @@ struct BinBuffers {
     footprints: Vec<Footprint>,
     /// Per pixel (row-major) the tiles anchored there: `entries[starts[p]..starts[p + 1]]`.
     starts: Vec<u32>,
-    entries: Vec<Entry>,
+    entries: Vec<Tile>,
     /// Primitives every ray is tested against (see [`NEAR_FRACTION`]).
     everywhere: Vec<u32>,
 }
@@ -171,9 +192,10 @@ impl ViewBins {
     }
 
     /// Bins primitives `0..count` for a camera at `novel_from_world` with intrinsics K and image
-    /// size. `fill` must write every primitive's [`Footprint`] ([`Footprint::of`]) into the slice
-    /// it is given (index = id; it holds a previous view's values), in whatever order and
-    /// parallelism suits the caller.
+    /// size. `fill` must write every primitive's [`Footprint`] ([`Footprint::of`] or
+    /// [`Footprint::of_range`], [`Footprint::OUTSIDE`] for none) into the slice it is given
+    /// (index = id; it holds a previous view's values), in whatever order and parallelism suits
+    /// the caller.
     pub fn new(
         count: usize,
         fill: impl FnOnce(&mut [Footprint]),
@@ -194,21 +216,23 @@ impl ViewBins {
         starts.resize(width * height + 1, 0);
         everywhere.clear();
         for (id, footprint) in footprints.iter().enumerate() {
-            if footprint.everywhere() {
+            if footprint.anchor == EVERYWHERE {
                 everywhere.push(id as u32);
             }
             footprint.for_each_anchor(width, height, |anchor| starts[anchor + 1] += 1);
         }
-        for p in 0..width * height {
-            starts[p + 1] += starts[p];
+        // The running sum in a register: a dependency through memory per bin costs more.
+        let mut total = 0;
+        for start in starts.iter_mut() {
+            total += *start;
+            *start = total;
         }
-        entries.resize(starts[width * height] as usize, Entry::default());
+        entries.resize(total as usize, Tile::default());
         for (id, footprint) in footprints.iter().enumerate().rev() {
             footprint.for_each_anchor(width, height, |anchor| {
                 let slot = &mut starts[anchor + 1];
                 *slot -= 1;
-                let [x0, y0, x1, y1, nearest] = footprint.bounds;
-                entries[*slot as usize] = Entry { bounds: [x0, y0, -x1, -y1], nearest, id: id as u32 };
+                entries[*slot as usize] = Tile { entry: footprint.entry, id: id as u32 };
             });
         }
         // Bin p's end, decremented once per entry of bin p, is now bin p's start: shift back.
@@ -221,8 +245,7 @@ impl ViewBins {
     /// point's depth (what [`Self::bin_of_projected`] bins).
     fn project(&self, point: DVec3) -> (DVec2, f64) {
         let in_novel = self.novel_from_world.transform_point3(point);
-        let p = self.intrinsics * (in_novel / in_novel.z);
-        (DVec2::new(p.x, p.y), in_novel.z)
+        (crate::camera::pixel_of(&self.intrinsics, in_novel), in_novel.z)
     }
 
     /// The bin (x, y) of a point already projected: `pixel` = K · (p / p.z) and `depth` = p.z
@@ -234,7 +257,7 @@ impl ViewBins {
         let (x, y) = (pixel.x + 0.5, pixel.y + 0.5);
         // Pixel k owns [k − 0.5, k + 0.5): truncation is floor for the non-negative values kept.
         let inside = x >= 0.0 && y >= 0.0 && x < self.width as f64 && y < self.height as f64;
-        inside.then_some([x as usize, y as usize])
+        inside.then_some([index_of(x), index_of(y)])
     }
 
     /// Calls `visit(id)` for the binned primitives whose box holds `pixel`, that reach nearer
@@ -255,10 +278,9 @@ impl ViewBins {
         for row in y.saturating_sub(WINDOW - 1)..=y {
             let base = row * self.width;
             let run = &entries[starts[base + first_column] as usize..starts[base + x + 1] as usize];
-            for entry in run {
+            for &Tile { entry, id } in run {
                 // Branch-free: which entries pass is unpredictable, and most are the query's own.
                 let inside = Vec4::from_array(entry.bounds).cmple(point).all();
-                let id = entry.id;
                 let skipped = (id == skip[0]) | (id == skip[1]) | (id == skip[2]) | (id == skip[3]);
                 if inside & (entry.nearest <= limit) & !skipped && visit(id) {
                     return true;

@@ -103,20 +103,14 @@ impl Footprint {
     fn for_each_tile(&self, size: (usize, usize), mut visit: impl FnMut(usize)) {
         let [x0, y0, x1, y1] = self.entry.bounds.map(f64::from);
         let Some([x0, x1, y0, y1]) = pixel_range(DVec2::new(x0, y0), DVec2::new(-x1, -y1), size) else { return };
-        for y in (y0..=y1).step_by(WINDOW) {
-            for x in (x0..=x1).step_by(WINDOW) {
+        let mut y = y0;
+        while y <= y1 {
+            let mut x = x0;
+            while x <= x1 {
                 visit(y * size.0 + x);
+                x += WINDOW;
             }
-        }
-    }
-
-    /// Calls `visit` with every anchor of the box.
-    #[inline]
-    fn for_each_anchor(&self, width: usize, height: usize, mut visit: impl FnMut(usize)) {
-        match self.anchor {
-            UNBINNED | EVERYWHERE => {}
-            TILED => self.for_each_tile((width, height), visit),
-            anchor => visit(anchor as usize),
+            y += WINDOW;
         }
     }
 }
@@ -172,6 +166,8 @@ struct BinBuffers {
     entries: Vec<Tile>,
     /// Primitives every ray is tested against (see [`NEAR_FRACTION`]).
     everywhere: Vec<u32>,
+    /// (anchor, id) of each tile of the [`TILED`] boxes, while sorting.
+    tiles: Vec<[u32; 2]>,
 }
 
 /// Buffers of dropped views; at most as many as views were ever alive at once (one per thread).
@@ -208,18 +204,25 @@ impl ViewBins {
         // so only growth initialises (writing 20 MB per view that is overwritten anyway costs).
         buffers.footprints.resize(count, Footprint::OUTSIDE);
         fill(&mut buffers.footprints);
-        let BinBuffers { footprints, starts, entries, everywhere } = &mut buffers;
+        let BinBuffers { footprints, starts, entries, everywhere, tiles } = &mut buffers;
         // Counting sort by anchor: counts at `anchor + 1`, summed into each bin's end, then every
-        // tile written at its bin's decremented end (in reverse, so ids ascend within a bin),
-        // which leaves the ends at the starts.
+        // tile written at its bin's decremented end (in reverse, so ids ascend within a bin among
+        // whole boxes and among tiles of cut ones), which leaves the ends at the starts.
         starts.clear();
         starts.resize(width * height + 1, 0);
         everywhere.clear();
+        // The tiles of cut boxes, listed while counting so their ranges are computed once.
+        tiles.clear();
         for (id, footprint) in footprints.iter().enumerate() {
-            if footprint.anchor == EVERYWHERE {
-                everywhere.push(id as u32);
+            match footprint.anchor {
+                UNBINNED => {}
+                EVERYWHERE => everywhere.push(id as u32),
+                TILED => footprint.for_each_tile((width, height), |anchor| {
+                    starts[anchor + 1] += 1;
+                    tiles.push([anchor as u32, id as u32]);
+                }),
+                anchor => starts[anchor as usize + 1] += 1,
             }
-            footprint.for_each_anchor(width, height, |anchor| starts[anchor + 1] += 1);
         }
         // The running sum in a register: a dependency through memory per bin costs more.
         let mut total = 0;
@@ -228,12 +231,18 @@ impl ViewBins {
             *start = total;
         }
         entries.resize(total as usize, Tile::default());
+        let mut place = |anchor: usize, entry: Entry, id: usize| {
+            let slot = &mut starts[anchor + 1];
+            *slot -= 1;
+            entries[*slot as usize] = Tile { entry, id: id as u32 };
+        };
         for (id, footprint) in footprints.iter().enumerate().rev() {
-            footprint.for_each_anchor(width, height, |anchor| {
-                let slot = &mut starts[anchor + 1];
-                *slot -= 1;
-                entries[*slot as usize] = Tile { entry: footprint.entry, id: id as u32 };
-            });
+            if footprint.anchor < TILED {
+                place(footprint.anchor as usize, footprint.entry, id);
+            }
+        }
+        for &[anchor, id] in tiles.iter().rev() {
+            place(anchor as usize, footprints[id as usize].entry, id as usize);
         }
         // Bin p's end, decremented once per entry of bin p, is now bin p's start: shift back.
         starts.copy_within(1.., 0);

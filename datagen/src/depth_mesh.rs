@@ -92,8 +92,9 @@ pub enum Accelerator {
     Cwbvh,
 }
 
+/// Finite and positive (NaN fails both comparisons).
 fn valid(depth: f32) -> bool {
-    depth.is_finite() && depth > 0.0
+    depth > 0.0 && depth < f32::INFINITY
 }
 
 /// The two triangles of a quad, as corner indices 0 = (u, v), 1 = (u+1, v), 2 = (u, v+1),
@@ -172,21 +173,38 @@ impl DepthMesh {
         let center = camera.center();
         // `camera.pixel_ray` with K inverted once.
         let camera_from_pixel = camera.intrinsics.inverse();
-        let pixel_ray = |p: usize| {
-            let in_camera = camera_from_pixel * DVec3::new((p % width) as f64, (p / width) as f64, 1.0);
+        // Column and row as u32, whose conversion to f64 is one instruction (usize's is not).
+        let ray = |u: u32, v: u32| {
+            let in_camera = camera_from_pixel * DVec3::new(f64::from(u), f64::from(v), 1.0);
             camera.world_from_camera.transform_vector3(in_camera)
         };
+        let pixel_ray = |p: usize| ray((p % width) as u32, (p / width) as u32);
         // Rays are recomputed where needed (the same arithmetic each time), not stored: an array
         // of them is 8 MB a frame at 480×720 for one pass over the pixels and the rare skirts.
         let MeshArrays { mut points, mut vertices, mut quads } =
             MESH_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).pop().unwrap_or_default();
-        depth
-            .values
-            .par_iter()
+        // Points, their f32 copies and the nearest depth in one pass by rows (every element is
+        // written; pooled arrays of the right length are not cleared first).
+        points.resize(depth.values.len(), None);
+        vertices.resize(depth.values.len(), Vec3A::ZERO);
+        let row = width.max(1);
+        let nearest_depth = points
+            .par_chunks_mut(row)
+            .zip(vertices.par_chunks_mut(row))
+            .zip(depth.values.par_chunks(row))
             .enumerate()
-            .map(|(p, &d)| valid(d).then(|| center + f64::from(d) * pixel_ray(p)))
-            .collect_into_vec(&mut points);
-        points.par_iter().map(|p| p.map_or(Vec3A::ZERO, to_vec3a)).collect_into_vec(&mut vertices);
+            .map(|(v, ((points, vertices), depths))| {
+                let mut nearest = f64::INFINITY;
+                for (u, ((point, vertex), &d)) in points.iter_mut().zip(vertices.iter_mut()).zip(depths).enumerate() {
+                    *point = valid(d).then(|| center + f64::from(d) * ray(u as u32, v as u32));
+                    *vertex = point.map_or(Vec3A::ZERO, to_vec3a);
+                    if valid(d) {
+                        nearest = nearest.min(f64::from(d));
+                    }
+                }
+                nearest
+            })
+            .reduce(|| f64::INFINITY, f64::min);
         // Per row of quads, written in place: each quad's kind, with the skirt triangles of the
         // row collected aside (numbered in row order below).
         quads.resize(width * height, NO_TRIANGLES);
@@ -229,8 +247,6 @@ impl DepthMesh {
                 skirts.push(skirt);
             }
         }
-        let nearest_depth =
-            depth.values.par_iter().filter(|&&d| valid(d)).map(|&d| f64::from(d)).reduce(|| f64::INFINITY, f64::min);
         let acceleration =
             Acceleration::ImageGrids(Box::new(LazyPyramid { pyramid: OnceLock::new(), camera: *camera }));
         let mut mesh =

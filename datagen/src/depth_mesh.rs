@@ -198,7 +198,7 @@ impl DepthMesh {
                 for (u, ((point, vertex), &d)) in points.iter_mut().zip(vertices.iter_mut()).zip(depths).enumerate() {
                     *point = valid(d).then(|| center + f64::from(d) * ray(u as u32, v as u32));
                     *vertex = point.map_or(Vec3A::ZERO, to_vec3a);
-                    if valid(d) {
+                    if point.is_some() {
                         nearest = nearest.min(f64::from(d));
                     }
                 }

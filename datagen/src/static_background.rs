@@ -137,7 +137,7 @@ impl StaticBackground {
             if z <= 0.0 {
                 continue;
             }
-            let pixel = camera.intrinsics * (in_camera / z);
+            let pixel = crate::camera::pixel_of(&camera.intrinsics, in_camera);
             // Half the voxel's projected size, at least the pixel the point falls in.
             let reach = ((self.voxel * focal / z) * 0.5 - 0.5).ceil().max(0.0) as i64;
             let (cx, cy) = (pixel.x.round() as i64, pixel.y.round() as i64);

@@ -533,7 +533,7 @@ pub fn ground_truth_covisibility(
             if in_novel.z <= 0.0 {
                 return false;
             }
-            let pixel = *novel_intrinsics * (in_novel / in_novel.z);
+            let pixel = crate::camera::pixel_of(novel_intrinsics, in_novel);
             let inside = pixel.x > -0.5 && pixel.x < width - 0.5 && pixel.y > -0.5 && pixel.y < height - 0.5;
             inside && geometry.is_visible(point, eye)
         })

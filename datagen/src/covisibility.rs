@@ -5,7 +5,6 @@
 //! it). One mesh per frame serves every trajectory; pixels are independent, so the mask is
 //! bit-identical whatever the thread count.
 
-use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::camera::PinholeCamera;
@@ -52,25 +51,6 @@ pub fn covisibility_mask(
     novel: &PinholeCamera,
     config: &CovisibilityConfig,
 ) -> Vec<bool> {
-    let pixels = source.width as usize * source.height as usize;
-    let view = mesh.view(novel);
-    let novel_from_world = novel.camera_from_world();
-    let mut mask = vec![false; pixels];
-    mask.par_chunks_mut(source.width as usize).enumerate().for_each(|(row, out)| {
-        for (column, keep) in out.iter_mut().enumerate() {
-            let index = row * source.width as usize + column;
-            let Some(point) = mesh.point(index) else { continue };
-            let in_novel = novel_from_world.transform_point3(point);
-            if in_novel.z <= 0.0 {
-                continue;
-            }
-            let pixel = crate::camera::pixel_of(&novel.intrinsics, in_novel);
-            if !novel.contains(pixel) {
-                continue;
-            }
-            let projected = (pixel, in_novel.z);
-            *keep = !view.segment_blocked_projected(point, projected, Some(index as u32), config.epsilon);
-        }
-    });
-    mask
+    debug_assert_eq!(mesh.width(), source.width as usize, "the mesh is lifted from the source camera");
+    mesh.view(novel).covisibility(config.epsilon)
 }

@@ -12,14 +12,17 @@
 //! Queries run the obvhs ray/triangle test on the f32 triangles; what differs is how candidates
 //! are found (`accelerator`). The default exploits that the mesh is a regular grid seen from one
 //! camera: nothing generic is built per frame, a depth pyramid over the source image serves single
-//! rays ([`crate::depth_pyramid`]) and per-view triangle bins serve the batches of rays leaving a
-//! novel camera ([`crate::view_bins`]). The obvhs CWBVH over all triangles is the alternative.
+//! rays ([`crate::depth_pyramid`]) and per-view bins serve the batches of rays leaving a novel
+//! camera ([`crate::view_bins`]): triangle bins for the render rays, and for the co-visibility
+//! segments the source points binned instead, tested by the quads of the blocks that may hide
+//! anything ([`MeshView::covisibility`]). The obvhs CWBVH over all triangles is the alternative.
 //! Every path equals a brute-force loop over all triangles (integration tests).
 
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Mutex, OnceLock};
 use std::time::Duration;
 
-use glam::{DVec2, DVec3, Vec3A};
+use glam::{DMat4, DVec2, DVec3, Vec3A};
 use obvhs::BvhBuildParams;
 use obvhs::cwbvh::CwBvh;
 use obvhs::cwbvh::builder::build_cwbvh_from_tris;
@@ -350,83 +353,78 @@ impl DepthMesh {
 
     /// The mesh seen from a novel camera, for the batches of rays leaving its centre.
     pub fn view(&self, novel: &PinholeCamera) -> MeshView<'_> {
+        let novel_from_world = novel.camera_from_world();
         let projection = matches!(self.acceleration, Acceleration::ImageGrids(_)).then(|| {
-            let novel_from_world = novel.camera_from_world();
-            // Pixel coordinates and depth in the novel camera (pixel coordinates are meaningless
-            // for depth ≤ 0, which the bins never project).
-            let project = |v: Vec3A| {
-                let in_novel = novel_from_world.transform_point3(v.as_dvec3());
-                crate::camera::pixel_of(&novel.intrinsics, in_novel).extend(in_novel.z)
-            };
-            let mut diagonal_separates =
-                DIAGONAL_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).pop().unwrap_or_default();
+            let mut points =
+                VIEW_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).pop().unwrap_or_default();
             // Every element is written below; only growth initialises.
-            diagonal_separates.resize(self.quads.len(), false);
-            let size = (novel.width as usize, novel.height as usize);
-            let near = ViewBins::near_limit(self.nearest_depth);
-            // Bands of quad rows in parallel, each projecting its vertex rows once.
-            let fill = |footprints: &mut [view_bins::Footprint]| {
-                let band = (QUAD_ROWS_PER_BAND * self.width).max(1);
-                footprints.par_chunks_mut(band).zip(diagonal_separates.par_chunks_mut(band)).enumerate().for_each(
-                    |(index, (footprints, separates))| {
-                        self.band_footprints(index * band, &project, near, size, footprints, separates);
-                    },
-                );
-            };
-            let bins = ViewBins::new(self.quads.len(), fill, novel_from_world, novel.intrinsics, size);
-            Projection { bins, diagonal_separates }
+            points.resize(self.points.len(), DVec3::ZERO);
+            let row = self.width.max(1);
+            points.par_chunks_mut(row).zip(self.points.par_chunks(row)).for_each(|(projected, points)| {
+                for (projected, point) in projected.iter_mut().zip(points) {
+                    *projected = point.map_or(DVec3::new(0.0, 0.0, f64::NAN), |p| project(&novel_from_world, novel, p));
+                }
+            });
+            Projection { points, quad_bins: OnceLock::new() }
         });
-        MeshView { mesh: self, eye: novel.center(), projection }
+        MeshView { mesh: self, novel: *novel, novel_from_world, eye: novel.center(), projection }
     }
 
-    /// The footprints of the quads `first..first + footprints.len()` (whole rows) as the bins see
-    /// them, one entry per quad (its two triangles share most of their footprint), and per
-    /// surface quad whether its diagonal separates corners 0 and 3 in the image; `project` gives a
-    /// vertex's pixel coordinates and depth in the novel camera, `near` and `size` are the bins'.
-    fn band_footprints(
+    /// Calls `emit(offset, quad, separates)` for each quad `first + offset` of a band of whole
+    /// quad rows ending before `end`: `quad` the smallest (x, y, depth) and largest (x, y) of its
+    /// corners as (pixel x, pixel y, depth) in the novel camera (None without triangles), one
+    /// range per quad (its two triangles share most of their footprint), and `separates` whether
+    /// the quad is a surface quad whose diagonal separates corners 0 and 3 in the image
+    /// ([`Projection::quad_bins`]). `projected` holds the projections of the band's corner pixels
+    /// (its rows and the next) and `novel` is the camera, for the skirts' corners. The f64 points
+    /// stand for their f32 triangle corners: they differ by f32 rounding, ~1e-4 px at the scale
+    /// of any depth map, inside [`view_bins::MARGIN_PIXELS`].
+    #[inline]
+    fn band_quads(
         &self,
-        first: usize,
-        project: &impl Fn(Vec3A) -> DVec3,
-        near: f64,
-        size: (usize, usize),
-        footprints: &mut [view_bins::Footprint],
-        separates: &mut [bool],
+        (first, end): (usize, usize),
+        (u0, u1): (usize, usize),
+        projected: &[DVec3],
+        (novel, novel_from_world): (&PinholeCamera, &DMat4),
+        mut emit: impl FnMut(usize, Option<(DVec3, DVec2)>, bool),
     ) {
         let width = self.width;
-        let rows = footprints.len().div_ceil(width);
-        let vertex_end = (first + (rows + 1) * width).min(self.vertices.len());
-        let projected: Vec<DVec3> = self.vertices[first..vertex_end].iter().map(|&v| project(v)).collect();
         // Per vertex column of a quad row, the smallest (x, y, depth) and largest (x, y) of its two
         // corners: each column serves the quads on both sides.
-        let mut columns: Vec<(DVec3, DVec2)> = Vec::with_capacity(width);
-        let quad_rows = footprints.chunks_mut(width).zip(separates.chunks_mut(width));
-        for (row, (footprints, separates)) in quad_rows.enumerate() {
+        let mut columns: Vec<(DVec3, DVec2)> = Vec::with_capacity(u1 + 1 - u0);
+        let vertex_end = (u1 + 1).min(width);
+        for (row, quads) in self.quads[first..end].chunks(width).enumerate() {
             let upper = &projected[row * width..(row + 1) * width];
             // The image's last row has no quads (nor a row below).
             let lower = projected.get((row + 1) * width..(row + 2) * width).unwrap_or(&[]);
             columns.clear();
-            columns.extend(upper.iter().zip(lower).map(|(a, b)| (a.min(*b), a.truncate().max(b.truncate()))));
-            for (u, (footprint, separates)) in footprints.iter_mut().zip(separates).enumerate() {
-                *separates = false;
-                *footprint = match self.quads[first + row * width + u] {
-                    NO_TRIANGLES => view_bins::Footprint::OUTSIDE,
+            let pairs = upper[u0..vertex_end].iter().zip(lower.get(u0..vertex_end).unwrap_or(&[]));
+            columns.extend(pairs.map(|(a, b)| (a.min(*b), a.truncate().max(b.truncate()))));
+            for (u, &kind) in quads.iter().enumerate().take(u1).skip(u0) {
+                let offset = row * width + u;
+                match kind {
+                    NO_TRIANGLES => emit(offset, None, false),
                     SURFACE => {
                         let [c0, c1, c2, c3] = [upper[u], upper[u + 1], lower[u], lower[u + 1]];
                         // Twice the margin covers the f32 rounding of the corners' positions.
                         let (a, b, c, d) = (c0.truncate(), c1.truncate(), c2.truncate(), c3.truncate());
-                        *separates = [c0, c1, c2, c3].iter().all(|p| p.z > 0.0)
+                        let separates = [c0, c1, c2, c3].iter().all(|p| p.z > 0.0)
                             && view_bins::line_separates(b, c, a, d, 2.0)
                             && view_bins::line_separates(b, c, d, a, 2.0);
-                        let ((lo_left, hi_left), (lo_right, hi_right)) = (columns[u], columns[u + 1]);
-                        view_bins::Footprint::of_range(lo_left.min(lo_right), hi_left.max(hi_right), near, size)
+                        let ((lo_left, hi_left), (lo_right, hi_right)) = (columns[u - u0], columns[u + 1 - u0]);
+                        emit(offset, Some((lo_left.min(lo_right), hi_left.max(hi_right))), separates);
                     }
                     skirt => {
                         let [a, b] = self.skirts[skirt as usize];
                         // Corners 0..3 of the quad, pulled onto the skirt (see SPLIT).
-                        let corners = [project(a.v0), project(a.v1), project(a.v2), project(b.v1)];
-                        view_bins::Footprint::of(corners, near, size)
+                        let corners = [a.v0, a.v1, a.v2, b.v1].map(|v| project(novel_from_world, novel, v.as_dvec3()));
+                        let (mut lo, mut hi) = (DVec3::INFINITY, DVec2::NEG_INFINITY);
+                        for c in corners {
+                            (lo, hi) = (lo.min(c), hi.max(c.truncate()));
+                        }
+                        emit(offset, Some((lo, hi)), false);
                     }
-                };
+                }
             }
         }
     }
@@ -546,6 +544,8 @@ fn segment_ray_for_triangles(from: DVec3, to: DVec3, epsilon: f64) -> Option<Ray
 /// own queries from the camera's centre, faster for whole images of rays.
 pub struct MeshView<'a> {
     mesh: &'a DepthMesh,
+    novel: PinholeCamera,
+    novel_from_world: DMat4,
     eye: DVec3,
     /// None with the BVH accelerator, which serves every ray alike.
     projection: Option<Projection>,
@@ -553,6 +553,17 @@ pub struct MeshView<'a> {
 
 /// The per-view structures of the image-grid accelerator.
 struct Projection {
+    /// Per pixel, its surface point in the novel camera as (pixel x, pixel y, depth): `pixel_of`
+    /// and the depth of `novel_from_world` applied to [`DepthMesh::point`], computed once per
+    /// view for the bins and the co-visibility queries alike; depth NaN where there is no point.
+    points: Vec<DVec3>,
+    /// The triangle bins, for single segments and the render rays, built on first use (the
+    /// co-visibility batch, [`MeshView::covisibility`], bins the points instead).
+    quad_bins: OnceLock<QuadBins>,
+}
+
+/// The triangle bins of a view, and what its segment queries need with them.
+struct QuadBins {
     bins: ViewBins,
     /// Per surface quad (by its corner-0 pixel): whether, in the novel image, the diagonal shared
     /// by its two triangles separates corners 0 and 3 beyond the bins' margin. Then neither corner
@@ -562,25 +573,328 @@ struct Projection {
     diagonal_separates: Vec<bool>,
 }
 
-/// The per-quad arrays of dropped views ([`Projection`]), reused for the same reason as the
-/// bins' ([`view_bins`]): fresh image-sized allocations per view cost the kernel's page clearing.
-static DIAGONAL_POOL: Mutex<Vec<Vec<bool>>> = Mutex::new(Vec::new());
+/// The per-pixel arrays of dropped views ([`Projection::points`], the co-visibility batch's
+/// flags), reused for the same reason as the bins' ([`view_bins`]): fresh image-sized
+/// allocations per view cost the kernel's page clearing.
+static VIEW_POOL: Mutex<Vec<Vec<DVec3>>> = Mutex::new(Vec::new());
+static FLAG_POOL: Mutex<Vec<(Vec<AtomicBool>, Vec<bool>)>> = Mutex::new(Vec::new());
 
-/// Quad rows per parallel task of [`DepthMesh::view`]: each task projects its vertex rows and
-/// the next one, so bands of many rows keep the repeated row a small share.
+/// Quad rows per parallel task of the passes over a view's quads.
 const QUAD_ROWS_PER_BAND: usize = 16;
+
+/// Quads per side of the blocks whose quads the co-visibility batch can skip
+/// ([`MeshView::good_blocks`]).
+const BLOCK: usize = 8;
+
+/// Rings of quads around a block that must be regular too ([`MeshView::good_blocks`]): points
+/// of the block's neighbours fall inside its box wherever the novel view turns or shears it.
+const RING: usize = 4;
 
 impl Drop for Projection {
     fn drop(&mut self) {
-        let array = std::mem::take(&mut self.diagonal_separates);
-        DIAGONAL_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push(array);
+        let points = std::mem::take(&mut self.points);
+        VIEW_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push(points);
+    }
+}
+
+/// Pixel coordinates and depth of world point `p` in the novel camera (pixel coordinates are
+/// meaningless for depth ≤ 0, which neither bins nor queries use).
+#[inline]
+fn project(novel_from_world: &DMat4, novel: &PinholeCamera, p: DVec3) -> DVec3 {
+    let in_novel = novel_from_world.transform_point3(p);
+    crate::camera::pixel_of(&novel.intrinsics, in_novel).extend(in_novel.z)
+}
+
+impl MeshView<'_> {
+    /// The image's size and [`ViewBins::near_limit`] for the mesh.
+    fn bin_settings(&self) -> ((usize, usize), f64) {
+        ((self.novel.width as usize, self.novel.height as usize), ViewBins::near_limit(self.mesh.nearest_depth))
+    }
+
+    /// Quads per band of the passes over the quads, run in parallel (whole quad rows).
+    fn band(&self) -> usize {
+        (QUAD_ROWS_PER_BAND * self.mesh.width).max(1)
+    }
+
+    /// [`DepthMesh::band_quads`] for the band of quads `range`.
+    fn band_quads(
+        &self,
+        projection: &Projection,
+        range: (usize, usize),
+        columns: (usize, usize),
+        emit: impl FnMut(usize, Option<(DVec3, DVec2)>, bool),
+    ) {
+        let corners = &projection.points[range.0..(range.1 + self.mesh.width).min(projection.points.len())];
+        self.mesh.band_quads(range, columns, corners, (&self.novel, &self.novel_from_world), emit);
+    }
+
+    fn quad_bins<'p>(&self, projection: &'p Projection) -> &'p QuadBins {
+        projection.quad_bins.get_or_init(|| {
+            let ((size, near), band) = (self.bin_settings(), self.band());
+            let mut diagonal_separates = vec![false; self.mesh.quads.len()];
+            let fill = |footprints: &mut [view_bins::Footprint]| {
+                footprints.par_chunks_mut(band).zip(diagonal_separates.par_chunks_mut(band)).enumerate().for_each(
+                    |(index, (footprints, separates))| {
+                        let range = (index * band, index * band + footprints.len());
+                        self.band_quads(projection, range, (0, self.mesh.width), |offset, quad, separating| {
+                            separates[offset] = separating;
+                            footprints[offset] = quad.map_or(view_bins::Footprint::OUTSIDE, |(lo, hi)| {
+                                view_bins::Footprint::of_range(lo, hi, near, size)
+                            });
+                        });
+                    },
+                );
+            };
+            let bins = ViewBins::new(self.mesh.quads.len(), fill, self.novel_from_world, self.novel.intrinsics, size);
+            QuadBins { bins, diagonal_separates }
+        })
     }
 }
 
 impl MeshView<'_> {
-    /// Bin entries and unbinned primitives of the per-view bins (None with the BVH).
+    /// Pixel `index`'s surface point in the novel camera: its pixel coordinates K · (p / p.z) and
+    /// depth p.z, p = `novel.camera_from_world()` applied to [`DepthMesh::point`], as computed
+    /// there (None without a point, or with the BVH accelerator).
+    pub fn projected(&self, index: usize) -> Option<(DVec2, f64)> {
+        let p = *self.projection.as_ref()?.points.get(index)?;
+        (!p.z.is_nan()).then_some((p.truncate(), p.z))
+    }
+
+    /// Bin entries and unbinned primitives of the per-view triangle bins (None with the BVH).
     pub fn bin_sizes(&self) -> Option<(usize, usize)> {
-        self.projection.as_ref().map(|p| p.bins.sizes())
+        self.projection.as_ref().map(|p| self.quad_bins(p).bins.sizes())
+    }
+
+    /// Co-visibility from the view's camera of every source pixel (row-major): whether its
+    /// surface point lies in front of the camera, projects inside its image, and the segment to
+    /// it is not blocked ([`DepthMesh::segment_blocked`], the pixel's own triangles excluded).
+    /// The image-grid accelerator answers the whole image at once: the queries are binned by the
+    /// pixel they project to ([`view_bins::PointBins`]) and every quad tests the points inside
+    /// its box, the same candidate pairs as the triangle bins give each segment; the quads
+    /// tested by every ray and a pixel's own two quads with a non-separating diagonal are tested
+    /// per pixel afterwards, as in [`Self::segment_blocked`].
+    pub fn covisibility(&self, epsilon: f64) -> Vec<bool> {
+        let mesh = self.mesh;
+        let pixels = mesh.points.len();
+        let row = mesh.width.max(1);
+        let mut mask = vec![false; pixels];
+        let Some(projection) = &self.projection else {
+            mask.par_chunks_mut(row).enumerate().for_each(|(v, out)| {
+                for (u, keep) in out.iter_mut().enumerate() {
+                    *keep = self.covisible_single(v * row + u, epsilon);
+                }
+            });
+            return mask;
+        };
+        let (size, near) = self.bin_settings();
+        let bins = view_bins::PointBins::new(pixels, |p| self.query(projection, p), size);
+        let (mut blocked, mut separates) =
+            FLAG_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).pop().unwrap_or_default();
+        blocked.resize_with(pixels, || AtomicBool::new(false));
+        blocked.par_iter().for_each(|flag| flag.store(false, Ordering::Relaxed));
+        separates.resize(mesh.quads.len(), false);
+        let ray_to = |p: usize| mesh.points[p].and_then(|point| segment_ray_for_triangles(self.eye, point, epsilon));
+        let width = mesh.width as u32;
+        let blocks = self.good_blocks(projection, near, size, &bins);
+        // Every quad of the other blocks against the binned points inside its box, but its own
+        // four corners.
+        let block_rows = (BLOCK * mesh.width).max(1);
+        let everywhere: Vec<u32> = separates
+            .par_chunks_mut(block_rows)
+            .zip(blocks.par_chunks(mesh.width.div_ceil(BLOCK).max(1)))
+            .enumerate()
+            .flat_map_iter(|(index, (separates, good))| {
+                let mut everywhere = Vec::new();
+                let range = (index * block_rows, index * block_rows + separates.len());
+                for (column, &good) in good.iter().enumerate() {
+                    let columns = (column * BLOCK, ((column + 1) * BLOCK).min(mesh.width));
+                    if good {
+                        // Thick triangles separate at their shared diagonal (`view_bins::thick`).
+                        for row in separates.chunks_mut(mesh.width) {
+                            for separates in &mut row[columns.0..columns.1] {
+                                *separates = true;
+                            }
+                        }
+                        continue;
+                    }
+                    self.band_quads(projection, range, columns, |offset, corners, separating| {
+                        separates[offset] = separating;
+                        let Some((lo, hi)) = corners else { return };
+                        let quad = (range.0 + offset) as u32;
+                        match view_bins::Reach::of_range(lo, hi, near, size) {
+                            view_bins::Reach::Everywhere => everywhere.push(quad),
+                            view_bins::Reach::Outside => {}
+                            view_bins::Reach::Box { entry, range } => bins.for_each_inside(&entry, range, |p| {
+                                let corner = p.wrapping_sub(quad);
+                                let own = corner <= 1 || corner.wrapping_sub(width) <= 1;
+                                if own || blocked[p as usize].load(Ordering::Relaxed) {
+                                    return;
+                                }
+                                let hits = ray_to(p as usize)
+                                    .is_some_and(|ray| mesh.hit_quad(quad as usize, &ray, true, Some(p)) < ray.tmax);
+                                if hits {
+                                    blocked[p as usize].store(true, Ordering::Relaxed);
+                                }
+                            }),
+                        }
+                    });
+                }
+                everywhere
+            })
+            .collect();
+        mask.par_chunks_mut(row).enumerate().for_each(|(v, out)| {
+            for (u, keep) in out.iter_mut().enumerate() {
+                let p = v * row + u;
+                *keep = match bins.bin(p) {
+                    view_bins::NO_QUERY => false,
+                    view_bins::UNBINNED_QUERY => self.covisible_single(p, epsilon),
+                    _ if blocked[p].load(Ordering::Relaxed) => false,
+                    _ => {
+                        // As in `segment_blocked_with`: the quads tested by every ray but the two
+                        // with `p` in both triangles, and the two with `p` as corner 0 or 3
+                        // unless their diagonal separates it from the other triangle.
+                        let p32 = p as u32;
+                        let both = [p32.wrapping_sub(1), p32.wrapping_sub(width)];
+                        let one = [p32, p32.wrapping_sub(width + 1)];
+                        let mut ray = None;
+                        let mut blocks = |quad: u32| {
+                            ray.get_or_insert_with(|| ray_to(p))
+                                .is_some_and(|ray| mesh.hit_quad(quad as usize, &ray, true, Some(p32)) < ray.tmax)
+                        };
+                        let blocked = everywhere.iter().any(|&quad| !both.contains(&quad) && blocks(quad))
+                            || one
+                                .iter()
+                                .any(|&quad| separates.get(quad as usize).is_some_and(|&s| !s) && blocks(quad));
+                        !blocked
+                    }
+                };
+            }
+        });
+        FLAG_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push((blocked, separates));
+        mask
+    }
+
+    /// Per block of [`BLOCK`] × [`BLOCK`] quads (row-major by block), whether no quad of the
+    /// block can hide any point from the novel camera but its own corners, so that the batch
+    /// skips the block's quads. That holds when the block and [`RING`] rings of quads around it
+    /// form a rectangle of surface quads whose triangles all keep their orientation in the novel
+    /// image, each vertex farther than twice [`view_bins::MARGIN_PIXELS`] from its opposite edge
+    /// ([`view_bins::thick`]), all beyond the bins' near limit, and the block's box (widened as
+    /// the bins widen every box) holds no binned point as deep as the block's nearest corner but
+    /// the rectangle's inner vertices.
+    ///
+    /// Why: both cameras then see every triangle of the rectangle from the same side. Two points
+    /// of the surface on one ray from the novel camera lie in one epipolar plane, whose cut
+    /// through the rectangle (convex, without holes) is one chain of triangle pieces along which
+    /// the direction seen from the novel camera turns monotonically, as it does from the source
+    /// camera: no such ray meets the rectangle's surface twice, so its projection is one-to-one.
+    /// An inner vertex's triangles then cover a disk around its image point, of radius at least
+    /// their smallest height (over twice the margin), that no other triangle of the rectangle
+    /// reaches: the margin argument of [`view_bins`] keeps every f32 ray to it clear of them. A
+    /// quad can hide only points inside its box, which is inside the block's: those of the
+    /// rectangle it cannot hide, and there are no others.
+    fn good_blocks(
+        &self,
+        projection: &Projection,
+        near: f64,
+        size: (usize, usize),
+        bins: &view_bins::PointBins,
+    ) -> Vec<bool> {
+        let mesh = self.mesh;
+        let (width, height) = (mesh.width, mesh.height);
+        let points = &projection.points;
+        // Per quad: a surface quad beyond the near limit with two thick triangles.
+        let mut bad = vec![0u32; (width + 1) * (height + 1)];
+        bad[width + 2..].par_chunks_mut(width + 1).enumerate().for_each(|(v, row)| {
+            for (u, flag) in row.iter_mut().enumerate().take(width) {
+                let quad = v * width + u;
+                *flag = u32::from(
+                    mesh.quads.get(quad) != Some(&SURFACE) || v + 1 >= height || {
+                        let [c0, c1, c2, c3] = corner_indices(quad, width).map(|i| points[i]);
+                        let beyond = [c0, c1, c2, c3].iter().all(|c| c.z > near);
+                        let (a, b, c, d) = (c0.truncate(), c1.truncate(), c2.truncate(), c3.truncate());
+                        !(beyond && view_bins::thick(a, b, c, 2.0) && view_bins::thick(b, d, c, 2.0))
+                    },
+                );
+            }
+        });
+        // Summed into an integral image: bad[(v + 1)(width + 1) + u + 1] counts the bad quads in
+        // rows ..=v and columns ..=u.
+        for v in 1..=height {
+            let mut running = 0;
+            for u in 1..=width {
+                running += bad[v * (width + 1) + u];
+                bad[v * (width + 1) + u] = running + bad[(v - 1) * (width + 1) + u];
+            }
+        }
+        let bad_in = |(u0, u1): (usize, usize), (v0, v1): (usize, usize)| {
+            let at = |u: usize, v: usize| bad[v * (width + 1) + u];
+            at(u1, v1) + at(u0, v0) - at(u0, v1) - at(u1, v0)
+        };
+        // The quads of the image are columns and rows ..width − 1 and ..height − 1.
+        let (quad_columns, quad_rows) = (width.saturating_sub(1), height.saturating_sub(1));
+        let (across, down) = (width.div_ceil(BLOCK).max(1), height.div_ceil(BLOCK).max(1));
+        (0..across * down)
+            .into_par_iter()
+            .map(|block| {
+                let (bu, bv) = (block % across * BLOCK, block / across * BLOCK);
+                let (u1, v1) = ((bu + BLOCK).min(quad_columns), (bv + BLOCK).min(quad_rows));
+                if bu >= u1 || bv >= v1 {
+                    return false;
+                }
+                let ring_u = (bu.saturating_sub(RING), (u1 + RING).min(quad_columns));
+                let ring_v = (bv.saturating_sub(RING), (v1 + RING).min(quad_rows));
+                if bad_in(ring_u, ring_v) > 0 {
+                    return false;
+                }
+                let (mut lo, mut hi) = (DVec3::INFINITY, DVec2::NEG_INFINITY);
+                for v in bv..=v1 {
+                    for c in &points[v * width + bu..=v * width + u1] {
+                        (lo, hi) = (lo.min(*c), hi.max(c.truncate()));
+                    }
+                }
+                match view_bins::Reach::of_range(lo, hi, near, size) {
+                    view_bins::Reach::Everywhere => false,
+                    view_bins::Reach::Outside => true,
+                    view_bins::Reach::Box { entry, range } => !bins.any_inside(&entry, range, |p| {
+                        // The rectangle's inner vertices, whose star of triangles is whole.
+                        let (u, v) = (p as usize % width, p as usize / width);
+                        !(ring_u.0 + 1..ring_u.1).contains(&u) || !(ring_v.0 + 1..ring_v.1).contains(&v)
+                    }),
+                }
+            })
+            .collect()
+    }
+
+    /// How many blocks of quads the co-visibility batch skips ([`Self::good_blocks`]), and of
+    /// how many (None with the BVH accelerator); for tests and benchmarks.
+    pub fn skipped_quad_blocks(&self) -> Option<(usize, usize)> {
+        let projection = self.projection.as_ref()?;
+        let (size, near) = self.bin_settings();
+        let bins = view_bins::PointBins::new(self.mesh.points.len(), |p| self.query(projection, p), size);
+        let blocks = self.good_blocks(projection, near, size, &bins);
+        Some((blocks.iter().filter(|&&good| good).count(), blocks.len()))
+    }
+
+    /// Pixel `p` as a co-visibility query: its point's pixel coordinates and depth in the novel
+    /// camera, if it lies in front of it and inside its image.
+    fn query(&self, projection: &Projection, p: usize) -> Option<(DVec2, f64)> {
+        let q = projection.points[p];
+        // NaN (no point) fails the depth test.
+        (q.z > 0.0 && self.novel.contains(q.truncate())).then_some((q.truncate(), q.z))
+    }
+
+    /// Co-visibility of pixel `p` by a single segment query (the points the batch does not bin,
+    /// and every point with the BVH accelerator).
+    fn covisible_single(&self, p: usize, epsilon: f64) -> bool {
+        let Some(point) = self.mesh.point(p) else { return false };
+        let (pixel, depth) = self.projected(p).unwrap_or_else(|| {
+            let in_novel = self.novel_from_world.transform_point3(point);
+            (crate::camera::pixel_of(&self.novel.intrinsics, in_novel), in_novel.z)
+        });
+        depth > 0.0
+            && self.novel.contains(pixel)
+            && !self.segment_blocked_projected(point, (pixel, depth), Some(p as u32), epsilon)
     }
 
     /// [`DepthMesh::segment_blocked`] from the camera's centre to `to`.
@@ -611,6 +925,7 @@ impl MeshView<'_> {
     ) -> bool {
         let fallback = || self.mesh.segment_blocked(self.eye, to, exclude, epsilon);
         let Some(projection) = &self.projection else { return fallback() };
+        let quad_bins = self.quad_bins(projection);
         // The four quads around the excluded pixel reach its bin for every view. It is corner 1
         // or 2 of two of them and in both their triangles; corner 0 or 3 of the other two and in
         // one triangle, the other one missed if their diagonal separates them.
@@ -633,13 +948,13 @@ impl MeshView<'_> {
         let skip = [both[0], both[1], one[0], one[1]];
         let scan = |quad: u32, binned: bool| (binned || !both.contains(&quad)) && blocks(quad);
         let answer = match projected {
-            Some((pixel, depth)) => projection.bins.any_towards_projected(pixel, depth, skip, scan),
-            None => projection.bins.any_towards(to, skip, scan),
+            Some((pixel, depth)) => quad_bins.bins.any_towards_projected(pixel, depth, skip, scan),
+            None => quad_bins.bins.any_towards(to, skip, scan),
         };
         let Some(blocked) = answer else { return fallback() };
         blocked
             || one.iter().any(|&quad| {
-                projection.diagonal_separates.get(quad as usize).is_some_and(|&separates| !separates) && blocks(quad)
+                quad_bins.diagonal_separates.get(quad as usize).is_some_and(|&separates| !separates) && blocks(quad)
             })
     }
 
@@ -649,7 +964,7 @@ impl MeshView<'_> {
         let Some(projection) = &self.projection else { return fallback() };
         let ray = Ray::new_inf(to_vec3a(self.eye), to_vec3a(direction));
         let hit = |quad: u32| self.mesh.hit_quad(quad as usize, &ray, false, None);
-        let nearest = projection.bins.nearest_towards(self.eye + direction, hit);
+        let nearest = self.quad_bins(projection).bins.nearest_towards(self.eye + direction, hit);
         match nearest {
             Some(t) => t.is_finite().then_some(f64::from(t)),
             None => fallback(),

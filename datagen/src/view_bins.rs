@@ -1,6 +1,8 @@
-//! Triangle bins over a novel camera's image: the structure for the two per-view batches of
-//! DESIGN §4, the co-visibility segments from the novel camera to every source point and the
-//! render rays through every novel pixel. All those rays leave the novel camera's centre, so a
+//! Bins over a novel camera's image for the two per-view batches of DESIGN §4, the co-visibility
+//! segments from the novel camera to every source point and the render rays through every novel
+//! pixel: triangle bins ([`ViewBins`]) for rays one at a time, and bins of the source points
+//! ([`PointBins`]) for the co-visibility batch, scanned from the triangles' side with the same
+//! boxes and comparisons. All those rays leave the novel camera's centre, so a
 //! triangle can only be hit by the rays whose image point falls inside the triangle's projection.
 //! Each primitive's projected box (widened) is recorded once, in the bin of the novel pixel at its
 //! top-left corner (a counting sort, linear in the primitives), together with the box and depth; a
@@ -42,7 +44,8 @@ const WINDOW: usize = 2;
 /// The bins of one novel view.
 pub struct ViewBins {
     width: usize,
-    height: usize,
+    /// (width, height) as f64, for the bin test of every ray.
+    extent: DVec2,
     novel_from_world: DMat4,
     intrinsics: DMat3,
     /// The arrays, taken from [`POOL`] and given back on drop.
@@ -86,15 +89,14 @@ impl Footprint {
     /// minimum or maximum over the corners (callers sharing them between neighbours).
     #[inline]
     pub fn of_range(lo: DVec3, hi: DVec2, near: f64, (width, height): (usize, usize)) -> Self {
-        let (nearest, lo) = (lo.z, lo.truncate());
-        if nearest.is_nan() || nearest <= near {
-            return Self::EVERYWHERE;
+        match Reach::of_range(lo, hi, near, (width, height)) {
+            Reach::Everywhere => Self::EVERYWHERE,
+            Reach::Outside => Self::OUTSIDE,
+            Reach::Box { entry, range: [x0, x1, y0, y1] } => {
+                let anchor = if x1 - x0 < WINDOW && y1 - y0 < WINDOW { (y0 * width + x0) as u32 } else { TILED };
+                Self { entry, anchor }
+            }
         }
-        let (lo, hi) = (lo - MARGIN_PIXELS, hi + MARGIN_PIXELS);
-        let Some([x0, x1, y0, y1]) = pixel_range(lo, hi, (width, height)) else { return Self::OUTSIDE };
-        let anchor = if x1 - x0 < WINDOW && y1 - y0 < WINDOW { (y0 * width + x0) as u32 } else { TILED };
-        let bounds = [lo.x as f32, lo.y as f32, -hi.x as f32, -hi.y as f32];
-        Self { entry: Entry { bounds, nearest: nearest as f32 }, anchor }
     }
 
     /// Calls `visit` with the anchor pixels (row-major index) of the tiles of a [`TILED`] box
@@ -115,6 +117,39 @@ impl Footprint {
     }
 }
 
+/// Where a primitive's rays can meet the image: what its [`Footprint`] records, with the pixel
+/// ranges of its box for the point bins ([`PointBins`]).
+pub enum Reach {
+    /// Reaching close to the camera: tested by every ray (see [`NEAR_FRACTION`]).
+    Everywhere,
+    /// Its box misses the image.
+    Outside,
+    /// Binned.
+    Box {
+        /// Its widened box and nearest depth.
+        entry: Entry,
+        /// The inclusive pixel ranges [x0, x1, y0, y1] the box reaches.
+        range: [usize; 4],
+    },
+}
+
+impl Reach {
+    /// The reach of a primitive whose corners, as (pixel x, pixel y, depth) in the novel camera,
+    /// have the smallest (x, y, depth) `lo` and largest (x, y) `hi`; `near` is
+    /// [`ViewBins::near_limit`], `size` the image's.
+    #[inline]
+    pub fn of_range(lo: DVec3, hi: DVec2, near: f64, size: (usize, usize)) -> Self {
+        let (nearest, lo) = (lo.z, lo.truncate());
+        if nearest.is_nan() || nearest <= near {
+            return Self::Everywhere;
+        }
+        let (lo, hi) = (lo - MARGIN_PIXELS, hi + MARGIN_PIXELS);
+        let Some(range) = pixel_range(lo, hi, size) else { return Self::Outside };
+        let bounds = [lo.x as f32, lo.y as f32, -hi.x as f32, -hi.y as f32];
+        Self::Box { entry: Entry { bounds, nearest: nearest as f32 }, range }
+    }
+}
+
 /// The inclusive pixel ranges [x0, x1, y0, y1] of an image of `size` that the box from `lo` to
 /// `hi` (pixel coordinates) reaches; None when it misses the image.
 #[inline]
@@ -127,6 +162,20 @@ fn pixel_range(lo: DVec2, hi: DVec2, (width, height): (usize, usize)) -> Option<
     let x1 = index_of(hi.x + 0.5).min(width - 1);
     let y1 = index_of(hi.y + 0.5).min(height - 1);
     (x0 <= x1 && y0 <= y1).then_some([x0, x1, y0, y1])
+}
+
+/// The bin (x, y) of a point already projected into a novel camera whose image is `extent`
+/// (width, height) pixels: `pixel` = K · (p / p.z) and `depth` = p.z for the point p in the
+/// novel camera; None outside the image or behind the camera.
+#[inline(always)]
+fn bin_of(pixel: DVec2, depth: f64, extent: DVec2) -> Option<[usize; 2]> {
+    if depth.is_nan() || depth <= 0.0 {
+        return None;
+    }
+    let (x, y) = (pixel.x + 0.5, pixel.y + 0.5);
+    // Pixel k owns [k − 0.5, k + 0.5): truncation is floor for the non-negative values kept.
+    let inside = x >= 0.0 && y >= 0.0 && x < extent.x && y < extent.y;
+    inside.then_some([index_of(x), index_of(y)])
 }
 
 /// A non-negative coordinate truncated to an index, through i32: one conversion instruction and
@@ -142,7 +191,7 @@ fn index_of(coordinate: f64) -> usize {
 /// sorted array so that a ray's scan reads one contiguous run. The box is (x0, y0, −x1, −y1): a
 /// point (x, y) is inside when the box is ≤ (x, y, −x, −y), one SIMD comparison.
 #[derive(Clone, Copy, Default)]
-struct Entry {
+pub struct Entry {
     bounds: [f32; 4],
     nearest: f32,
 }
@@ -247,7 +296,8 @@ impl ViewBins {
         // Bin p's end, decremented once per entry of bin p, is now bin p's start: shift back.
         starts.copy_within(1.., 0);
         starts[width * height] = entries.len() as u32;
-        Self { width, height, novel_from_world, intrinsics, buffers }
+        let extent = DVec2::new(width as f64, height as f64);
+        Self { width, extent, novel_from_world, intrinsics, buffers }
     }
 
     /// Where the rays towards `point` (world space) meet the image: pixel coordinates, and the
@@ -257,21 +307,16 @@ impl ViewBins {
         (crate::camera::pixel_of(&self.intrinsics, in_novel), in_novel.z)
     }
 
-    /// The bin (x, y) of a point already projected: `pixel` = K · (p / p.z) and `depth` = p.z
-    /// for the point p in the novel camera; None outside the image or behind the camera.
+    /// The bin (x, y) of a point already projected ([`bin_of`]).
+    #[inline(always)]
     fn bin_of_projected(&self, pixel: DVec2, depth: f64) -> Option<[usize; 2]> {
-        if depth.is_nan() || depth <= 0.0 {
-            return None;
-        }
-        let (x, y) = (pixel.x + 0.5, pixel.y + 0.5);
-        // Pixel k owns [k − 0.5, k + 0.5): truncation is floor for the non-negative values kept.
-        let inside = x >= 0.0 && y >= 0.0 && x < self.width as f64 && y < self.height as f64;
-        inside.then_some([index_of(x), index_of(y)])
+        bin_of(pixel, depth, self.extent)
     }
 
     /// Calls `visit(id)` for the binned primitives whose box holds `pixel`, that reach nearer
     /// than `limit` and are not in `skip`, in the window of bin `[x, y]`, until it returns true;
     /// whether it did.
+    #[inline(always)]
     fn any_candidate(
         &self,
         [x, y]: [usize; 2],
@@ -311,6 +356,7 @@ impl ViewBins {
     /// [`Self::any_towards`] for a point already projected into the novel camera: `pixel` =
     /// K · (p / p.z) and `depth` = p.z, p the point in camera coordinates (`novel_from_world`
     /// applied), computed exactly so, which gives the same bin and answers.
+    #[inline(always)]
     pub fn any_towards_projected(
         &self,
         pixel: DVec2,
@@ -343,6 +389,140 @@ impl ViewBins {
     }
 }
 
+/// The co-visibility queries of one view (points seen from the novel camera) binned by the
+/// novel pixel they project to, the other way round from [`ViewBins`]: each primitive visits the
+/// points inside its box ([`PointBins::for_each_inside`]), one contiguous run of the sorted array
+/// per pixel row of the box. With one entry per point and no tiles (a box reaches a few bins),
+/// building and scanning them is a fraction of the triangle bins' cost, and the pairs met are
+/// the same: a point is inside a box here exactly when the box is a candidate of the point's ray
+/// there, the same f32 comparisons of the same values.
+pub struct PointBins {
+    width: usize,
+    buffers: PointBuffers,
+}
+
+/// [`PointBins::bin`] of a point that is no query.
+pub const NO_QUERY: u32 = u32::MAX;
+/// [`PointBins::bin`] of a query outside the bins (see [`PointBins::new`]).
+pub const UNBINNED_QUERY: u32 = u32::MAX - 1;
+
+/// A binned point as the primitives' scans read it: its pixel coordinates as (x, y, −x, −y),
+/// so that the box test is one SIMD comparison with a box stored as [`Entry::bounds`], the
+/// largest depth a primitive may start at to count ([`DEPTH_SLACK`] included), and its id.
+#[derive(Clone, Copy, Default)]
+struct BinnedPoint {
+    pixel: [f32; 4],
+    limit: f32,
+    id: u32,
+}
+
+/// The arrays of one view's point bins, pooled like [`BinBuffers`].
+#[derive(Default)]
+struct PointBuffers {
+    /// Per point, the pixel (row-major) it is binned in, [`NO_QUERY`] or [`UNBINNED_QUERY`].
+    bins: Vec<u32>,
+    /// Per pixel the points binned there: `starts[p]..starts[p + 1]` of `points`.
+    starts: Vec<u32>,
+    points: Vec<BinnedPoint>,
+    /// Per point its entry, while sorting.
+    staged: Vec<BinnedPoint>,
+}
+
+static POINT_POOL: Mutex<Vec<PointBuffers>> = Mutex::new(Vec::new());
+
+impl Drop for PointBins {
+    fn drop(&mut self) {
+        let buffers = std::mem::take(&mut self.buffers);
+        POINT_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push(buffers);
+    }
+}
+
+impl PointBins {
+    /// Bins the points `0..count` of an image of `size` pixels: `query(id)` gives a query's
+    /// pixel coordinates K · (p / p.z) and depth p.z in the novel camera (None for no query).
+    /// A query whose pixel rounds outside the bins (at the image border, or behind the camera)
+    /// is [`UNBINNED_QUERY`]; its caller answers it another way.
+    pub fn new(count: usize, query: impl Fn(usize) -> Option<(DVec2, f64)>, (width, height): (usize, usize)) -> Self {
+        let mut buffers =
+            POINT_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).pop().unwrap_or_default();
+        let PointBuffers { bins, starts, points, staged } = &mut buffers;
+        let extent = DVec2::new(width as f64, height as f64);
+        // Counting sort by bin, as in `ViewBins::new`; each point's entry is made once, staged in
+        // id order.
+        bins.resize(count, NO_QUERY);
+        staged.resize(count, BinnedPoint::default());
+        starts.clear();
+        starts.resize(width * height + 1, 0);
+        for (id, (bin, entry)) in bins.iter_mut().zip(staged.iter_mut()).enumerate() {
+            *bin = match query(id) {
+                None => NO_QUERY,
+                Some((pixel, depth)) => match bin_of(pixel, depth, extent) {
+                    None => UNBINNED_QUERY,
+                    Some([x, y]) => {
+                        let bin = y * width + x;
+                        starts[bin + 1] += 1;
+                        let (x, y) = (pixel.x as f32, pixel.y as f32);
+                        let limit = (depth * (1.0 + DEPTH_SLACK)) as f32;
+                        *entry = BinnedPoint { pixel: [x, y, -x, -y], limit, id: id as u32 };
+                        bin as u32
+                    }
+                },
+            };
+        }
+        let mut total = 0;
+        for start in starts.iter_mut() {
+            total += *start;
+            *start = total;
+        }
+        points.resize(total as usize, BinnedPoint::default());
+        for (&bin, entry) in bins.iter().zip(staged.iter()).rev() {
+            if bin < UNBINNED_QUERY {
+                let slot = &mut starts[bin as usize + 1];
+                *slot -= 1;
+                points[*slot as usize] = *entry;
+            }
+        }
+        starts.copy_within(1.., 0);
+        starts[width * height] = points.len() as u32;
+        Self { width, buffers }
+    }
+
+    /// Where point `id` is binned: its pixel (row-major), [`NO_QUERY`] or [`UNBINNED_QUERY`].
+    pub fn bin(&self, id: usize) -> u32 {
+        self.buffers.bins[id]
+    }
+
+    /// Whether `test(id)` holds for a binned point inside the box `entry` over the pixel ranges
+    /// `range` and at least as deep as its nearest corner (as [`Self::for_each_inside`]).
+    #[inline]
+    pub fn any_inside(&self, entry: &Entry, [x0, x1, y0, y1]: [usize; 4], mut test: impl FnMut(u32) -> bool) -> bool {
+        let PointBuffers { starts, points, .. } = &self.buffers;
+        let bounds = Vec4::from_array(entry.bounds);
+        (y0..=y1).any(|row| {
+            let base = row * self.width;
+            points[starts[base + x0] as usize..starts[base + x1 + 1] as usize].iter().any(|point| {
+                bounds.cmple(Vec4::from_array(point.pixel)).all() & (entry.nearest <= point.limit) && test(point.id)
+            })
+        })
+    }
+
+    /// Calls `visit(id)` for every binned point inside the box of a primitive that [`Reach`]es the
+    /// image as `entry` over the pixel ranges `range`, and at least as deep as its nearest corner.
+    #[inline]
+    pub fn for_each_inside(&self, entry: &Entry, [x0, x1, y0, y1]: [usize; 4], mut visit: impl FnMut(u32)) {
+        let PointBuffers { starts, points, .. } = &self.buffers;
+        let bounds = Vec4::from_array(entry.bounds);
+        for row in y0..=y1 {
+            let base = row * self.width;
+            for point in &points[starts[base + x0] as usize..starts[base + x1 + 1] as usize] {
+                if bounds.cmple(Vec4::from_array(point.pixel)).all() & (entry.nearest <= point.limit) {
+                    visit(point.id);
+                }
+            }
+        }
+    }
+}
+
 /// Whether the line through `a` and `b` (pixel coordinates) has `point` farther than
 /// `margins` × [`MARGIN_PIXELS`] on one side and `other` on the other side or on the line. A
 /// binned triangle with edge a–b and third corner `other` then cannot be hit by a ray through the
@@ -354,6 +534,18 @@ pub fn line_separates(a: DVec2, b: DVec2, point: DVec2, other: DVec2, margins: f
     // |edge|₁ ≥ |edge|₂: a conservative distance bound without a square root.
     let margin = margins * MARGIN_PIXELS * (edge.x.abs() + edge.y.abs());
     (point_side > margin && other_side <= 0.0) || (point_side < -margin && other_side >= 0.0)
+}
+
+/// Whether the triangle `a`, `b`, `c` (pixel coordinates) turns counter-clockwise in the
+/// image's axes (x right, y down: as the triangles of [`crate::depth_mesh`] do in their source
+/// image) and has every corner farther than `margins` × [`MARGIN_PIXELS`] from the line of its
+/// opposite edge. Twice its area over an edge's length is that corner's distance from the edge's
+/// line; the edges' 1-norms (at least their lengths) make the test conservative without square
+/// roots.
+pub fn thick(a: DVec2, b: DVec2, c: DVec2, margins: f64) -> bool {
+    let twice_area = (b - a).perp_dot(c - a);
+    let norm = |e: DVec2| e.x.abs() + e.y.abs();
+    twice_area > margins * MARGIN_PIXELS * norm(b - a).max(norm(c - b)).max(norm(a - c))
 }
 
 #[cfg(test)]

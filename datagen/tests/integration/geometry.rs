@@ -163,14 +163,21 @@ fn every_accelerator_equals_brute_force_pixel_for_pixel() {
                 unbinned += view.bin_sizes().map_or(0, |s| s.1);
                 most_tiles = most_tiles.max(view.bin_sizes().map_or(0, |s| s.0));
                 for (index, &kept) in mask.iter().enumerate() {
-                    let Some(point) = mesh.point(index) else { continue };
+                    let Some(point) = mesh.point(index) else {
+                        assert!(!kept, "{accelerator:?} frame {frame} pixel {index} has no point");
+                        continue;
+                    };
                     let exclude = Some(index as u32);
                     let brute = mesh.segment_blocked_brute_force(eye, point, exclude, config.epsilon);
                     let single = mesh.segment_blocked(eye, point, exclude, config.epsilon);
                     let batched = view.segment_blocked(point, exclude, config.epsilon);
                     assert_eq!((single, batched), (brute, brute), "{accelerator:?} frame {frame} pixel {index}");
                     blocked += usize::from(brute);
-                    assert!(!(kept && brute));
+                    // The batch mask: in front of the camera, inside its image, and not blocked.
+                    let in_novel = novel.camera_from_world().transform_point3(point);
+                    let seen =
+                        in_novel.z > 0.0 && novel.contains(datagen::camera::pixel_of(&novel.intrinsics, in_novel));
+                    assert_eq!(kept, seen && !brute, "{accelerator:?} frame {frame} mask pixel {index}");
                 }
                 for index in 0..(source.width * source.height) as usize {
                     let (u, v) = ((index % source.width as usize) as f64, (index / source.width as usize) as f64);
@@ -189,6 +196,51 @@ fn every_accelerator_equals_brute_force_pixel_for_pixel() {
             assert!(most_tiles > 64 * 48, "the close view must magnify quads over several bins ({most_tiles})");
         }
     }
+}
+
+/// The co-visibility batch skips the quads of regular blocks only where nothing else can be
+/// hidden by them: a tilted plane (regular everywhere) with a square floating in front of it,
+/// seen from cameras moved sideways and turned, so that the square's blocks cover background
+/// points from elsewhere in the image and must be tested; every mask equals brute force.
+#[test]
+fn skipped_quad_blocks_hide_nothing_brute_force_would_find() {
+    let (width, height) = (96u32, 64u32);
+    let intrinsics = glam::DMat3::from_cols(
+        glam::DVec3::new(80.0, 0.0, 0.0),
+        glam::DVec3::new(0.0, 80.0, 0.0),
+        glam::DVec3::new(47.5, 31.5, 1.0),
+    );
+    let source = PinholeCamera { width, height, intrinsics, world_from_camera: glam::DMat4::IDENTITY };
+    let values = (0..width * height)
+        .map(|i| {
+            let (u, v) = ((i % width) as f32, (i / width) as f32);
+            let square = (30.0..56.0).contains(&u) && (20.0..44.0).contains(&v);
+            if square { 2.0 + 0.002 * u } else { 6.0 + 0.03 * u + 0.02 * v }
+        })
+        .collect();
+    let depth = datagen::depth_exr::DepthMap { width: width as usize, height: height as usize, values };
+    let config = CovisibilityConfig::default();
+    let mesh = DepthMesh::new(&depth, &source, &config.mesh);
+    let (mut skipped, mut tested, mut blocked) = (0, 0, 0);
+    for (shift, turn) in [(0.4, 2.0), (-0.6, -4.0), (0.3, 25.0)] {
+        let rotation = glam::DMat4::from_rotation_y(f64::to_radians(turn)) * glam::DMat4::from_rotation_z(0.2);
+        let world_from_camera = glam::DMat4::from_translation(glam::DVec3::new(shift, 0.1, 0.2)) * rotation;
+        let novel = PinholeCamera { world_from_camera, ..source };
+        let view = mesh.view(&novel);
+        let (s, all) = view.skipped_quad_blocks().expect("image grids");
+        (skipped, tested) = (skipped + s, tested + all - s);
+        let mask = covisibility_mask(&mesh, &source, &novel, &config);
+        for (index, &kept) in mask.iter().enumerate() {
+            let point = mesh.point(index).expect("every depth is valid");
+            let brute = mesh.segment_blocked_brute_force(novel.center(), point, Some(index as u32), config.epsilon);
+            let in_novel = novel.camera_from_world().transform_point3(point);
+            let seen = in_novel.z > 0.0 && novel.contains(datagen::camera::pixel_of(&novel.intrinsics, in_novel));
+            assert_eq!(kept, seen && !brute, "shift {shift}, turn {turn}: pixel {index}");
+            blocked += usize::from(seen && brute);
+        }
+    }
+    assert!(blocked > 100, "the square must hide part of the plane ({blocked})");
+    assert!(skipped > 0 && tested > 0, "blocks skipped {skipped}, tested {tested}");
 }
 
 /// The per-view bins and the obvhs BVH give the same masks and renders at full resolution on a

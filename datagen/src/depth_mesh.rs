@@ -709,7 +709,7 @@ impl MeshView<'_> {
                 for (column, &good) in good.iter().enumerate() {
                     let columns = (column * BLOCK, ((column + 1) * BLOCK).min(mesh.width));
                     if good {
-                        // Thick triangles separate at their shared diagonal (`view_bins::thick`).
+                        // Thick triangles separate at their shared diagonal (`view_bins::thick_quad`).
                         for row in separates.chunks_mut(mesh.width) {
                             for separates in &mut row[columns.0..columns.1] {
                                 *separates = true;
@@ -779,7 +779,7 @@ impl MeshView<'_> {
     /// skips the block's quads. That holds when the block and [`RING`] rings of quads around it
     /// form a rectangle of surface quads whose triangles all keep their orientation in the novel
     /// image, each vertex farther than twice [`view_bins::MARGIN_PIXELS`] from its opposite edge
-    /// ([`view_bins::thick`]), all beyond the bins' near limit, and the block's box (widened as
+    /// ([`view_bins::thick_quad`]), all beyond the bins' near limit, and the block's box (widened as
     /// the bins widen every box) holds no binned point as deep as the block's nearest corner but
     /// the rectangle's inner vertices.
     ///
@@ -805,17 +805,21 @@ impl MeshView<'_> {
         let points = &projection.points;
         // Per quad: a surface quad beyond the near limit with two thick triangles.
         let mut bad = vec![0u32; (width + 1) * (height + 1)];
-        bad[width + 2..].par_chunks_mut(width + 1).enumerate().for_each(|(v, row)| {
-            for (u, flag) in row.iter_mut().enumerate().take(width) {
-                let quad = v * width + u;
-                *flag = u32::from(
-                    mesh.quads.get(quad) != Some(&SURFACE) || v + 1 >= height || {
-                        let [c0, c1, c2, c3] = corner_indices(quad, width).map(|i| points[i]);
-                        let beyond = [c0, c1, c2, c3].iter().all(|c| c.z > near);
-                        let (a, b, c, d) = (c0.truncate(), c1.truncate(), c2.truncate(), c3.truncate());
-                        !(beyond && view_bins::thick(a, b, c, 2.0) && view_bins::thick(b, d, c, 2.0))
-                    },
-                );
+        bad[width + 2..].par_chunks_mut(width + 1).enumerate().for_each(|(v, flags)| {
+            let columns = width.min(flags.len());
+            let flags = &mut flags[..columns];
+            flags.fill(1);
+            if v + 1 >= height {
+                return;
+            }
+            let (upper, lower) = (&points[v * width..(v + 1) * width], &points[(v + 1) * width..(v + 2) * width]);
+            let kinds = &mesh.quads[v * width..(v + 1) * width];
+            let quads = flags.iter_mut().zip(kinds).zip(upper.windows(2).zip(lower.windows(2)));
+            for ((flag, &kind), (top, bottom)) in quads {
+                let [c0, c1, c2, c3] = [top[0], top[1], bottom[0], bottom[1]];
+                let beyond = c0.z.min(c1.z).min(c2.z.min(c3.z)) > near;
+                let (a, b, c, d) = (c0.truncate(), c1.truncate(), c2.truncate(), c3.truncate());
+                *flag = u32::from(!((kind == SURFACE) & beyond && view_bins::thick_quad(a, b, c, d, 2.0)));
             }
         });
         // Summed into an integral image: bad[(v + 1)(width + 1) + u + 1] counts the bad quads in
@@ -831,6 +835,10 @@ impl MeshView<'_> {
             let at = |u: usize, v: usize| bad[v * (width + 1) + u];
             at(u1, v1) + at(u0, v0) - at(u0, v1) - at(u1, v0)
         };
+        // p / width for a pixel index: (p + ½) / width is at least ½ / width from an integer, far
+        // beyond the f64 rounding of the product for any image (exact below 2^50 pixels).
+        let per_row = 1.0 / width as f64;
+        let row_of = |p: u32| ((f64::from(p) + 0.5) * per_row) as u32 as usize;
         // The quads of the image are columns and rows ..width − 1 and ..height − 1.
         let (quad_columns, quad_rows) = (width.saturating_sub(1), height.saturating_sub(1));
         let (across, down) = (width.div_ceil(BLOCK).max(1), height.div_ceil(BLOCK).max(1));
@@ -858,7 +866,8 @@ impl MeshView<'_> {
                     view_bins::Reach::Outside => true,
                     view_bins::Reach::Box { entry, range } => !bins.any_inside(&entry, range, |p| {
                         // The rectangle's inner vertices, whose star of triangles is whole.
-                        let (u, v) = (p as usize % width, p as usize / width);
+                        let v = row_of(p);
+                        let u = p as usize - v * width;
                         !(ring_u.0 + 1..ring_u.1).contains(&u) || !(ring_v.0 + 1..ring_v.1).contains(&v)
                     }),
                 }

@@ -536,16 +536,22 @@ pub fn line_separates(a: DVec2, b: DVec2, point: DVec2, other: DVec2, margins: f
     (point_side > margin && other_side <= 0.0) || (point_side < -margin && other_side >= 0.0)
 }
 
-/// Whether the triangle `a`, `b`, `c` (pixel coordinates) turns counter-clockwise in the
-/// image's axes (x right, y down: as the triangles of [`crate::depth_mesh`] do in their source
-/// image) and has every corner farther than `margins` × [`MARGIN_PIXELS`] from the line of its
-/// opposite edge. Twice its area over an edge's length is that corner's distance from the edge's
-/// line; the edges' 1-norms (at least their lengths) make the test conservative without square
-/// roots.
-pub fn thick(a: DVec2, b: DVec2, c: DVec2, margins: f64) -> bool {
-    let twice_area = (b - a).perp_dot(c - a);
+/// Whether both triangles of a quad with corners `a`, `b`, `c`, `d` (0..3 in pixel coordinates,
+/// see [`crate::depth_mesh`]), (a, b, c) and (b, d, c), turn counter-clockwise in the image's
+/// axes (x right, y down: as they do in their source image) with every corner farther than
+/// `margins` × [`MARGIN_PIXELS`] from the line of its opposite edge. Twice a triangle's area
+/// over an edge's length is that corner's distance from the edge's line; the edges' 1-norms (at
+/// least their lengths) make the test conservative without square roots. Both triangles thick
+/// also means that their diagonal separates corners 0 and 3 ([`line_separates`] with the same
+/// margins).
+#[inline]
+pub fn thick_quad(a: DVec2, b: DVec2, c: DVec2, d: DVec2, margins: f64) -> bool {
+    let (ab, ac, bc, bd, cd) = (b - a, c - a, c - b, d - b, d - c);
     let norm = |e: DVec2| e.x.abs() + e.y.abs();
-    twice_area > margins * MARGIN_PIXELS * norm(b - a).max(norm(c - b)).max(norm(a - c))
+    let (diagonal, margin) = (norm(bc), margins * MARGIN_PIXELS);
+    let first = ab.perp_dot(ac) > margin * norm(ab).max(norm(ac)).max(diagonal);
+    let second = bd.perp_dot(bc) > margin * norm(bd).max(norm(cd)).max(diagonal);
+    first & second
 }
 
 #[cfg(test)]

@@ -749,6 +749,13 @@ impl MeshView<'_> {
                     view_bins::NO_QUERY => false,
                     view_bins::UNBINNED_QUERY => self.covisible_single(p, epsilon),
                     _ if blocked[p].load(Ordering::Relaxed) => false,
+                    // Most pixels: nothing tested by every ray, and both diagonals separating.
+                    _ if everywhere.is_empty()
+                        && separates[p]
+                        && p.checked_sub(row + 1).is_none_or(|quad| separates[quad]) =>
+                    {
+                        true
+                    }
                     _ => {
                         // As in `segment_blocked_with`: the quads tested by every ray but the two
                         // with `p` in both triangles, and the two with `p` as corner 0 or 3

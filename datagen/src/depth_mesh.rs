@@ -18,8 +18,8 @@
 //! anything ([`MeshView::covisibility`]). The obvhs CWBVH over all triangles is the alternative.
 //! Every path equals a brute-force loop over all triangles (integration tests).
 
+use std::sync::OnceLock;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Mutex, OnceLock};
 use std::time::Duration;
 
 use glam::{DMat4, DVec2, DVec3, Vec3A};
@@ -35,6 +35,7 @@ use crate::camera::PinholeCamera;
 use crate::config_file::{Checked, Validate, check_float};
 use crate::depth_exr::DepthMap;
 use crate::depth_pyramid::DepthPyramid;
+use crate::pool::Pool;
 use crate::view_bins::{self, ViewBins};
 
 /// How the mesh is cut and how unobserved space is treated.
@@ -137,7 +138,7 @@ struct MeshArrays {
 }
 
 /// Arrays of dropped meshes; at most as many as meshes were ever alive at once.
-static MESH_POOL: Mutex<Vec<MeshArrays>> = Mutex::new(Vec::new());
+static MESH_POOL: Pool<MeshArrays> = Pool::new();
 
 impl Drop for DepthMesh {
     fn drop(&mut self) {
@@ -146,7 +147,7 @@ impl Drop for DepthMesh {
             vertices: std::mem::take(&mut self.vertices),
             quads: std::mem::take(&mut self.quads),
         };
-        MESH_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push(arrays);
+        MESH_POOL.give(arrays);
     }
 }
 
@@ -184,8 +185,7 @@ impl DepthMesh {
         let pixel_ray = |p: usize| ray((p % width) as u32, (p / width) as u32);
         // Rays are recomputed where needed (the same arithmetic each time), not stored: an array
         // of them is 8 MB a frame at 480×720 for one pass over the pixels and the rare skirts.
-        let MeshArrays { mut points, mut vertices, mut quads } =
-            MESH_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).pop().unwrap_or_default();
+        let MeshArrays { mut points, mut vertices, mut quads } = MESH_POOL.take();
         // Points, their f32 copies and the nearest depth in one pass by rows (every element is
         // written; pooled arrays of the right length are not cleared first).
         points.resize(depth.values.len(), None);
@@ -355,8 +355,7 @@ impl DepthMesh {
     pub fn view(&self, novel: &PinholeCamera) -> MeshView<'_> {
         let novel_from_world = novel.camera_from_world();
         let projection = matches!(self.acceleration, Acceleration::ImageGrids(_)).then(|| {
-            let mut points =
-                VIEW_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).pop().unwrap_or_default();
+            let mut points = VIEW_POOL.take();
             // Every element is written below; only growth initialises.
             points.resize(self.points.len(), DVec3::ZERO);
             let row = self.width.max(1);
@@ -576,8 +575,8 @@ struct QuadBins {
 /// The per-pixel arrays of dropped views ([`Projection::points`], the co-visibility batch's
 /// flags), reused for the same reason as the bins' ([`view_bins`]): fresh image-sized
 /// allocations per view cost the kernel's page clearing.
-static VIEW_POOL: Mutex<Vec<Vec<DVec3>>> = Mutex::new(Vec::new());
-static FLAG_POOL: Mutex<Vec<(Vec<AtomicBool>, Vec<bool>)>> = Mutex::new(Vec::new());
+static VIEW_POOL: Pool<Vec<DVec3>> = Pool::new();
+static FLAG_POOL: Pool<(Vec<AtomicBool>, Vec<bool>)> = Pool::new();
 
 /// Quad rows per parallel task of the passes over a view's quads.
 const QUAD_ROWS_PER_BAND: usize = 16;
@@ -593,7 +592,7 @@ const RING: usize = 4;
 impl Drop for Projection {
     fn drop(&mut self) {
         let points = std::mem::take(&mut self.points);
-        VIEW_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push(points);
+        VIEW_POOL.give(points);
     }
 }
 
@@ -688,8 +687,7 @@ impl MeshView<'_> {
         };
         let (size, near) = self.bin_settings();
         let bins = view_bins::PointBins::new(pixels, |p| self.query(projection, p), size);
-        let (mut blocked, mut separates) =
-            FLAG_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).pop().unwrap_or_default();
+        let (mut blocked, mut separates) = FLAG_POOL.take();
         blocked.resize_with(pixels, || AtomicBool::new(false));
         blocked.par_iter().for_each(|flag| flag.store(false, Ordering::Relaxed));
         separates.resize(mesh.quads.len(), false);
@@ -777,7 +775,7 @@ impl MeshView<'_> {
                 };
             }
         });
-        FLAG_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push((blocked, separates));
+        FLAG_POOL.give((blocked, separates));
         mask
     }
 

@@ -17,6 +17,7 @@ pub mod error;
 pub mod inspect;
 pub mod npy;
 pub mod pairs;
+mod pool;
 pub mod render;
 pub mod report;
 pub mod sequence;

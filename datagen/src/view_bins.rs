@@ -19,9 +19,9 @@
 //! numerically unstable) are tested by every ray, so answers equal a brute-force loop over every
 //! triangle. Sub-pixel ray points are binned by their nearest pixel centre.
 
-use std::sync::Mutex;
-
 use glam::{DMat3, DMat4, DVec2, DVec3, Vec4};
+
+use crate::pool::Pool;
 
 /// Widening of every triangle's projected box. f32 corners and rays place a hit's projection
 /// within ~1e-3 px of the exact one for triangles beyond the near limit; this leaves ×50.
@@ -220,12 +220,12 @@ struct BinBuffers {
 }
 
 /// Buffers of dropped views; at most as many as views were ever alive at once (one per thread).
-static POOL: Mutex<Vec<BinBuffers>> = Mutex::new(Vec::new());
+static POOL: Pool<BinBuffers> = Pool::new();
 
 impl Drop for ViewBins {
     fn drop(&mut self) {
         let buffers = std::mem::take(&mut self.buffers);
-        POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push(buffers);
+        POOL.give(buffers);
     }
 }
 
@@ -248,7 +248,7 @@ impl ViewBins {
         intrinsics: DMat3,
         (width, height): (usize, usize),
     ) -> Self {
-        let mut buffers = POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).pop().unwrap_or_default();
+        let mut buffers = POOL.take();
         // Pooled arrays keep their length: `fill` and the scatter below overwrite every element,
         // so only growth initialises (writing 20 MB per view that is overwritten anyway costs).
         buffers.footprints.resize(count, Footprint::OUTSIDE);
@@ -428,12 +428,12 @@ struct PointBuffers {
     staged: Vec<BinnedPoint>,
 }
 
-static POINT_POOL: Mutex<Vec<PointBuffers>> = Mutex::new(Vec::new());
+static POINT_POOL: Pool<PointBuffers> = Pool::new();
 
 impl Drop for PointBins {
     fn drop(&mut self) {
         let buffers = std::mem::take(&mut self.buffers);
-        POINT_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).push(buffers);
+        POINT_POOL.give(buffers);
     }
 }
 
@@ -443,8 +443,7 @@ impl PointBins {
     /// A query whose pixel rounds outside the bins (at the image border, or behind the camera)
     /// is [`UNBINNED_QUERY`]; its caller answers it another way.
     pub fn new(count: usize, query: impl Fn(usize) -> Option<(DVec2, f64)>, (width, height): (usize, usize)) -> Self {
-        let mut buffers =
-            POINT_POOL.lock().unwrap_or_else(std::sync::PoisonError::into_inner).pop().unwrap_or_default();
+        let mut buffers = POINT_POOL.take();
         let PointBuffers { bins, starts, points, staged } = &mut buffers;
         let extent = DVec2::new(width as f64, height as f64);
         // Counting sort by bin, as in `ViewBins::new`; each point's entry is made once, staged in

@@ -417,11 +417,7 @@ impl DepthMesh {
                         let [a, b] = self.skirts[skirt as usize];
                         // Corners 0..3 of the quad, pulled onto the skirt (see SPLIT).
                         let corners = [a.v0, a.v1, a.v2, b.v1].map(|v| project(novel_from_world, novel, v.as_dvec3()));
-                        let (mut lo, mut hi) = (DVec3::INFINITY, DVec2::NEG_INFINITY);
-                        for c in corners {
-                            (lo, hi) = (lo.min(c), hi.max(c.truncate()));
-                        }
-                        emit(offset, Some((lo, hi)), false);
+                        emit(offset, Some(view_bins::corner_range(&corners)), false);
                     }
                 }
             }
@@ -860,12 +856,8 @@ impl MeshView<'_> {
                 if bad_in(ring_u, ring_v) > 0 {
                     return false;
                 }
-                let (mut lo, mut hi) = (DVec3::INFINITY, DVec2::NEG_INFINITY);
-                for v in bv..=v1 {
-                    for c in &points[v * width + bu..=v * width + u1] {
-                        (lo, hi) = (lo.min(*c), hi.max(c.truncate()));
-                    }
-                }
+                let (lo, hi) =
+                    view_bins::corner_range((bv..=v1).flat_map(|v| &points[v * width + bu..=v * width + u1]));
                 match view_bins::Reach::of_range(lo, hi, near, size) {
                     view_bins::Reach::Everywhere => false,
                     view_bins::Reach::Outside => true,
@@ -903,8 +895,8 @@ impl MeshView<'_> {
     fn covisible_single(&self, p: usize, epsilon: f64) -> bool {
         let Some(point) = self.mesh.point(p) else { return false };
         let (pixel, depth) = self.projected(p).unwrap_or_else(|| {
-            let in_novel = self.novel_from_world.transform_point3(point);
-            (crate::camera::pixel_of(&self.novel.intrinsics, in_novel), in_novel.z)
+            let q = project(&self.novel_from_world, &self.novel, point);
+            (q.truncate(), q.z)
         });
         depth > 0.0
             && self.novel.contains(pixel)

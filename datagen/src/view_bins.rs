@@ -74,19 +74,9 @@ impl Footprint {
     /// A primitive every ray is tested against (see [`NEAR_FRACTION`]).
     const EVERYWHERE: Self = Self { entry: Entry { bounds: [0.0; 4], nearest: 0.0 }, anchor: EVERYWHERE };
 
-    /// The footprint of a primitive with `corners` as (pixel x, pixel y, depth) in the novel
-    /// camera; `near` is [`ViewBins::near_limit`], `size` the image's.
-    #[inline]
-    pub fn of<const N: usize>(corners: [DVec3; N], near: f64, (width, height): (usize, usize)) -> Self {
-        let (mut lo, mut hi) = (DVec3::INFINITY, DVec2::NEG_INFINITY);
-        for c in corners {
-            (lo, hi) = (lo.min(c), hi.max(c.truncate()));
-        }
-        Self::of_range(lo, hi, near, (width, height))
-    }
-
-    /// [`Self::of`] from the corners' smallest (x, y, depth) and largest (x, y), each the
-    /// minimum or maximum over the corners (callers sharing them between neighbours).
+    /// The footprint of a primitive whose corners, as (pixel x, pixel y, depth) in the novel
+    /// camera, have the smallest (x, y, depth) `lo` and largest (x, y) `hi` ([`corner_range`],
+    /// or shared by neighbours); `near` is [`ViewBins::near_limit`], `size` the image's.
     #[inline]
     pub fn of_range(lo: DVec3, hi: DVec2, near: f64, (width, height): (usize, usize)) -> Self {
         match Reach::of_range(lo, hi, near, (width, height)) {
@@ -150,6 +140,17 @@ impl Reach {
     }
 }
 
+/// The smallest (x, y, depth) and the largest (x, y) of `corners`, (pixel x, pixel y, depth) in
+/// the novel camera: what [`Footprint::of_range`] and [`Reach::of_range`] take.
+#[inline]
+pub fn corner_range<'a>(corners: impl IntoIterator<Item = &'a DVec3>) -> (DVec3, DVec2) {
+    let (mut lo, mut hi) = (DVec3::INFINITY, DVec2::NEG_INFINITY);
+    for c in corners {
+        (lo, hi) = (lo.min(*c), hi.max(c.truncate()));
+    }
+    (lo, hi)
+}
+
 /// The inclusive pixel ranges [x0, x1, y0, y1] of an image of `size` that the box from `lo` to
 /// `hi` (pixel coordinates) reaches; None when it misses the image.
 #[inline]
@@ -164,10 +165,22 @@ fn pixel_range(lo: DVec2, hi: DVec2, (width, height): (usize, usize)) -> Option<
     (x0 <= x1 && y0 <= y1).then_some([x0, x1, y0, y1])
 }
 
+/// Replaces each count by the sum of the counts up to and including it (the ends of the bins of
+/// a counting sort), and gives the total. The sum runs in a register: a dependency through
+/// memory per bin costs more.
+fn running_sum(counts: &mut [u32]) -> u32 {
+    let mut total = 0;
+    for count in counts.iter_mut() {
+        total += *count;
+        *count = total;
+    }
+    total
+}
+
 /// The bin (x, y) of a point already projected into a novel camera whose image is `extent`
 /// (width, height) pixels: `pixel` = K · (p / p.z) and `depth` = p.z for the point p in the
 /// novel camera; None outside the image or behind the camera.
-#[inline(always)]
+#[inline]
 fn bin_of(pixel: DVec2, depth: f64, extent: DVec2) -> Option<[usize; 2]> {
     if depth.is_nan() || depth <= 0.0 {
         return None;
@@ -230,15 +243,15 @@ impl Drop for ViewBins {
 }
 
 impl ViewBins {
-    /// The depth below which [`Footprint::of`] has a primitive tested by every ray, for a scene
+    /// The depth below which [`Reach::of_range`] has a primitive tested by every ray, for a scene
     /// whose smallest depth is `nearest_surface`.
     pub fn near_limit(nearest_surface: f64) -> f64 {
         nearest_surface * NEAR_FRACTION
     }
 
     /// Bins primitives `0..count` for a camera at `novel_from_world` with intrinsics K and image
-    /// size. `fill` must write every primitive's [`Footprint`] ([`Footprint::of`] or
-    /// [`Footprint::of_range`], [`Footprint::OUTSIDE`] for none) into the slice it is given
+    /// size. `fill` must write every primitive's [`Footprint`] ([`Footprint::of_range`],
+    /// [`Footprint::OUTSIDE`] for none) into the slice it is given
     /// (index = id; it holds a previous view's values), in whatever order and parallelism suits
     /// the caller.
     pub fn new(
@@ -273,12 +286,7 @@ impl ViewBins {
                 anchor => starts[anchor as usize + 1] += 1,
             }
         }
-        // The running sum in a register: a dependency through memory per bin costs more.
-        let mut total = 0;
-        for start in starts.iter_mut() {
-            total += *start;
-            *start = total;
-        }
+        let total = running_sum(starts);
         entries.resize(total as usize, Tile::default());
         let mut place = |anchor: usize, entry: Entry, id: usize| {
             let slot = &mut starts[anchor + 1];
@@ -308,7 +316,6 @@ impl ViewBins {
     }
 
     /// The bin (x, y) of a point already projected ([`bin_of`]).
-    #[inline(always)]
     fn bin_of_projected(&self, pixel: DVec2, depth: f64) -> Option<[usize; 2]> {
         bin_of(pixel, depth, self.extent)
     }
@@ -316,7 +323,6 @@ impl ViewBins {
     /// Calls `visit(id)` for the binned primitives whose box holds `pixel`, that reach nearer
     /// than `limit` and are not in `skip`, in the window of bin `[x, y]`, until it returns true;
     /// whether it did.
-    #[inline(always)]
     fn any_candidate(
         &self,
         [x, y]: [usize; 2],
@@ -356,7 +362,6 @@ impl ViewBins {
     /// [`Self::any_towards`] for a point already projected into the novel camera: `pixel` =
     /// K · (p / p.z) and `depth` = p.z, p the point in camera coordinates (`novel_from_world`
     /// applied), computed exactly so, which gives the same bin and answers.
-    #[inline(always)]
     pub fn any_towards_projected(
         &self,
         pixel: DVec2,
@@ -468,11 +473,7 @@ impl PointBins {
                 },
             };
         }
-        let mut total = 0;
-        for start in starts.iter_mut() {
-            total += *start;
-            *start = total;
-        }
+        let total = running_sum(starts);
         points.resize(total as usize, BinnedPoint::default());
         for (&bin, entry) in bins.iter().zip(staged.iter()).rev() {
             if bin < UNBINNED_QUERY {
@@ -491,8 +492,9 @@ impl PointBins {
         self.buffers.bins[id]
     }
 
-    /// Whether `test(id)` holds for a binned point inside the box `entry` over the pixel ranges
-    /// `range` and at least as deep as its nearest corner (as [`Self::for_each_inside`]).
+    /// Whether `test(id)` holds for a binned point inside the box of a primitive that
+    /// [`Reach`]es the image as `entry` over the pixel ranges `range`, and at least as deep as its
+    /// nearest corner; the points are tested in order until one passes.
     #[inline]
     pub fn any_inside(&self, entry: &Entry, [x0, x1, y0, y1]: [usize; 4], mut test: impl FnMut(u32) -> bool) -> bool {
         let PointBuffers { starts, points, .. } = &self.buffers;
@@ -505,20 +507,13 @@ impl PointBins {
         })
     }
 
-    /// Calls `visit(id)` for every binned point inside the box of a primitive that [`Reach`]es the
-    /// image as `entry` over the pixel ranges `range`, and at least as deep as its nearest corner.
+    /// Calls `visit(id)` for every point [`Self::any_inside`] would test.
     #[inline]
-    pub fn for_each_inside(&self, entry: &Entry, [x0, x1, y0, y1]: [usize; 4], mut visit: impl FnMut(u32)) {
-        let PointBuffers { starts, points, .. } = &self.buffers;
-        let bounds = Vec4::from_array(entry.bounds);
-        for row in y0..=y1 {
-            let base = row * self.width;
-            for point in &points[starts[base + x0] as usize..starts[base + x1 + 1] as usize] {
-                if bounds.cmple(Vec4::from_array(point.pixel)).all() & (entry.nearest <= point.limit) {
-                    visit(point.id);
-                }
-            }
-        }
+    pub fn for_each_inside(&self, entry: &Entry, range: [usize; 4], mut visit: impl FnMut(u32)) {
+        self.any_inside(entry, range, |id| {
+            visit(id);
+            false
+        });
     }
 }
 

@@ -413,3 +413,34 @@ pub fn read_metrics(run: &Path) -> Result<Vec<StepMetrics>> {
         })
         .collect()
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A mean over ranks of f32 losses is often the exact midpoint of two f32 values, whose
+    /// shortest decimal form has 17 digits: it must read back as the same f64, or rounding it to
+    /// f32 (as the TensorBoard log does) can land on the other neighbour.
+    #[test]
+    fn metrics_lines_read_back_bit_for_bit() {
+        let run = tempfile::tempdir().unwrap();
+        let mut loss = 1.0f32;
+        let written: Vec<StepMetrics> = (1..=2000)
+            .map(|step| {
+                let next = f32::from_bits(loss.to_bits() + 1);
+                let midpoint = (f64::from(loss) + f64::from(next)) / 2.0;
+                loss = f32::from_bits(loss.to_bits() + 7919);
+                StepMetrics { step, loss: midpoint, lr: 2e-5, grad_norm: midpoint * 3.0, seconds: 0.1 }
+            })
+            .collect();
+        let lines: String = written.iter().map(|m| serde_json::to_string(m).unwrap() + "\n").collect();
+        std::fs::write(run.path().join("metrics.jsonl"), lines).unwrap();
+        let read = read_metrics(run.path()).unwrap();
+        assert_eq!(read.len(), written.len());
+        for (a, b) in written.iter().zip(&read) {
+            assert_eq!(a.loss.to_bits(), b.loss.to_bits(), "step {}: loss {} read as {}", a.step, a.loss, b.loss);
+            assert_eq!(a.loss as f32, b.loss as f32);
+            assert_eq!(a.grad_norm.to_bits(), b.grad_norm.to_bits());
+        }
+    }
+}

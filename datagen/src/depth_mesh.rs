@@ -220,19 +220,29 @@ impl DepthMesh {
                 if v + 1 == height {
                     return (0, skirts);
                 }
-                for (u, kind) in kinds.iter_mut().enumerate().take(width.saturating_sub(1)) {
-                    let index = corner_indices(v * width + u, width);
-                    let d = index.map(|i| depth.values[i]);
-                    if !d.iter().all(|&x| valid(x)) {
+                let (upper, lower) =
+                    (&depth.values[v * width..(v + 1) * width], &depth.values[(v + 1) * width..(v + 2) * width]);
+                // Each quad's right corners are the next one's left corners: read once.
+                let mut left = (upper[0], lower[0]);
+                let quads = kinds.iter_mut().zip(upper[1..].iter().zip(&lower[1..])).enumerate();
+                for (u, (kind, (&d1, &d3))) in quads {
+                    let (d0, d2) = std::mem::replace(&mut left, (d1, d3));
+                    let d = [d0, d1, d2, d3];
+                    // Not short-circuited: nearly every quad is valid, and the branches cost more.
+                    if !(valid(d0) & valid(d1) & valid(d2) & valid(d3)) {
                         continue;
                     }
-                    let near = d.iter().copied().fold(f32::INFINITY, f32::min) as f64;
-                    let far = d.iter().copied().fold(0.0f32, f32::max) as f64;
+                    // Valid depths are never NaN, so plain selects give min and max.
+                    let (smaller, larger) =
+                        (|x: f32, y: f32| if x < y { x } else { y }, |x: f32, y: f32| if x > y { x } else { y });
+                    let near = smaller(smaller(d0, d1), smaller(d2, d3)) as f64;
+                    let far = larger(larger(d0, d1), larger(d2, d3)) as f64;
                     if far <= near * config.discontinuity_ratio {
                         *kind = SURFACE;
                         surface += 1;
                     } else if config.occluder_thickness > 0.0 {
                         let limit = near * (1.0 + config.occluder_thickness);
+                        let index = corner_indices(v * width + u, width);
                         let skirt = SPLIT
                             .map(|tri| triangle(tri.map(|k| center + (d[k] as f64).min(limit) * pixel_ray(index[k]))));
                         skirts.push((u, skirt));
@@ -815,12 +825,17 @@ impl MeshView<'_> {
             }
             let (upper, lower) = (&points[v * width..(v + 1) * width], &points[(v + 1) * width..(v + 2) * width]);
             let kinds = &mesh.quads[v * width..(v + 1) * width];
-            let quads = flags.iter_mut().zip(kinds).zip(upper.windows(2).zip(lower.windows(2)));
-            for ((flag, &kind), (top, bottom)) in quads {
-                let [c0, c1, c2, c3] = [top[0], top[1], bottom[0], bottom[1]];
-                let beyond = c0.z.min(c1.z).min(c2.z.min(c3.z)) > near;
-                let (a, b, c, d) = (c0.truncate(), c1.truncate(), c2.truncate(), c3.truncate());
-                *flag = u32::from(!((kind == SURFACE) & beyond && view_bins::thick_quad(a, b, c, d, 2.0)));
+            // Each quad's right corners are the next one's left corners: loaded once.
+            let mut left = (upper[0], lower[0]);
+            let quads = flags.iter_mut().zip(kinds).zip(upper[1..].iter().zip(&lower[1..]));
+            for ((flag, &kind), (&c1, &c3)) in quads {
+                let (c0, c2) = std::mem::replace(&mut left, (c1, c3));
+                // Surface quads have four valid points: no NaN depth, so plain selects suffice.
+                let smaller = |x: f64, y: f64| if x < y { x } else { y };
+                let good = kind == SURFACE
+                    && smaller(smaller(c0.z, c1.z), smaller(c2.z, c3.z)) > near
+                    && view_bins::thick_quad(c0.truncate(), c1.truncate(), c2.truncate(), c3.truncate(), 2.0);
+                *flag = u32::from(!good);
             }
         });
         // Summed into an integral image: bad[(v + 1)(width + 1) + u + 1] counts the bad quads in

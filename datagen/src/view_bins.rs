@@ -542,9 +542,13 @@ pub fn line_separates(a: DVec2, b: DVec2, point: DVec2, other: DVec2, margins: f
 pub fn thick_quad(a: DVec2, b: DVec2, c: DVec2, d: DVec2, margins: f64) -> bool {
     let (ab, ac, bc, bd, cd) = (b - a, c - a, c - b, d - b, d - c);
     let norm = |e: DVec2| e.x.abs() + e.y.abs();
+    // A plain select, not `f64::max` (whose NaN handling costs several instructions in this
+    // per-quad test): a NaN corner makes the cross product of its triangle NaN, and that
+    // comparison false, whichever norm the select keeps.
+    let larger = |x: f64, y: f64| if x > y { x } else { y };
     let (diagonal, margin) = (norm(bc), margins * MARGIN_PIXELS);
-    let first = ab.perp_dot(ac) > margin * norm(ab).max(norm(ac)).max(diagonal);
-    let second = bd.perp_dot(bc) > margin * norm(bd).max(norm(cd)).max(diagonal);
+    let first = ab.perp_dot(ac) > margin * larger(larger(norm(ab), norm(ac)), diagonal);
+    let second = bd.perp_dot(bc) > margin * larger(larger(norm(bd), norm(cd)), diagonal);
     first & second
 }
 

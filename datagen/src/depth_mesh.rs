@@ -337,18 +337,16 @@ impl DepthMesh {
         })
     }
 
-    /// The nearest hit distance of `ray` on a quad's triangles, +∞ for a miss; a quad without
+    /// The hit distance of `ray` on each of a quad's two triangles, +∞ for a miss; a quad without
     /// triangles, a skirt unless `skirts`, and triangles with pixel `exclude` as a corner never hit.
-    fn hit_quad(&self, quad: usize, ray: &Ray, skirts: bool, exclude: Option<u32>) -> f32 {
+    #[inline]
+    fn quad_hits(&self, quad: usize, ray: &Ray, skirts: bool, exclude: Option<u32>) -> impl Iterator<Item = f32> {
         let kind = self.quads[quad];
-        if kind == NO_TRIANGLES || (kind != SURFACE && !skirts) {
-            return f32::INFINITY;
-        }
+        let none = kind == NO_TRIANGLES || (kind != SURFACE && !skirts);
         let corners = corner_indices(quad, self.width);
-        let mut nearest = f32::INFINITY;
-        for (half, split) in SPLIT.iter().enumerate() {
+        SPLIT.iter().enumerate().take(if none { 0 } else { 2 }).map(move |(half, split)| {
             if exclude.is_some_and(|p| split.iter().any(|&k| corners[k] == p as usize)) {
-                continue;
+                return f32::INFINITY;
             }
             let triangle = if kind == SURFACE {
                 let [a, b, c] = split.map(|k| self.vertices[corners[k]]);
@@ -356,9 +354,20 @@ impl DepthMesh {
             } else {
                 self.skirts[kind as usize][half]
             };
-            nearest = nearest.min(triangle.intersect(ray));
-        }
-        nearest
+            triangle.intersect(ray)
+        })
+    }
+
+    /// The nearest hit distance of `ray` on a quad's triangles ([`Self::quad_hits`]).
+    fn hit_quad(&self, quad: usize, ray: &Ray, skirts: bool, exclude: Option<u32>) -> f32 {
+        self.quad_hits(quad, ray, skirts, exclude).fold(f32::INFINITY, f32::min)
+    }
+
+    /// Whether a quad's triangles (skirts included, those with pixel `exclude` as a corner not)
+    /// cross the segment `ray` before its end: `hit_quad(..) < ray.tmax`, without testing the
+    /// second triangle when the first already does.
+    fn blocks_segment(&self, quad: usize, ray: &Ray, exclude: Option<u32>) -> bool {
+        self.quad_hits(quad, ray, true, exclude).any(|t| t < ray.tmax)
     }
 
     /// The mesh seen from a novel camera, for the batches of rays leaving its centre.
@@ -506,7 +515,7 @@ impl DepthMesh {
     /// Brute-force version of [`DepthMesh::segment_blocked`] over every triangle, for tests.
     pub fn segment_blocked_brute_force(&self, from: DVec3, to: DVec3, exclude: Option<u32>, epsilon: f64) -> bool {
         let Some(ray) = segment_ray(from, to, epsilon) else { return false };
-        (0..self.quads.len()).any(|quad| self.hit_quad(quad, &ray, true, exclude) < ray.tmax)
+        (0..self.quads.len()).any(|quad| self.blocks_segment(quad, &ray, exclude))
     }
 
     /// Brute-force version of [`DepthMesh::first_surface_hit`] over every triangle, for tests.
@@ -735,7 +744,7 @@ impl MeshView<'_> {
                                     return;
                                 }
                                 let hits = ray_to(p as usize)
-                                    .is_some_and(|ray| mesh.hit_quad(quad as usize, &ray, true, Some(p)) < ray.tmax);
+                                    .is_some_and(|ray| mesh.blocks_segment(quad as usize, &ray, Some(p)));
                                 if hits {
                                     blocked[p as usize].store(true, Ordering::Relaxed);
                                 }
@@ -770,7 +779,7 @@ impl MeshView<'_> {
                         let mut ray = None;
                         let mut blocks = |quad: u32| {
                             ray.get_or_insert_with(|| ray_to(p))
-                                .is_some_and(|ray| mesh.hit_quad(quad as usize, &ray, true, Some(p32)) < ray.tmax)
+                                .is_some_and(|ray| mesh.blocks_segment(quad as usize, &ray, Some(p32)))
                         };
                         let blocked = everywhere.iter().any(|&quad| !both.contains(&quad) && blocks(quad))
                             || one
@@ -961,7 +970,7 @@ impl MeshView<'_> {
         let mut ray = None;
         let mut blocks = |quad: u32| {
             ray.get_or_insert_with(|| segment_ray_for_triangles(self.eye, to, epsilon))
-                .is_some_and(|ray| self.mesh.hit_quad(quad as usize, &ray, true, exclude) < ray.tmax)
+                .is_some_and(|ray| self.mesh.blocks_segment(quad as usize, &ray, exclude))
         };
         // The bin scan skips all four; unbinned ones are tested but for `both`; binned `one`
         // quads whose diagonal does not separate are tested here (a quad that is no candidate is

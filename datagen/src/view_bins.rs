@@ -144,9 +144,14 @@ impl Reach {
 /// the novel camera: what [`Footprint::of_range`] and [`Reach::of_range`] take.
 #[inline]
 pub fn corner_range<'a>(corners: impl IntoIterator<Item = &'a DVec3>) -> (DVec3, DVec2) {
+    // Plain selects, not `f64::min`/`max` with their NaN handling: the corners' depths are
+    // finite (projections of valid points), and x or y can be NaN only for a corner at depth 0,
+    // whose primitive [`Reach::of_range`] sends to every ray by its depth whatever its box.
+    let (smaller, larger) = (|x: f64, y: f64| if x < y { x } else { y }, |x: f64, y: f64| if x > y { x } else { y });
     let (mut lo, mut hi) = (DVec3::INFINITY, DVec2::NEG_INFINITY);
     for c in corners {
-        (lo, hi) = (lo.min(*c), hi.max(c.truncate()));
+        lo = DVec3::new(smaller(lo.x, c.x), smaller(lo.y, c.y), smaller(lo.z, c.z));
+        hi = DVec2::new(larger(hi.x, c.x), larger(hi.y, c.y));
     }
     (lo, hi)
 }

@@ -45,6 +45,11 @@ pub fn read_id_png(path: &Path) -> Result<GrayImage> {
     let mask = ((1u16 << bits) - 1) as u8;
     let mut ids = Vec::with_capacity(width * height);
     for row in buffer.chunks(info.line_size).take(height) {
+        if bits == 8 {
+            // One id per byte (most masks): the row as it is, without the per-pixel unpacking.
+            ids.extend_from_slice(&row[..width]);
+            continue;
+        }
         for x in 0..width {
             let byte = row[x / per_byte];
             let shift = 8 - bits * (x % per_byte + 1);
@@ -243,5 +248,38 @@ mod tests {
         assert_eq!(read_id_png(&path).unwrap().as_raw(), &vec![0, 1, 2, 255, 3, 0, 0, 1]);
         std::fs::write(&path, b"not a png").unwrap();
         assert!(read_id_png(&path).unwrap_err().to_string().contains("00000.png"));
+    }
+
+    #[test]
+    fn packed_palette_and_grey_pngs_unpack_to_one_id_per_pixel() {
+        let dir = tempfile::tempdir().unwrap();
+        // 5 pixels a row: the rows end inside a byte, as DAVIS's 2-bit and 4-bit masks can.
+        let ids = [[0u8, 1, 2, 3, 1], [3, 3, 0, 2, 1]];
+        for (color, depth, bits) in [
+            (png::ColorType::Indexed, png::BitDepth::Two, 2),
+            (png::ColorType::Grayscale, png::BitDepth::Four, 4),
+            (png::ColorType::Grayscale, png::BitDepth::One, 1),
+        ] {
+            let path = dir.path().join(format!("{bits}.png"));
+            let mut encoder = png::Encoder::new(std::fs::File::create(&path).unwrap(), 5, 2);
+            encoder.set_color(color);
+            encoder.set_depth(depth);
+            if color == png::ColorType::Indexed {
+                encoder.set_palette(vec![0u8; 4 * 3]);
+            }
+            let per_byte = 8 / bits;
+            let packed: Vec<u8> = ids
+                .iter()
+                .flat_map(|row| {
+                    row.chunks(per_byte).map(move |pixels| {
+                        let mask = (1u8 << bits) - 1;
+                        pixels.iter().enumerate().fold(0u8, |byte, (k, &id)| byte | (id & mask) << (8 - bits * (k + 1)))
+                    })
+                })
+                .collect();
+            encoder.write_header().unwrap().write_image_data(&packed).unwrap();
+            let expected: Vec<u8> = ids.as_flattened().iter().map(|&id| id & ((1 << bits) - 1)).collect();
+            assert_eq!(read_id_png(&path).unwrap().as_raw(), &expected, "{bits}-bit");
+        }
     }
 }

@@ -373,17 +373,38 @@ fn check_declared(
     Ok(Declared { header, kind, info: ArrayHeader { shape, dtype } })
 }
 
-/// Reads the data of a checked header as `f64`, in C order.
-fn read_values<R: Read>(declared: Declared, reader: R, source: Source<'_>) -> Result<NdArray<f64>> {
+/// A real value type the arrays are read into: every dtype is converted through `f64` (exact for
+/// every float16/32 and integer up to 2^53), then to `Self`, so `f32` arrays hold the same values
+/// as `f64` ones narrowed, in half the memory.
+pub trait Real: Copy {
+    /// `value` as `Self` (rounded to nearest for `f32`).
+    fn from_f64(value: f64) -> Self;
+}
+
+impl Real for f64 {
+    fn from_f64(value: f64) -> Self {
+        value
+    }
+}
+
+impl Real for f32 {
+    fn from_f64(value: f64) -> Self {
+        value as f32
+    }
+}
+
+/// Reads the data of a checked header as `T`, in C order.
+fn read_values<R: Read, T: Real>(declared: Declared, reader: R, source: Source<'_>) -> Result<NdArray<T>> {
     let Declared { header, kind, info } = declared;
     // Little-endian floats, nearly every depth or pose array, are converted from whole blocks of
     // bytes: npyz's value-by-value reader took ~30 ns a value (0.5 s for a 49×480×720 depth).
     let little = matches!(header.dtype(), DType::Plain(t) if t.endianness() == npyz::Endianness::Little);
     let count = info.shape.iter().product::<usize>();
-    let data: Vec<f64> = match kind {
-        Kind::F4 if little => read_little_endian(reader, count, |b| f64::from(f32::from_le_bytes(b))),
-        Kind::F8 if little => read_little_endian(reader, count, f64::from_le_bytes),
-        kind => read_with_npyz(NpyFile::with_header(header, reader), kind),
+    let data: Vec<T> = match kind {
+        Kind::F4 if little => read_little_endian(reader, count, |b| T::from_f64(f64::from(f32::from_le_bytes(b)))),
+        Kind::F8 if little => read_little_endian(reader, count, |b| T::from_f64(f64::from_le_bytes(b))),
+        kind => read_with_npyz(NpyFile::with_header(header, reader), kind)
+            .map(|values| values.into_iter().map(T::from_f64).collect()),
     }
     .map_err(|e| source.error(format!("cannot read array data (truncated or corrupt?): {e}")))?;
     let shape = info.shape;
@@ -413,11 +434,11 @@ fn read_with_npyz<R: Read>(npy: NpyFile<R>, kind: Kind) -> std::io::Result<Vec<f
 
 /// The `count` values of N bytes each that `reader` holds next, converted by `convert`; read a
 /// block at a time (no second copy of the whole array).
-fn read_little_endian<const N: usize>(
+fn read_little_endian<const N: usize, T>(
     mut reader: impl Read,
     count: usize,
-    convert: impl Fn([u8; N]) -> f64,
-) -> std::io::Result<Vec<f64>> {
+    convert: impl Fn([u8; N]) -> T,
+) -> std::io::Result<Vec<T>> {
     const BLOCK_VALUES: usize = 1 << 16;
     let mut values = Vec::with_capacity(count);
     let mut block = vec![0u8; BLOCK_VALUES.min(count) * N];
@@ -472,8 +493,17 @@ pub fn read_npy_header(path: &Path) -> Result<ArrayHeader> {
 
 /// Reads a `.npy` file as `f32` (values converted from any real dtype).
 pub fn read_npy_f32(path: &Path) -> Result<NdArray<f32>> {
-    let array = read_npy_f64(path)?;
-    Ok(NdArray { shape: array.shape, data: array.data.into_iter().map(|v| v as f32).collect() })
+    let (mut reader, length) = open_npy(path)?;
+    let source = Source { path, member: None };
+    read_values(read_declared(&mut reader, source, length, None)?, reader, source)
+}
+
+/// [`read_npy_f32`], failing before its data is read unless the header's shape is `expected`
+/// (depth stacks: half the memory of `f64`, and the values they are kept in).
+pub fn read_npy_f32_shaped(path: &Path, expected: &[Axis]) -> Result<NdArray<f32>> {
+    let (mut reader, length) = open_npy(path)?;
+    let source = Source { path, member: None };
+    read_values(read_declared(&mut reader, source, length, Some(expected))?, reader, source)
 }
 
 /// An `.npz` archive, read one member at a time with the checks of the module docs.
@@ -508,6 +538,15 @@ impl NpzReader {
     /// Reads array `name` as `f64` (see [`read_array_f64`]), then the rest of its member, and
     /// checks the member's CRC-32 against the zip directory.
     pub fn read_f64(&mut self, name: &str, expected: &[Axis]) -> Result<NdArray<f64>> {
+        self.read(name, expected)
+    }
+
+    /// [`Self::read_f64`] as `f32` (see [`Real`]).
+    pub fn read_f32(&mut self, name: &str, expected: &[Axis]) -> Result<NdArray<f32>> {
+        self.read(name, expected)
+    }
+
+    fn read<T: Real>(&mut self, name: &str, expected: &[Axis]) -> Result<NdArray<T>> {
         self.with_member(name, |member, source| {
             let size = member.size;
             let declared = read_declared(member, source, size, Some(expected))?;

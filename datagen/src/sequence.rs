@@ -24,7 +24,7 @@ use rayon::prelude::*;
 use crate::camera::{PinholeCamera, checked_intrinsics, checked_pose};
 use crate::depth_exr::DepthMap;
 use crate::error::{Error, Result};
-use crate::npy::{Axis, NdArray, NpzReader, read_npy_f64, read_npy_f64_shaped};
+use crate::npy::{Axis, NdArray, NpzReader, read_npy_f32_shaped, read_npy_f64, read_npy_f64_shaped};
 
 /// Focal length in pixels (at the depth resolution) assumed when intrinsics are missing: the
 /// public cog-nvs code's fallback.
@@ -247,7 +247,8 @@ type Parts = (f64, Vec<RgbImage>, Vec<DepthMap>, Vec<PinholeCamera>);
 /// The reconstruction part of a sequence: depth (N,H,W), optional K and poses, with their files.
 struct Reconstruction {
     depth_path: PathBuf,
-    depth: NdArray<f64>,
+    /// `f32`, the precision depth maps are kept in: an `f64` copy of a 49×480×720 stack is 135 MB.
+    depth: NdArray<f32>,
     intrinsics: Option<(PathBuf, NdArray<f64>)>,
     poses: Option<(PathBuf, NdArray<f64>)>,
 }
@@ -297,7 +298,7 @@ pub fn read_with_frames(
 fn cog_nvs_reconstruction(dir: &Path) -> Result<Reconstruction> {
     let cam = dir.join("cam_info");
     let depth_path = cam.join("megasam_depth.npy");
-    let depth = read_npy_f64_shaped(&depth_path, &[Axis::Any, Axis::Pixels, Axis::Pixels])?;
+    let depth = read_npy_f32_shaped(&depth_path, &[Axis::Any, Axis::Pixels, Axis::Pixels])?;
     let intrinsics_path = cam.join("megasam_intrinsics.npy");
     let intrinsics = if intrinsics_path.is_file() {
         let k = read_npy_f64_shaped(&intrinsics_path, &[Axis::Is(3), Axis::Is(3)])?;
@@ -346,7 +347,7 @@ fn read_megasam(path: &Path) -> Result<Parts> {
     if n == 0 || h == 0 || w == 0 {
         return Err(Error::invalid(path, "images", format!("zero-size frames: shape {:?}", images.shape)));
     }
-    if let Some(i) = images.data.iter().position(|&v| !(0.0..=f64::from(u8::MAX)).contains(&v)) {
+    if let Some(i) = images.data.iter().position(|&v| !(0.0..=f32::from(u8::MAX)).contains(&v)) {
         return Err(Error::invalid(
             path,
             "images",
@@ -366,7 +367,7 @@ fn read_megasam(path: &Path) -> Result<Parts> {
 /// elsewhere replace them), and the reconstruction. Every member's header is checked against
 /// the frame count of `images` first, so no member is inflated before its shape agrees with
 /// its siblings'.
-fn megasam_reconstruction(path: &Path, with_images: bool) -> Result<(Option<NdArray<f64>>, Reconstruction)> {
+fn megasam_reconstruction(path: &Path, with_images: bool) -> Result<(Option<NdArray<f32>>, Reconstruction)> {
     let mut archive = NpzReader::open(path)?;
     let images_shape = archive.header("images", Some(&[Axis::Any, Axis::Pixels, Axis::Pixels, Axis::Is(3)]))?.shape;
     let images_spec: Vec<Axis> = images_shape.iter().map(|&n| Axis::Is(n)).collect();
@@ -377,8 +378,9 @@ fn megasam_reconstruction(path: &Path, with_images: bool) -> Result<(Option<NdAr
     for (name, spec) in [("depths", &depth_spec[..]), ("intrinsic", &intrinsic_spec), ("cam_c2w", &poses_spec)] {
         archive.header(name, Some(spec))?;
     }
-    let images = if with_images { Some(archive.read_f64("images", &images_spec)?) } else { None };
-    let depth = archive.read_f64("depths", &depth_spec)?;
+    // u8 values (other dtypes are refused first), exact in f32 at half the memory of f64.
+    let images = if with_images { Some(archive.read_f32("images", &images_spec)?) } else { None };
+    let depth = archive.read_f32("depths", &depth_spec)?;
     let intrinsic = archive.read_f64("intrinsic", &intrinsic_spec)?;
     let poses = archive.read_f64("cam_c2w", &poses_spec)?;
     let reconstruction = Reconstruction {
@@ -631,7 +633,7 @@ fn check_depth_orientation(
 
 /// A folder of per-frame `*.exr` depth maps (sorted by name) as an `[N, H, W]` array; every map
 /// must have the first one's size.
-pub fn read_exr_folder(depth_dir: &Path) -> Result<NdArray<f64>> {
+pub fn read_exr_folder(depth_dir: &Path) -> Result<NdArray<f32>> {
     let depth_files = with_extension(depth_dir, &["exr"])?;
     let contents =
         depth_files.par_iter().map(|p| std::fs::read(p).map_err(|e| Error::io(p, e))).collect::<Result<Vec<_>>>()?;
@@ -659,10 +661,7 @@ pub fn read_exr_folder(depth_dir: &Path) -> Result<NdArray<f64>> {
         .map(|(i, bytes)| crate::depth_exr::decode_depth_exr_of_size(bytes, &context(i), w, h))
         .collect::<Result<Vec<_>>>()?;
     let n = depth_maps.len();
-    Ok(NdArray {
-        shape: vec![n, h, w],
-        data: depth_maps.iter().flat_map(|m| m.values.iter().map(|&v| f64::from(v))).collect(),
-    })
+    Ok(NdArray { shape: vec![n, h, w], data: depth_maps.into_iter().flat_map(|m| m.values).collect() })
 }
 
 /// Per-frame depth maps from a folder of `*.exr` files or an `(N, H, W)` `.npy` array, resampled
@@ -671,7 +670,7 @@ pub fn read_depth_stack(path: &Path, frames: usize, width: u32, height: u32) -> 
     let array = if path.is_dir() {
         read_exr_folder(path)?
     } else {
-        read_npy_f64_shaped(path, &[Axis::Any, Axis::Pixels, Axis::Pixels])?
+        read_npy_f32_shaped(path, &[Axis::Any, Axis::Pixels, Axis::Pixels])?
     };
     let (n, h, w) = (array.shape[0], array.shape[1], array.shape[2]);
     if n != frames {
@@ -686,7 +685,7 @@ pub fn read_depth_stack(path: &Path, frames: usize, width: u32, height: u32) -> 
 
 /// Nearest-neighbour resampling with pixel centres at integer coordinates (no blending across
 /// depth edges, which would invent surfaces between foreground and background).
-pub fn resample_nearest(values: &[f64], width: usize, height: usize, to_width: usize, to_height: usize) -> DepthMap {
+pub fn resample_nearest(values: &[f32], width: usize, height: usize, to_width: usize, to_height: usize) -> DepthMap {
     let map = |to: usize, to_size: usize, size: usize| {
         (((to as f64 + 0.5) * size as f64 / to_size as f64 - 0.5).round().max(0.0) as usize).min(size - 1)
     };
@@ -695,7 +694,7 @@ pub fn resample_nearest(values: &[f64], width: usize, height: usize, to_width: u
     let mut out = Vec::with_capacity(to_width * to_height);
     for v in 0..to_height {
         let row = &values[map(v, to_height, height) * width..][..width];
-        out.extend(columns.iter().map(|&u| row[u] as f32));
+        out.extend(columns.iter().map(|&u| row[u]));
     }
     DepthMap { width: to_width, height: to_height, values: out }
 }

@@ -171,21 +171,34 @@ fn kill_9_at_several_points_then_resume_equals_an_uninterrupted_run() {
     let reference = corpus_content(&out);
     assert_eq!(reference.len(), 12);
 
+    // Kill points chosen by progress, not by wall time (this corpus builds in under 150 ms on a
+    // fast machine): once during start-up, then each run right after it finishes a shard, while
+    // the next one is being written.
     let killed_out = dir.path().join("killed");
+    let finished_shards = || -> usize {
+        let Ok(entries) = std::fs::read_dir(&killed_out) else { return 0 };
+        entries.filter(|e| schemas::is_finished(&e.as_ref().unwrap().path())).count()
+    };
     let mut kills = 0;
-    for delay_ms in [150u64, 400, 700, 1000, 1500] {
+    for round in 0..5 {
+        let before = finished_shards();
+        let started = std::time::Instant::now();
         let mut child =
             datagen().arg("build").arg("--config").arg(&config).arg("--out").arg(&killed_out).spawn().unwrap();
-        std::thread::sleep(std::time::Duration::from_millis(delay_ms));
-        if child.try_wait().unwrap().is_none() {
-            child.kill().unwrap(); // SIGKILL
-            kills += 1;
+        while child.try_wait().unwrap().is_none() {
+            let due = if round == 0 { started.elapsed().as_millis() >= 5 } else { finished_shards() > before };
+            if due {
+                child.kill().unwrap(); // SIGKILL
+                kills += 1;
+                break;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(1));
         }
         child.wait().unwrap();
     }
     run_build(&config, &["--out", killed_out.to_str().unwrap()]);
     println!("killed {kills} runs before resuming");
-    assert!(kills >= 1, "at least one run was interrupted");
+    assert!(kills >= 2, "runs interrupted at several points");
     assert_eq!(corpus_content(&killed_out), reference);
 }
 

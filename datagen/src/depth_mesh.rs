@@ -135,6 +135,7 @@ struct MeshArrays {
     points: Vec<Option<DVec3>>,
     vertices: Vec<Vec3A>,
     quads: Vec<u32>,
+    columns: Vec<u32>,
 }
 
 /// Arrays of dropped meshes; at most as many as meshes were ever alive at once.
@@ -146,6 +147,7 @@ impl Drop for DepthMesh {
             points: std::mem::take(&mut self.points),
             vertices: std::mem::take(&mut self.vertices),
             quads: std::mem::take(&mut self.quads),
+            columns: std::mem::take(&mut self.columns),
         };
         MESH_POOL.give(arrays);
     }
@@ -163,6 +165,9 @@ pub struct DepthMesh {
     /// [`NO_TRIANGLES`], [`SURFACE`], or the index of its occluder-skirt triangles in `skirts`.
     /// Quads are named by that pixel throughout.
     quads: Vec<u32>,
+    /// Per pixel, its column: `p % width` without a division, for the per-point tests of the
+    /// co-visibility batch ([`MeshView::good_blocks`]).
+    columns: Vec<u32>,
     skirts: Vec<[Triangle; 2]>,
     surface_quads: usize,
     /// The smallest valid depth.
@@ -185,7 +190,7 @@ impl DepthMesh {
         let pixel_ray = |p: usize| ray((p % width) as u32, (p / width) as u32);
         // Rays are recomputed where needed (the same arithmetic each time), not stored: an array
         // of them is 8 MB a frame at 480×720 for one pass over the pixels and the rare skirts.
-        let MeshArrays { mut points, mut vertices, mut quads } = MESH_POOL.take();
+        let MeshArrays { mut points, mut vertices, mut quads, mut columns } = MESH_POOL.take();
         // Points, their f32 copies and the nearest depth in one pass by rows (every element is
         // written; pooled arrays of the right length are not cleared first).
         points.resize(depth.values.len(), None);
@@ -262,8 +267,24 @@ impl DepthMesh {
         }
         let acceleration =
             Acceleration::ImageGrids(Box::new(LazyPyramid { pyramid: OnceLock::new(), camera: *camera }));
-        let mut mesh =
-            Self { width, height, points, vertices, quads, skirts, surface_quads, nearest_depth, acceleration };
+        columns.resize(width * height, 0);
+        columns.par_chunks_mut(width.max(1)).for_each(|row| {
+            for (u, column) in row.iter_mut().enumerate() {
+                *column = u as u32;
+            }
+        });
+        let mut mesh = Self {
+            width,
+            height,
+            points,
+            vertices,
+            quads,
+            columns,
+            skirts,
+            surface_quads,
+            nearest_depth,
+            acceleration,
+        };
         if config.accelerator == Accelerator::Cwbvh {
             mesh.acceleration = mesh.cwbvh();
         }
@@ -755,16 +776,21 @@ impl MeshView<'_> {
                 everywhere
             })
             .collect();
+        let nothing_everywhere = everywhere.is_empty();
         mask.par_chunks_mut(row).enumerate().for_each(|(v, out)| {
-            for (u, keep) in out.iter_mut().enumerate() {
-                let p = v * row + u;
-                *keep = match bins.bin(p) {
+            // The row's slices of the per-pixel arrays, read in step (no index checks per pixel).
+            let start = v * row;
+            let end = start + out.len();
+            let pixels = bins.all()[start..end].iter().zip(&blocked[start..end]).zip(&separates[start..end]);
+            for (u, (keep, ((&bin, blocked), &separating))) in out.iter_mut().zip(pixels).enumerate() {
+                let p = start + u;
+                *keep = match bin {
                     view_bins::NO_QUERY => false,
                     view_bins::UNBINNED_QUERY => self.covisible_single(p, epsilon),
-                    _ if blocked[p].load(Ordering::Relaxed) => false,
+                    _ if blocked.load(Ordering::Relaxed) => false,
                     // Most pixels: nothing tested by every ray, and both diagonals separating.
-                    _ if everywhere.is_empty()
-                        && separates[p]
+                    _ if nothing_everywhere
+                        && separating
                         && p.checked_sub(row + 1).is_none_or(|quad| separates[quad]) =>
                     {
                         true
@@ -860,10 +886,6 @@ impl MeshView<'_> {
             let at = |u: usize, v: usize| bad[v * (width + 1) + u];
             at(u1, v1) + at(u0, v0) - at(u0, v1) - at(u1, v0)
         };
-        // p / width for a pixel index: (p + ½) / width is at least ½ / width from an integer, far
-        // beyond the f64 rounding of the product for any image (exact below 2^50 pixels).
-        let per_row = 1.0 / width as f64;
-        let row_of = |p: u32| ((f64::from(p) + 0.5) * per_row) as u32 as usize;
         // The quads of the image are columns and rows ..width − 1 and ..height − 1.
         let (quad_columns, quad_rows) = (width.saturating_sub(1), height.saturating_sub(1));
         let (across, down) = (width.div_ceil(BLOCK).max(1), height.div_ceil(BLOCK).max(1));
@@ -885,12 +907,15 @@ impl MeshView<'_> {
                 match view_bins::Reach::of_range(lo, hi, near, size) {
                     view_bins::Reach::Everywhere => false,
                     view_bins::Reach::Outside => true,
-                    view_bins::Reach::Box { entry, range } => !bins.any_inside(&entry, range, |p| {
-                        // The rectangle's inner vertices, whose star of triangles is whole.
-                        let v = row_of(p);
-                        let u = p as usize - v * width;
-                        !(ring_u.0 + 1..ring_u.1).contains(&u) || !(ring_v.0 + 1..ring_v.1).contains(&v)
-                    }),
+                    view_bins::Reach::Box { entry, range } => {
+                        // The rectangle's inner vertices, whose star of triangles is whole: by the
+                        // column and where the row starts, both ranges checked without a division.
+                        let (columns, rows) = (ring_u.0 + 1..ring_u.1, (ring_v.0 + 1) * width..ring_v.1 * width);
+                        !bins.any_inside(&entry, range, |p| {
+                            let u = mesh.columns[p as usize] as usize;
+                            !columns.contains(&u) || !rows.contains(&(p as usize - u))
+                        })
+                    }
                 }
             })
             .collect()

@@ -411,9 +411,9 @@ pub struct PointBins {
     buffers: PointBuffers,
 }
 
-/// [`PointBins::bin`] of a point that is no query.
+/// [`PointBins::all`] of a point that is no query.
 pub const NO_QUERY: u32 = u32::MAX;
-/// [`PointBins::bin`] of a query outside the bins (see [`PointBins::new`]).
+/// [`PointBins::all`] of a query outside the bins (see [`PointBins::new`]).
 pub const UNBINNED_QUERY: u32 = u32::MAX - 1;
 
 /// A binned point as the primitives' scans read it: its pixel coordinates as (x, y, −x, −y),
@@ -492,9 +492,10 @@ impl PointBins {
         Self { width, buffers }
     }
 
-    /// Where point `id` is binned: its pixel (row-major), [`NO_QUERY`] or [`UNBINNED_QUERY`].
-    pub fn bin(&self, id: usize) -> u32 {
-        self.buffers.bins[id]
+    /// Where each point is binned, by id: its pixel (row-major), [`NO_QUERY`] or
+    /// [`UNBINNED_QUERY`].
+    pub fn all(&self) -> &[u32] {
+        &self.buffers.bins
     }
 
     /// Whether `test(id)` holds for a binned point inside the box of a primitive that

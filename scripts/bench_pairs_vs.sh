@@ -3,10 +3,12 @@
 # the job of scripts/bench_pairs.sh (configs/synth_paper_size.toml: 49 frames at 480×720, 2
 # sampled trajectories, video decode through shard write). REV is built from `git archive REV`
 # under target/bench_vs/REV with its own CARGO_TARGET_DIR, the working tree's datagen (release)
-# under target/bench_vs/working-tree-target (the shared target/ is not locked by the benchmark). Runs alternate A B A B ... so that load from other processes on the machine hits
-# both alike; prints every run (wall, peak RSS, the --timings split), the medians, ranges and
-# largest peak RSS of each, the ratio of medians, and whether the decoded masks of the two
-# programs are identical (every run's shards are compared; needs .venv with pyarrow and Pillow).
+# under target/bench_vs/working-tree-target (the shared target/ is not locked by the benchmark).
+# Runs alternate A B A B ... so that load from other processes on the machine hits both alike;
+# prints every run (wall, peak RSS, the --timings split), the medians, ranges and largest peak
+# RSS of each, the ratio of medians, the median of the per-run ratios, and whether the decoded
+# masks of the two programs are identical (every run's shards are compared; needs .venv with
+# pyarrow and Pillow).
 # Usage: scripts/bench_pairs_vs.sh [REV (aee6d46)] [RUNS (5)] [THREADS (default: all)]
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
@@ -92,6 +94,14 @@ read -r med_b min_b max_b <<<"$(stats "${walls[b]}")"
 echo "$rev: median ${med_a} s (range ${min_a}–${max_a} s), peak RSS $((rss_max[a] / 1024)) MiB over $runs runs"
 echo "working tree: median ${med_b} s (range ${min_b}–${max_b} s), peak RSS $((rss_max[b] / 1024)) MiB over $runs runs"
 awk -v a="$med_a" -v b="$med_b" 'BEGIN { printf "speed-up of medians: %.2f×\n", a / b }'
+# Each run's two sides ran back to back, so their ratio cancels most of the load that drifts
+# between runs: the median of those per-run ratios is the steadier figure when the load moves.
+read -r -a list_a <<<"${walls[a]}"
+read -r -a list_b <<<"${walls[b]}"
+ratios=""
+for i in "${!list_a[@]}"; do ratios+="$(awk -v a="${list_a[$i]}" -v b="${list_b[$i]}" 'BEGIN { printf "%.4f", a / b }') "; done
+read -r med_r min_r max_r <<<"$(stats "$ratios")"
+echo "speed-up run by run (${rev} ÷ working tree, same run): median ${med_r}× (range ${min_r}–${max_r}×)"
 echo "${mask_report:-masks: identical in every run}"
 echo "$(nproc) cores, RAYON_NUM_THREADS=${RAYON_NUM_THREADS:-all}; other load on the machine moves every figure:"
 echo "only figures from one interleaved run compare."

@@ -498,12 +498,32 @@ pub fn read_npy_f32(path: &Path) -> Result<NdArray<f32>> {
     read_values(read_declared(&mut reader, source, length, None)?, reader, source)
 }
 
-/// [`read_npy_f32`], failing before its data is read unless the header's shape is `expected`
-/// (depth stacks: half the memory of `f64`, and the values they are kept in).
-pub fn read_npy_f32_shaped(path: &Path, expected: &[Axis]) -> Result<NdArray<f32>> {
+/// A `.npy` array of at least one axis as `f32`, one `Vec` per index of its first axis (a stack
+/// of depth maps: each map is kept as it is read, with no second copy of the whole stack), after
+/// the header's shape is checked against `expected`. Returns the shape and the planes.
+pub fn read_npy_f32_planes(path: &Path, expected: &[Axis]) -> Result<(Vec<usize>, Vec<Vec<f32>>)> {
     let (mut reader, length) = open_npy(path)?;
     let source = Source { path, member: None };
-    read_values(read_declared(&mut reader, source, length, Some(expected))?, reader, source)
+    let declared = read_declared(&mut reader, source, length, Some(expected))?;
+    let shape = declared.info.shape.clone();
+    let (count, plane) = (shape.first().copied().unwrap_or(0), shape.iter().skip(1).product::<usize>());
+    let little = matches!(declared.header.dtype(), DType::Plain(t) if t.endianness() == npyz::Endianness::Little);
+    let truncated = |e: std::io::Error| source.error(format!("cannot read array data (truncated or corrupt?): {e}"));
+    let planes = match declared.kind {
+        // The common case, read plane by plane (converted as `read_values` converts); other
+        // dtypes go through the whole-array reader.
+        Kind::F4 if little => (0..count)
+            .map(|_| {
+                read_little_endian(&mut reader, plane, |b| f32::from_f64(f64::from(f32::from_le_bytes(b))))
+                    .map_err(truncated)
+            })
+            .collect::<Result<_>>()?,
+        _ => {
+            let array: NdArray<f32> = read_values(declared, reader, source)?;
+            array.data.chunks(plane.max(1)).map(<[f32]>::to_vec).collect()
+        }
+    };
+    Ok((shape, planes))
 }
 
 /// An `.npz` archive, read one member at a time with the checks of the module docs.

@@ -24,7 +24,7 @@ use rayon::prelude::*;
 use crate::camera::{PinholeCamera, checked_intrinsics, checked_pose};
 use crate::depth_exr::DepthMap;
 use crate::error::{Error, Result};
-use crate::npy::{Axis, NdArray, NpzReader, read_npy_f32_shaped, read_npy_f64, read_npy_f64_shaped};
+use crate::npy::{Axis, NdArray, NpzReader, read_npy_f32_planes, read_npy_f64, read_npy_f64_shaped};
 
 /// Focal length in pixels (at the depth resolution) assumed when intrinsics are missing: the
 /// public cog-nvs code's fallback.
@@ -244,11 +244,27 @@ pub fn read_sequence(dir: &Path) -> Result<Sequence> {
 
 type Parts = (f64, Vec<RgbImage>, Vec<DepthMap>, Vec<PinholeCamera>);
 
+/// Depth maps at the reconstruction's resolution, one plane (row-major) per frame, in `f32`, the
+/// precision they are kept in: no `f64` or whole-stack copy of a 49×480×720 stack (68 MB as f32).
+#[derive(Debug, Clone, PartialEq)]
+pub struct DepthStack {
+    /// (frames, height, width) as the file declares it.
+    pub shape: Vec<usize>,
+    /// One map per frame.
+    pub planes: Vec<Vec<f32>>,
+}
+
+impl DepthStack {
+    fn from_array(array: NdArray<f32>) -> Self {
+        let plane = array.shape.iter().skip(1).product::<usize>().max(1);
+        Self { planes: array.data.chunks(plane).map(<[f32]>::to_vec).collect(), shape: array.shape }
+    }
+}
+
 /// The reconstruction part of a sequence: depth (N,H,W), optional K and poses, with their files.
 struct Reconstruction {
     depth_path: PathBuf,
-    /// `f32`, the precision depth maps are kept in: an `f64` copy of a 49×480×720 stack is 135 MB.
-    depth: NdArray<f32>,
+    depth: DepthStack,
     intrinsics: Option<(PathBuf, NdArray<f64>)>,
     poses: Option<(PathBuf, NdArray<f64>)>,
 }
@@ -298,7 +314,8 @@ pub fn read_with_frames(
 fn cog_nvs_reconstruction(dir: &Path) -> Result<Reconstruction> {
     let cam = dir.join("cam_info");
     let depth_path = cam.join("megasam_depth.npy");
-    let depth = read_npy_f32_shaped(&depth_path, &[Axis::Any, Axis::Pixels, Axis::Pixels])?;
+    let (shape, planes) = read_npy_f32_planes(&depth_path, &[Axis::Any, Axis::Pixels, Axis::Pixels])?;
+    let depth = DepthStack { shape, planes };
     let intrinsics_path = cam.join("megasam_intrinsics.npy");
     let intrinsics = if intrinsics_path.is_file() {
         let k = read_npy_f64_shaped(&intrinsics_path, &[Axis::Is(3), Axis::Is(3)])?;
@@ -380,7 +397,7 @@ fn megasam_reconstruction(path: &Path, with_images: bool) -> Result<(Option<NdAr
     }
     // u8 values (other dtypes are refused first), exact in f32 at half the memory of f64.
     let images = if with_images { Some(archive.read_f32("images", &images_spec)?) } else { None };
-    let depth = archive.read_f32("depths", &depth_spec)?;
+    let depth = DepthStack::from_array(archive.read_f32("depths", &depth_spec)?);
     let intrinsic = archive.read_f64("intrinsic", &intrinsic_spec)?;
     let poses = archive.read_f64("cam_c2w", &poses_spec)?;
     let reconstruction = Reconstruction {
@@ -584,13 +601,7 @@ fn assemble(fps: f64, frames: Vec<RgbImage>, frames_path: &Path, reconstruction:
         .map(|(k, pose)| PinholeCamera { world_from_camera: *pose, ..at_depth_resolution(*k).resized(width, height) })
         .collect();
 
-    let plane = depth_h * depth_w;
-    let depth_maps: Vec<DepthMap> = (0..n)
-        .into_par_iter()
-        .map(|i| {
-            resample_nearest(&depth.data[i * plane..(i + 1) * plane], depth_w, depth_h, width as usize, height as usize)
-        })
-        .collect();
+    let depth_maps = resample_stack(depth, width as usize, height as usize);
     if let Some(i) = depth_maps.iter().position(|d| !d.values.iter().any(|&v| v.is_finite() && v > 0.0)) {
         return Err(Error::invalid(depth_path, format!("depth[{i}]"), "every value is invalid (≤ 0, NaN or inf)"));
     }
@@ -633,7 +644,7 @@ fn check_depth_orientation(
 
 /// A folder of per-frame `*.exr` depth maps (sorted by name) as an `[N, H, W]` array; every map
 /// must have the first one's size.
-pub fn read_exr_folder(depth_dir: &Path) -> Result<NdArray<f32>> {
+pub fn read_exr_folder(depth_dir: &Path) -> Result<DepthStack> {
     let depth_files = with_extension(depth_dir, &["exr"])?;
     let contents =
         depth_files.par_iter().map(|p| std::fs::read(p).map_err(|e| Error::io(p, e))).collect::<Result<Vec<_>>>()?;
@@ -660,19 +671,19 @@ pub fn read_exr_folder(depth_dir: &Path) -> Result<NdArray<f32>> {
         .enumerate()
         .map(|(i, bytes)| crate::depth_exr::decode_depth_exr_of_size(bytes, &context(i), w, h))
         .collect::<Result<Vec<_>>>()?;
-    let n = depth_maps.len();
-    Ok(NdArray { shape: vec![n, h, w], data: depth_maps.into_iter().flat_map(|m| m.values).collect() })
+    Ok(DepthStack { shape: vec![depth_maps.len(), h, w], planes: depth_maps.into_iter().map(|m| m.values).collect() })
 }
 
 /// Per-frame depth maps from a folder of `*.exr` files or an `(N, H, W)` `.npy` array, resampled
 /// (nearest) to `width × height`; there must be exactly `frames` of them.
 pub fn read_depth_stack(path: &Path, frames: usize, width: u32, height: u32) -> Result<Vec<DepthMap>> {
-    let array = if path.is_dir() {
+    let stack = if path.is_dir() {
         read_exr_folder(path)?
     } else {
-        read_npy_f32_shaped(path, &[Axis::Any, Axis::Pixels, Axis::Pixels])?
+        let (shape, planes) = read_npy_f32_planes(path, &[Axis::Any, Axis::Pixels, Axis::Pixels])?;
+        DepthStack { shape, planes }
     };
-    let (n, h, w) = (array.shape[0], array.shape[1], array.shape[2]);
+    let (n, h, w) = (stack.shape[0], stack.shape[1], stack.shape[2]);
     if n != frames {
         return Err(Error::invalid(path, "depth", format!("{n} depth maps for {frames} frames")));
     }
@@ -680,7 +691,17 @@ pub fn read_depth_stack(path: &Path, frames: usize, width: u32, height: u32) -> 
         return Err(Error::invalid(path, "depth", "zero-size depth maps"));
     }
     check_depth_orientation(path, "depth", w, h, width, height)?;
-    Ok(array.data.chunks(h * w).map(|map| resample_nearest(map, w, h, width as usize, height as usize)).collect())
+    Ok(resample_stack(stack, width as usize, height as usize))
+}
+
+/// Every map of a checked stack at `width × height`: moved as they are when they already have
+/// that size, else resampled ([`resample_nearest`]).
+fn resample_stack(stack: DepthStack, width: usize, height: usize) -> Vec<DepthMap> {
+    let (h, w) = (stack.shape[1], stack.shape[2]);
+    if (w, h) == (width, height) {
+        return stack.planes.into_iter().map(|values| DepthMap { width, height, values }).collect();
+    }
+    stack.planes.par_iter().map(|map| resample_nearest(map, w, h, width, height)).collect()
 }
 
 /// Nearest-neighbour resampling with pixel centres at integer coordinates (no blending across

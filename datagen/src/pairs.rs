@@ -7,7 +7,8 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use glam::DMat4;
-use image::{GrayImage, RgbImage};
+use image::codecs::png::{CompressionType, FilterType, PngEncoder};
+use image::{EncodableLayout, GrayImage, ImageEncoder, RgbImage};
 use rayon::prelude::*;
 use schemas::{ClipRecord, InputDigest, ShardStats, ShardWriter, ShardWriterOptions, TrajectoryKind, TrajectoryRecord};
 use serde::{Deserialize, Serialize};
@@ -141,13 +142,19 @@ pub fn trajectory_request(sequence: &Sequence, files: &[PathBuf], count: Option<
     Ok(TrajectoryRequest { sampled, explicit })
 }
 
-fn png<P: image::PixelWithColorType>(image: &image::ImageBuffer<P, Vec<P::Subpixel>>) -> Vec<u8>
+/// PNG bytes of an image, fast deflate and one fixed filter instead of the default per-row choice
+/// among all five. Measured on the benchmark clip's frames and masks (png 0.18, fast deflate):
+/// Paeth encodes colour frames 7 % faster than the adaptive choice and 0.3 % smaller; Up encodes
+/// masks three times faster for 0.4 KB more a mask (4.5 KB against 4.1 KB).
+fn png<P: image::PixelWithColorType>(image: &image::ImageBuffer<P, Vec<P::Subpixel>>, filter: FilterType) -> Vec<u8>
 where
     [P::Subpixel]: image::EncodableLayout,
 {
-    let mut bytes = std::io::Cursor::new(Vec::new());
-    image.write_to(&mut bytes, image::ImageFormat::Png).expect("PNG encoding to memory");
-    bytes.into_inner()
+    let mut bytes = Vec::new();
+    PngEncoder::new_with_quality(&mut bytes, CompressionType::Fast, filter)
+        .write_image(image.as_raw().as_bytes(), image.width(), image.height(), P::COLOR_TYPE)
+        .expect("PNG encoding to memory");
+    bytes
 }
 
 /// `frame` with the pixels outside `mask` black: the conditioning without depth noise.
@@ -163,7 +170,7 @@ fn masked_frame(frame: &RgbImage, mask: &[bool]) -> RgbImage {
 
 fn mask_png(mask: &[bool], width: u32, height: u32) -> Vec<u8> {
     let pixels = mask.iter().map(|&m| if m { 255 } else { 0 }).collect();
-    png(&GrayImage::from_raw(width, height, pixels).expect("mask sized to the frame"))
+    png(&GrayImage::from_raw(width, height, pixels).expect("mask sized to the frame"), FilterType::Up)
 }
 
 /// One trajectory's data for one frame: mask PNG, co-visible pixel count, and under depth noise
@@ -373,7 +380,7 @@ fn generate_clip(
                         let noisy = crate::depth_noise::render_back(frame, |p| mesh.point(p), &mask, &offsets, &novel);
                         mask = noisy.mask;
                         let differs = noisy.condition != masked_frame(&sequence.frames[i], &mask);
-                        (png(&noisy.condition), differs)
+                        (png(&noisy.condition, FilterType::Paeth), differs)
                     });
                     let kept = mask.iter().filter(|&&m| m).count();
                     let encoded = mask_png(&mask, width, height);
@@ -382,9 +389,9 @@ fn generate_clip(
                 })
                 .collect();
             let clock = Instant::now();
-            let frame = png::<image::Rgb<u8>>(&sequence.frames[i]);
+            let frame = png(&sequence.frames[i], FilterType::Paeth);
             let depth = encode_depth_exr(&sequence.depth[i])?;
-            let dynamic = dynamic.map(png);
+            let dynamic = dynamic.map(|mask| png(mask, FilterType::Up));
             encode_seconds += clock.elapsed().as_secs_f64();
             Ok(((frame, depth, dynamic, masks), mesh_seconds, ray_seconds, encode_seconds))
         })

@@ -238,8 +238,7 @@ impl DepthMesh {
                         continue;
                     }
                     // Valid depths are never NaN, so plain selects give min and max.
-                    let (smaller, larger) =
-                        (|x: f32, y: f32| if x < y { x } else { y }, |x: f32, y: f32| if x > y { x } else { y });
+                    let (smaller, larger) = (view_bins::smaller, view_bins::larger);
                     let near = smaller(smaller(d0, d1), smaller(d2, d3)) as f64;
                     let far = larger(larger(d0, d1), larger(d2, d3)) as f64;
                     if far <= near * config.discontinuity_ratio {
@@ -866,7 +865,7 @@ impl MeshView<'_> {
             for ((flag, &kind), (&c1, &c3)) in quads {
                 let (c0, c2) = std::mem::replace(&mut left, (c1, c3));
                 // Surface quads have four valid points: no NaN depth, so plain selects suffice.
-                let smaller = |x: f64, y: f64| if x < y { x } else { y };
+                let smaller = view_bins::smaller;
                 let good = kind == SURFACE
                     && smaller(smaller(c0.z, c1.z), smaller(c2.z, c3.z)) > near
                     && view_bins::thick_quad(c0.truncate(), c1.truncate(), c2.truncate(), c3.truncate(), 2.0);

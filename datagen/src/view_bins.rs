@@ -140,14 +140,27 @@ impl Reach {
     }
 }
 
+/// The smaller of two values by one comparison: `x.min(y)` for values that are never NaN, without
+/// the NaN handling that costs `f64::min` several instructions in the per-quad and per-corner
+/// loops (with a NaN it returns `y`, so callers say why none reaches them).
+#[inline]
+pub fn smaller<T: PartialOrd>(x: T, y: T) -> T {
+    if x < y { x } else { y }
+}
+
+/// The larger of two values by one comparison, as [`smaller`].
+#[inline]
+pub fn larger<T: PartialOrd>(x: T, y: T) -> T {
+    if x > y { x } else { y }
+}
+
 /// The smallest (x, y, depth) and the largest (x, y) of `corners`, (pixel x, pixel y, depth) in
 /// the novel camera: what [`Footprint::of_range`] and [`Reach::of_range`] take.
 #[inline]
 pub fn corner_range<'a>(corners: impl IntoIterator<Item = &'a DVec3>) -> (DVec3, DVec2) {
-    // Plain selects, not `f64::min`/`max` with their NaN handling: the corners' depths are
-    // finite (projections of valid points), and x or y can be NaN only for a corner at depth 0,
-    // whose primitive [`Reach::of_range`] sends to every ray by its depth whatever its box.
-    let (smaller, larger) = (|x: f64, y: f64| if x < y { x } else { y }, |x: f64, y: f64| if x > y { x } else { y });
+    // [`smaller`] and [`larger`]: the corners' depths are finite (projections of valid points),
+    // and x or y can be NaN only for a corner at depth 0, whose primitive [`Reach::of_range`]
+    // sends to every ray by its depth whatever its box.
     let (mut lo, mut hi) = (DVec3::INFINITY, DVec2::NEG_INFINITY);
     for c in corners {
         lo = DVec3::new(smaller(lo.x, c.x), smaller(lo.y, c.y), smaller(lo.z, c.z));
@@ -548,10 +561,8 @@ pub fn line_separates(a: DVec2, b: DVec2, point: DVec2, other: DVec2, margins: f
 pub fn thick_quad(a: DVec2, b: DVec2, c: DVec2, d: DVec2, margins: f64) -> bool {
     let (ab, ac, bc, bd, cd) = (b - a, c - a, c - b, d - b, d - c);
     let norm = |e: DVec2| e.x.abs() + e.y.abs();
-    // A plain select, not `f64::max` (whose NaN handling costs several instructions in this
-    // per-quad test): a NaN corner makes the cross product of its triangle NaN, and that
-    // comparison false, whichever norm the select keeps.
-    let larger = |x: f64, y: f64| if x > y { x } else { y };
+    // [`larger`]: a NaN corner makes the cross product of its triangle NaN, and that comparison
+    // false, whichever norm the select keeps.
     let (diagonal, margin) = (norm(bc), margins * MARGIN_PIXELS);
     let first = ab.perp_dot(ac) > margin * larger(larger(norm(ab), norm(ac)), diagonal);
     let second = bd.perp_dot(bc) > margin * larger(larger(norm(bd), norm(cd)), diagonal);

@@ -56,6 +56,14 @@ pub struct NdArray<T> {
     pub data: Vec<T>,
 }
 
+impl<T: Clone> NdArray<T> {
+    /// The values split along the first axis, one `Vec` per index (none for a 0-d array).
+    pub fn into_planes(self) -> Vec<Vec<T>> {
+        let plane = self.shape.iter().skip(1).product::<usize>().max(1);
+        self.data.chunks(plane).map(<[T]>::to_vec).collect()
+    }
+}
+
 impl<T> NdArray<T> {
     /// Fails with an error naming `path` and `field` unless the array has `expected.len()` axes
     /// and each axis given as `Some(n)` has extent `n`.
@@ -174,6 +182,18 @@ struct Declared {
     header: NpyHeader,
     kind: Kind,
     info: ArrayHeader,
+}
+
+impl Declared {
+    /// Whether the values are little-endian, the byte order [`read_little_endian`] reads.
+    fn little_endian(&self) -> bool {
+        matches!(self.header.dtype(), DType::Plain(t) if t.endianness() == npyz::Endianness::Little)
+    }
+}
+
+/// The error for array data that cannot be read.
+fn data_error(source: Source<'_>, error: std::io::Error) -> Error {
+    source.error(format!("cannot read array data (truncated or corrupt?): {error}"))
 }
 
 /// Reads and checks a `.npy` header from `reader`, which holds `available` bytes in all: the text
@@ -395,10 +415,10 @@ impl Real for f32 {
 
 /// Reads the data of a checked header as `T`, in C order.
 fn read_values<R: Read, T: Real>(declared: Declared, reader: R, source: Source<'_>) -> Result<NdArray<T>> {
-    let Declared { header, kind, info } = declared;
     // Little-endian floats, nearly every depth or pose array, are converted from whole blocks of
     // bytes: npyz's value-by-value reader took ~30 ns a value (0.5 s for a 49×480×720 depth).
-    let little = matches!(header.dtype(), DType::Plain(t) if t.endianness() == npyz::Endianness::Little);
+    let little = declared.little_endian();
+    let Declared { header, kind, info } = declared;
     let count = info.shape.iter().product::<usize>();
     let data: Vec<T> = match kind {
         Kind::F4 if little => read_little_endian(reader, count, |b| T::from_f64(f64::from(f32::from_le_bytes(b)))),
@@ -406,7 +426,7 @@ fn read_values<R: Read, T: Real>(declared: Declared, reader: R, source: Source<'
         kind => read_with_npyz(NpyFile::with_header(header, reader), kind)
             .map(|values| values.into_iter().map(T::from_f64).collect()),
     }
-    .map_err(|e| source.error(format!("cannot read array data (truncated or corrupt?): {e}")))?;
+    .map_err(|e| data_error(source, e))?;
     let shape = info.shape;
     if data.len() != shape.iter().product::<usize>() {
         return Err(source.error(format!("holds {} values for shape {shape:?}", data.len())));
@@ -507,21 +527,16 @@ pub fn read_npy_f32_planes(path: &Path, expected: &[Axis]) -> Result<(Vec<usize>
     let declared = read_declared(&mut reader, source, length, Some(expected))?;
     let shape = declared.info.shape.clone();
     let (count, plane) = (shape.first().copied().unwrap_or(0), shape.iter().skip(1).product::<usize>());
-    let little = matches!(declared.header.dtype(), DType::Plain(t) if t.endianness() == npyz::Endianness::Little);
-    let truncated = |e: std::io::Error| source.error(format!("cannot read array data (truncated or corrupt?): {e}"));
     let planes = match declared.kind {
         // The common case, read plane by plane (converted as `read_values` converts); other
         // dtypes go through the whole-array reader.
-        Kind::F4 if little => (0..count)
+        Kind::F4 if declared.little_endian() => (0..count)
             .map(|_| {
                 read_little_endian(&mut reader, plane, |b| f32::from_f64(f64::from(f32::from_le_bytes(b))))
-                    .map_err(truncated)
+                    .map_err(|e| data_error(source, e))
             })
             .collect::<Result<_>>()?,
-        _ => {
-            let array: NdArray<f32> = read_values(declared, reader, source)?;
-            array.data.chunks(plane.max(1)).map(<[f32]>::to_vec).collect()
-        }
+        _ => read_values::<_, f32>(declared, reader, source)?.into_planes(),
     };
     Ok((shape, planes))
 }

@@ -256,8 +256,7 @@ pub struct DepthStack {
 
 impl DepthStack {
     fn from_array(array: NdArray<f32>) -> Self {
-        let plane = array.shape.iter().skip(1).product::<usize>().max(1);
-        Self { planes: array.data.chunks(plane).map(<[f32]>::to_vec).collect(), shape: array.shape }
+        Self { shape: array.shape.clone(), planes: array.into_planes() }
     }
 }
 

@@ -5,6 +5,7 @@
 //! test.
 
 mod arrow_convert;
+pub mod direct_file;
 pub mod error;
 pub mod pairs;
 pub mod shard;

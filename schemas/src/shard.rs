@@ -18,6 +18,7 @@ use parquet::file::properties::{EnabledStatistics, WriterProperties};
 use parquet::schema::types::ColumnPath;
 
 use crate::arrow_convert::{batch_to_records, records_to_batch};
+use crate::direct_file::DirectFile;
 use crate::error::{Error, Result};
 use crate::pairs::{
     ClipRecord, OLDEST_READABLE_SCHEMA_VERSION, SCHEMA_NAME, SCHEMA_NAME_KEY, SCHEMA_VERSION, SCHEMA_VERSION_KEY,
@@ -107,7 +108,7 @@ pub fn read_stats(shard: &Path) -> Result<ShardStats> {
 pub struct ShardWriter {
     final_path: PathBuf,
     temp_path: PathBuf,
-    writer: Option<ArrowWriter<File>>,
+    writer: Option<ArrowWriter<DirectFile>>,
     options: ShardWriterOptions,
     clips: u64,
     pairs: u64,
@@ -125,7 +126,7 @@ impl ShardWriter {
         })?;
         let temp_name = format!(".{}{TEMP_MARKER}{}", file_name.to_string_lossy(), std::process::id());
         let temp_path = final_path.with_file_name(temp_name);
-        let file = File::create(&temp_path).map_err(|e| Error::io(&temp_path, e))?;
+        let file = DirectFile::create(&temp_path).map_err(|e| Error::io(&temp_path, e))?;
         let schema = pair_schema();
         let mut properties = WriterProperties::builder()
             .set_compression(Compression::ZSTD(ZstdLevel::try_new(ZSTD_LEVEL).expect("valid zstd level")))
@@ -178,13 +179,13 @@ impl ShardWriter {
 
     /// Closes the file, syncs it, renames it into place and writes the stats marker last.
     pub fn finish(mut self) -> Result<ShardStats> {
-        let writer = self.writer.take().expect("writer open until finish");
-        let close = || -> Result<_> {
+        let mut writer = self.writer.take().expect("writer open until finish");
+        let mut close = || -> Result<_> {
             let parquet = |source| Error::Parquet { path: self.temp_path.clone(), source };
-            let metadata = writer.close().map_err(parquet)?;
-            let file = File::open(&self.temp_path).map_err(|e| Error::io(&self.temp_path, e))?;
-            file.sync_all().map_err(|e| Error::io(&self.temp_path, e))?;
-            let bytes = file.metadata().map_err(|e| Error::io(&self.temp_path, e))?.len();
+            let metadata = writer.finish().map_err(parquet)?;
+            // The last chunk, footer included, is still in the file's buffer: written and synced
+            // here.
+            let bytes = writer.inner_mut().complete().map_err(|e| Error::io(&self.temp_path, e))?;
             std::fs::rename(&self.temp_path, &self.final_path).map_err(|e| Error::io(&self.final_path, e))?;
             Ok((metadata, bytes))
         };

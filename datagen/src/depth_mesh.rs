@@ -96,9 +96,12 @@ pub enum Accelerator {
     Cwbvh,
 }
 
-/// Finite and positive (NaN fails both comparisons).
+/// Finite and positive: `depth > 0.0 && depth < f32::INFINITY` (false for NaN) by one integer
+/// comparison. The bit patterns of the positive finite floats are exactly 1..=0x7f7f_ffff; zero
+/// wraps to the top, and negative values, infinities and NaNs all lie above.
+#[inline]
 fn valid(depth: f32) -> bool {
-    depth > 0.0 && depth < f32::INFINITY
+    depth.to_bits().wrapping_sub(1) < 0x7f7f_ffff
 }
 
 /// The two triangles of a quad, as corner indices 0 = (u, v), 1 = (u+1, v), 2 = (u, v+1),
@@ -227,26 +230,30 @@ impl DepthMesh {
                 }
                 let (upper, lower) =
                     (&depth.values[v * width..(v + 1) * width], &depth.values[(v + 1) * width..(v + 2) * width]);
-                // Each quad's right corners are the next one's left corners: read once.
-                let mut left = (upper[0], lower[0]);
+                // Per pixel column, whether both of its depths are valid and their smaller and
+                // larger one: each column serves the quads on both sides, so it is read once.
+                // Valid depths are never NaN, so plain selects give min and max (and an invalid
+                // column's values are never used).
+                let (smaller, larger) = (view_bins::smaller, view_bins::larger);
+                let column = |(&a, &b): (&f32, &f32)| (valid(a) & valid(b), smaller(a, b), larger(a, b));
+                let mut left = column((&upper[0], &lower[0]));
                 let quads = kinds.iter_mut().zip(upper[1..].iter().zip(&lower[1..])).enumerate();
-                for (u, (kind, (&d1, &d3))) in quads {
-                    let (d0, d2) = std::mem::replace(&mut left, (d1, d3));
-                    let d = [d0, d1, d2, d3];
+                for (u, (kind, right)) in quads {
+                    let right = column(right);
+                    let (left_valid, left_near, left_far) = std::mem::replace(&mut left, right);
                     // Not short-circuited: nearly every quad is valid, and the branches cost more.
-                    if !(valid(d0) & valid(d1) & valid(d2) & valid(d3)) {
+                    if !(left_valid & right.0) {
                         continue;
                     }
-                    // Valid depths are never NaN, so plain selects give min and max.
-                    let (smaller, larger) = (view_bins::smaller, view_bins::larger);
-                    let near = smaller(smaller(d0, d1), smaller(d2, d3)) as f64;
-                    let far = larger(larger(d0, d1), larger(d2, d3)) as f64;
+                    let near = smaller(left_near, right.1) as f64;
+                    let far = larger(left_far, right.2) as f64;
                     if far <= near * config.discontinuity_ratio {
                         *kind = SURFACE;
                         surface += 1;
                     } else if config.occluder_thickness > 0.0 {
                         let limit = near * (1.0 + config.occluder_thickness);
                         let index = corner_indices(v * width + u, width);
+                        let d = [upper[u], upper[u + 1], lower[u], lower[u + 1]];
                         let skirt = SPLIT
                             .map(|tri| triangle(tri.map(|k| center + (d[k] as f64).min(limit) * pixel_ray(index[k]))));
                         skirts.push((u, skirt));
@@ -721,7 +728,7 @@ impl MeshView<'_> {
             return mask;
         };
         let (size, near) = self.bin_settings();
-        let bins = view_bins::PointBins::new(pixels, |p| self.query(projection, p), size);
+        let bins = view_bins::PointBins::new(pixels, |p| Self::query(projection, p), size);
         let (mut blocked, mut separates) = FLAG_POOL.take();
         blocked.resize_with(pixels, || AtomicBool::new(false));
         blocked.par_iter().for_each(|flag| flag.store(false, Ordering::Relaxed));
@@ -925,17 +932,18 @@ impl MeshView<'_> {
     pub fn skipped_quad_blocks(&self) -> Option<(usize, usize)> {
         let projection = self.projection.as_ref()?;
         let (size, near) = self.bin_settings();
-        let bins = view_bins::PointBins::new(self.mesh.points.len(), |p| self.query(projection, p), size);
+        let bins = view_bins::PointBins::new(self.mesh.points.len(), |p| Self::query(projection, p), size);
         let blocks = self.good_blocks(projection, near, size, &bins);
         Some((blocks.iter().filter(|&&good| good).count(), blocks.len()))
     }
 
     /// Pixel `p` as a co-visibility query: its point's pixel coordinates and depth in the novel
-    /// camera, if it lies in front of it and inside its image.
-    fn query(&self, projection: &Projection, p: usize) -> Option<(DVec2, f64)> {
+    /// camera, if it has a point. [`view_bins::PointBins`] bins those in front of the camera and
+    /// inside its image; the others, answered one by one ([`Self::covisible_single`]), are not
+    /// co-visible without a segment test.
+    fn query(projection: &Projection, p: usize) -> Option<(DVec2, f64)> {
         let q = projection.points[p];
-        // NaN (no point) fails the depth test.
-        (q.z > 0.0 && self.novel.contains(q.truncate())).then_some((q.truncate(), q.z))
+        (!q.z.is_nan()).then_some((q.truncate(), q.z))
     }
 
     /// Co-visibility of pixel `p` by a single segment query (the points the batch does not bin,
@@ -1036,4 +1044,42 @@ fn to_vec3a(v: DVec3) -> Vec3A {
 
 fn triangle(p: [DVec3; 3]) -> Triangle {
     Triangle { v0: to_vec3a(p[0]), v1: to_vec3a(p[1]), v2: to_vec3a(p[2]) }
+}
+
+#[cfg(test)]
+mod tests {
+    use rand::{Rng, SeedableRng};
+
+    use super::valid;
+
+    #[test]
+    fn valid_depth_by_bits_equals_the_comparisons() {
+        let by_comparison = |d: f32| d > 0.0 && d < f32::INFINITY;
+        let special = [
+            0.0,
+            -0.0,
+            f32::MIN_POSITIVE,
+            -f32::MIN_POSITIVE,
+            f32::from_bits(1),
+            f32::from_bits(0x8000_0001),
+            f32::MAX,
+            f32::MIN,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            f32::NAN,
+            -f32::NAN,
+            f32::from_bits(0x7f80_0001),
+            f32::from_bits(0xffff_ffff),
+            1.0,
+            -1.0,
+        ];
+        for d in special {
+            assert_eq!(valid(d), by_comparison(d), "{d:?} ({:#x})", d.to_bits());
+        }
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        for _ in 0..1_000_000 {
+            let d = f32::from_bits(rng.random());
+            assert_eq!(valid(d), by_comparison(d), "{d:?} ({:#x})", d.to_bits());
+        }
+    }
 }

@@ -627,6 +627,12 @@ const QUAD_ROWS_PER_BAND: usize = 16;
 /// ([`MeshView::good_blocks`]).
 const BLOCK: usize = 8;
 
+/// Quads per side of a quarter of a block, tested on its own where the whole block is not good.
+const QUARTER: usize = BLOCK / 2;
+
+/// [`MeshView::good_blocks`] of a block whose four quarters are good.
+const ALL_QUARTERS: u8 = 0b1111;
+
 /// Rings of quads around a block that must be regular too ([`MeshView::good_blocks`]): points
 /// of the block's neighbours fall inside its box wherever the novel view turns or shears it.
 const RING: usize = 4;
@@ -746,38 +752,48 @@ impl MeshView<'_> {
             .flat_map_iter(|(index, (separates, good))| {
                 let mut everywhere = Vec::new();
                 let range = (index * block_rows, index * block_rows + separates.len());
+                let band_rows = separates.len() / mesh.width.max(1);
                 for (column, &good) in good.iter().enumerate() {
-                    let columns = (column * BLOCK, ((column + 1) * BLOCK).min(mesh.width));
-                    if good {
-                        // Thick triangles separate at their shared diagonal (`view_bins::thick_quad`).
-                        for row in separates.chunks_mut(mesh.width) {
-                            for separates in &mut row[columns.0..columns.1] {
-                                *separates = true;
+                    for quarter in 0..4 {
+                        let first_column = column * BLOCK + quarter % 2 * QUARTER;
+                        let columns = (first_column.min(mesh.width), (first_column + QUARTER).min(mesh.width));
+                        let rows =
+                            ((quarter / 2 * QUARTER).min(band_rows), (quarter / 2 * QUARTER + QUARTER).min(band_rows));
+                        if columns.0 == columns.1 || rows.0 == rows.1 {
+                            continue;
+                        }
+                        // The quarter's rows, as indices into the band's quads.
+                        let (first, end) = (rows.0 * mesh.width, rows.1 * mesh.width);
+                        if good & (1 << quarter) != 0 {
+                            // Thick triangles separate at their shared diagonal (`view_bins::thick_quad`).
+                            for row in separates[first..end].chunks_mut(mesh.width) {
+                                row[columns.0..columns.1].fill(true);
                             }
+                            continue;
                         }
-                        continue;
+                        let quads = (range.0 + first, range.0 + end);
+                        self.band_quads(projection, quads, columns, |offset, corners, separating| {
+                            separates[first + offset] = separating;
+                            let Some((lo, hi)) = corners else { return };
+                            let quad = (quads.0 + offset) as u32;
+                            match view_bins::Reach::of_range(lo, hi, near, size) {
+                                view_bins::Reach::Everywhere => everywhere.push(quad),
+                                view_bins::Reach::Outside => {}
+                                view_bins::Reach::Box { entry, range } => bins.for_each_inside(&entry, range, |p| {
+                                    let corner = p.wrapping_sub(quad);
+                                    let own = corner <= 1 || corner.wrapping_sub(width) <= 1;
+                                    if own || blocked[p as usize].load(Ordering::Relaxed) {
+                                        return;
+                                    }
+                                    let hits = ray_to(p as usize)
+                                        .is_some_and(|ray| mesh.blocks_segment(quad as usize, &ray, Some(p)));
+                                    if hits {
+                                        blocked[p as usize].store(true, Ordering::Relaxed);
+                                    }
+                                }),
+                            }
+                        });
                     }
-                    self.band_quads(projection, range, columns, |offset, corners, separating| {
-                        separates[offset] = separating;
-                        let Some((lo, hi)) = corners else { return };
-                        let quad = (range.0 + offset) as u32;
-                        match view_bins::Reach::of_range(lo, hi, near, size) {
-                            view_bins::Reach::Everywhere => everywhere.push(quad),
-                            view_bins::Reach::Outside => {}
-                            view_bins::Reach::Box { entry, range } => bins.for_each_inside(&entry, range, |p| {
-                                let corner = p.wrapping_sub(quad);
-                                let own = corner <= 1 || corner.wrapping_sub(width) <= 1;
-                                if own || blocked[p as usize].load(Ordering::Relaxed) {
-                                    return;
-                                }
-                                let hits = ray_to(p as usize)
-                                    .is_some_and(|ray| mesh.blocks_segment(quad as usize, &ray, Some(p)));
-                                if hits {
-                                    blocked[p as usize].store(true, Ordering::Relaxed);
-                                }
-                            }),
-                        }
-                    });
                 }
                 everywhere
             })
@@ -826,9 +842,12 @@ impl MeshView<'_> {
         mask
     }
 
-    /// Per block of [`BLOCK`] × [`BLOCK`] quads (row-major by block), whether no quad of the
-    /// block can hide any point from the novel camera but its own corners, so that the batch
-    /// skips the block's quads. That holds when the block and [`RING`] rings of quads around it
+    /// Per block of [`BLOCK`] × [`BLOCK`] quads (row-major by block), which of its quarters
+    /// (bit `q` for quarter column `q % 2` and row `q / 2`, [`QUARTER`] quads a side) are good:
+    /// no quad of a good block can hide any point from the novel camera but its own corners, so
+    /// that the batch skips its quads. Every quarter of a good block is good; a block that is not
+    /// good may still have good quarters. A block (of either size) is good when it and [`RING`]
+    /// rings of quads around it
     /// form a rectangle of surface quads whose triangles all keep their orientation in the novel
     /// image, each vertex farther than twice [`view_bins::MARGIN_PIXELS`] from its opposite edge
     /// ([`view_bins::thick_quad`]), all beyond the bins' near limit, and the block's box (widened as
@@ -851,7 +870,7 @@ impl MeshView<'_> {
         near: f64,
         size: (usize, usize),
         bins: &view_bins::PointBins,
-    ) -> Vec<bool> {
+    ) -> Vec<u8> {
         let mesh = self.mesh;
         let (width, height) = (mesh.width, mesh.height);
         let points = &projection.points;
@@ -894,47 +913,54 @@ impl MeshView<'_> {
         };
         // The quads of the image are columns and rows ..width − 1 and ..height − 1.
         let (quad_columns, quad_rows) = (width.saturating_sub(1), height.saturating_sub(1));
+        // Whether the square of `side` quads from quad (bu, bv) is good.
+        let good = |bu: usize, bv: usize, side: usize| {
+            let (u1, v1) = ((bu + side).min(quad_columns), (bv + side).min(quad_rows));
+            if bu >= u1 || bv >= v1 {
+                return false;
+            }
+            let ring_u = (bu.saturating_sub(RING), (u1 + RING).min(quad_columns));
+            let ring_v = (bv.saturating_sub(RING), (v1 + RING).min(quad_rows));
+            if bad_in(ring_u, ring_v) > 0 {
+                return false;
+            }
+            let (lo, hi) = view_bins::corner_range((bv..=v1).flat_map(|v| &points[v * width + bu..=v * width + u1]));
+            match view_bins::Reach::of_range(lo, hi, near, size) {
+                view_bins::Reach::Everywhere => false,
+                view_bins::Reach::Outside => true,
+                view_bins::Reach::Box { entry, range } => {
+                    // The rectangle's inner vertices, whose star of triangles is whole: by the
+                    // column and where the row starts, both ranges checked without a division.
+                    let (columns, rows) = (ring_u.0 + 1..ring_u.1, (ring_v.0 + 1) * width..ring_v.1 * width);
+                    !bins.any_inside(&entry, range, |p| {
+                        let u = mesh.columns[p as usize] as usize;
+                        !columns.contains(&u) || !rows.contains(&(p as usize - u))
+                    })
+                }
+            }
+        };
         let (across, down) = (width.div_ceil(BLOCK).max(1), height.div_ceil(BLOCK).max(1));
         (0..across * down)
             .into_par_iter()
             .map(|block| {
                 let (bu, bv) = (block % across * BLOCK, block / across * BLOCK);
-                let (u1, v1) = ((bu + BLOCK).min(quad_columns), (bv + BLOCK).min(quad_rows));
-                if bu >= u1 || bv >= v1 {
-                    return false;
+                if good(bu, bv, BLOCK) {
+                    return ALL_QUARTERS;
                 }
-                let ring_u = (bu.saturating_sub(RING), (u1 + RING).min(quad_columns));
-                let ring_v = (bv.saturating_sub(RING), (v1 + RING).min(quad_rows));
-                if bad_in(ring_u, ring_v) > 0 {
-                    return false;
-                }
-                let (lo, hi) =
-                    view_bins::corner_range((bv..=v1).flat_map(|v| &points[v * width + bu..=v * width + u1]));
-                match view_bins::Reach::of_range(lo, hi, near, size) {
-                    view_bins::Reach::Everywhere => false,
-                    view_bins::Reach::Outside => true,
-                    view_bins::Reach::Box { entry, range } => {
-                        // The rectangle's inner vertices, whose star of triangles is whole: by the
-                        // column and where the row starts, both ranges checked without a division.
-                        let (columns, rows) = (ring_u.0 + 1..ring_u.1, (ring_v.0 + 1) * width..ring_v.1 * width);
-                        !bins.any_inside(&entry, range, |p| {
-                            let u = mesh.columns[p as usize] as usize;
-                            !columns.contains(&u) || !rows.contains(&(p as usize - u))
-                        })
-                    }
-                }
+                // Near whatever spoils the block, a quarter's smaller ring and box often avoid it.
+                (0..4).filter(|&q| good(bu + q % 2 * QUARTER, bv + q / 2 * QUARTER, QUARTER)).map(|q| 1 << q).sum()
             })
             .collect()
     }
 
-    /// How many blocks of quads the co-visibility batch skips ([`Self::good_blocks`]), and of
-    /// how many (None with the BVH accelerator); for tests and benchmarks.
+    /// How many quarter blocks of quads the co-visibility batch skips ([`Self::good_blocks`]),
+    /// and of how many (None with the BVH accelerator); for tests and benchmarks.
     pub fn skipped_quad_blocks(&self) -> Option<(usize, usize)> {
         let projection = self.projection.as_ref()?;
         let (size, near) = self.bin_settings();
         let bins = view_bins::PointBins::new(self.mesh.points.len(), |p| Self::query(projection, p), size);
         let blocks = self.good_blocks(projection, near, size, &bins);
-        Some((blocks.iter().filter(|&&good| good).count(), blocks.len()))
+        Some((blocks.iter().map(|quarters| quarters.count_ones() as usize).sum(), 4 * blocks.len()))
     }
 
     /// Pixel `p` as a co-visibility query: its point's pixel coordinates and depth in the novel

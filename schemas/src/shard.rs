@@ -11,11 +11,14 @@ use arrow_schema::Schema;
 use parquet::arrow::arrow_reader::{
     ParquetRecordBatchReader, ParquetRecordBatchReaderBuilder, RowSelection, RowSelector,
 };
+use parquet::arrow::arrow_writer::{ArrowColumnWriter, ArrowLeafColumn, ArrowRowGroupWriterFactory, compute_leaves};
 use parquet::arrow::{ArrowSchemaConverter, ArrowWriter};
 use parquet::basic::{Compression, LogicalType, Type as PhysicalType, ZstdLevel};
 use parquet::file::metadata::KeyValue;
 use parquet::file::properties::{EnabledStatistics, WriterProperties};
+use parquet::file::writer::SerializedFileWriter;
 use parquet::schema::types::ColumnPath;
+use rayon::prelude::*;
 
 use crate::arrow_convert::{batch_to_records, records_to_batch};
 use crate::direct_file::DirectFile;
@@ -105,10 +108,19 @@ pub fn read_stats(shard: &Path) -> Result<ShardStats> {
 
 /// Writes one shard atomically. Dropping the writer without [`ShardWriter::finish`] removes the
 /// temporary file, so no partial shard is ever visible under the final name.
+///
+/// The Parquet columns of a row group are encoded in parallel (rayon), each by its own column
+/// writer: a clip's frames and depth are tens of MB each, and one writer encoding them in turn was
+/// most of the time `datagen pairs` spends writing.
 pub struct ShardWriter {
     final_path: PathBuf,
     temp_path: PathBuf,
-    writer: Option<ArrowWriter<DirectFile>>,
+    /// The file, until [`ShardWriter::finish`].
+    file: Option<SerializedFileWriter<DirectFile>>,
+    columns: ArrowRowGroupWriterFactory,
+    /// The column writers of the row group in progress, one per Parquet leaf column.
+    row_group: Option<Vec<ArrowColumnWriter>>,
+    row_groups: usize,
     options: ShardWriterOptions,
     clips: u64,
     pairs: u64,
@@ -142,12 +154,18 @@ impl ShardWriter {
         for column in binary_columns(&schema) {
             properties = properties.set_column_compression(column, Compression::UNCOMPRESSED);
         }
-        let writer = ArrowWriter::try_new(file, schema.into(), Some(properties.build()))
+        // The Arrow writer sets up the file (the Arrow schema in its metadata) and hands over
+        // its parts; rows are then written column by column (`write`).
+        let (file, columns) = ArrowWriter::try_new(file, schema.into(), Some(properties.build()))
+            .and_then(ArrowWriter::into_serialized_writer)
             .map_err(|source| Error::Parquet { path: temp_path.clone(), source })?;
         Ok(Self {
             final_path: final_path.to_owned(),
             temp_path,
-            writer: Some(writer),
+            file: Some(file),
+            columns,
+            row_group: None,
+            row_groups: 0,
             options,
             clips: 0,
             pairs: 0,
@@ -157,18 +175,63 @@ impl ShardWriter {
         })
     }
 
+    fn parquet_error(&self, source: parquet::errors::ParquetError) -> Error {
+        Error::Parquet { path: self.temp_path.clone(), source }
+    }
+
     /// Appends one clip; flushes a row group when the buffered bytes reach the target.
     pub fn write(&mut self, record: &ClipRecord) -> Result<()> {
         let batch = records_to_batch(std::slice::from_ref(record))?;
-        let writer = self.writer.as_mut().expect("writer open until finish");
-        let parquet = |source| Error::Parquet { path: self.temp_path.clone(), source };
-        writer.write(&batch).map_err(parquet)?;
-        if writer.in_progress_size() >= self.options.row_group_bytes {
-            writer.flush().map_err(parquet)?;
+        let leaves = batch
+            .schema()
+            .fields()
+            .iter()
+            .zip(batch.columns())
+            .map(|(field, column)| compute_leaves(field, column))
+            .collect::<parquet::errors::Result<Vec<_>>>()
+            .map_err(|e| self.parquet_error(e))?;
+        let writers = match self.row_group.take() {
+            Some(writers) => writers,
+            None => self.columns.create_column_writers(self.row_groups).map_err(|e| self.parquet_error(e))?,
+        };
+        let leaves: Vec<ArrowLeafColumn> = leaves.into_iter().flatten().collect();
+        assert_eq!(leaves.len(), writers.len(), "one column writer per leaf of the pair schema");
+        let writers = writers
+            .into_par_iter()
+            .zip(leaves)
+            .map(|(mut writer, leaf)| writer.write(&leaf).map(|()| writer))
+            .collect::<parquet::errors::Result<Vec<_>>>()
+            .map_err(|e| self.parquet_error(e))?;
+        let buffered: usize = writers.iter().map(ArrowColumnWriter::get_estimated_total_bytes).sum();
+        self.row_group = Some(writers);
+        if buffered >= self.options.row_group_bytes {
+            self.flush_row_group()?;
         }
         self.clips += 1;
         self.pairs += record.trajectories.len() as u64;
         self.frames += record.num_frames() as u64;
+        Ok(())
+    }
+
+    /// Closes the column writers of the row group in progress (in parallel) and appends their
+    /// chunks to the file, in schema order.
+    fn flush_row_group(&mut self) -> Result<()> {
+        let Some(writers) = self.row_group.take() else { return Ok(()) };
+        let chunks = writers
+            .into_par_iter()
+            .map(ArrowColumnWriter::close)
+            .collect::<parquet::errors::Result<Vec<_>>>()
+            .map_err(|e| self.parquet_error(e))?;
+        let file = self.file.as_mut().expect("file open until finish");
+        let append = |file: &mut SerializedFileWriter<DirectFile>| {
+            let mut row_group = file.next_row_group()?;
+            for chunk in chunks {
+                chunk.append_to_row_group(&mut row_group)?;
+            }
+            row_group.close().map(drop)
+        };
+        append(file).map_err(|e| self.parquet_error(e))?;
+        self.row_groups += 1;
         Ok(())
     }
 
@@ -179,13 +242,13 @@ impl ShardWriter {
 
     /// Closes the file, syncs it, renames it into place and writes the stats marker last.
     pub fn finish(mut self) -> Result<ShardStats> {
-        let mut writer = self.writer.take().expect("writer open until finish");
         let mut close = || -> Result<_> {
-            let parquet = |source| Error::Parquet { path: self.temp_path.clone(), source };
-            let metadata = writer.finish().map_err(parquet)?;
+            self.flush_row_group()?;
+            let mut file = self.file.take().expect("file open until finish");
+            let metadata = file.finish().map_err(|e| self.parquet_error(e))?;
             // The last chunk, footer included, is still in the file's buffer: written and synced
             // here.
-            let bytes = writer.inner_mut().complete().map_err(|e| Error::io(&self.temp_path, e))?;
+            let bytes = file.inner_mut().complete().map_err(|e| Error::io(&self.temp_path, e))?;
             std::fs::rename(&self.temp_path, &self.final_path).map_err(|e| Error::io(&self.final_path, e))?;
             Ok((metadata, bytes))
         };
@@ -218,7 +281,7 @@ impl ShardWriter {
 
 impl Drop for ShardWriter {
     fn drop(&mut self) {
-        if self.writer.is_some() {
+        if self.file.is_some() {
             // Unfinished: never leave the partial file behind. Nothing more can be done on error.
             let _ = std::fs::remove_file(&self.temp_path);
         }

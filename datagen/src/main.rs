@@ -301,6 +301,9 @@ fn pairs(args: PairsArgs) -> anyhow::Result<()> {
             );
         }
     }
+    // Tens of MB of encoded frames in hundreds of buffers: the process's exit gives them back
+    // at once, faster than freeing them one by one (~20 ms on the benchmark job).
+    std::mem::forget(records);
     Ok(())
 }
 

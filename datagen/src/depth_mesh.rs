@@ -742,8 +742,27 @@ impl MeshView<'_> {
         let ray_to = |p: usize| mesh.points[p].and_then(|point| segment_ray_for_triangles(self.eye, point, epsilon));
         let width = mesh.width as u32;
         let blocks = self.good_blocks(projection, near, size, &bins);
-        // Every quad of the other blocks against the binned points inside its box, but its own
-        // four corners.
+        // A quad of a block that is not skipped, with the smallest (x, y, depth) and largest (x, y)
+        // of its corners, against the binned points inside its box but its own four corners; a
+        // quad reaching close to the camera is left to the per-pixel pass (`everywhere`).
+        let test_quad = |quad: u32, (lo, hi): (DVec3, DVec2), everywhere: &mut Vec<u32>| {
+            let reach = view_bins::Reach::of_range(lo, hi, near, size);
+            match reach {
+                view_bins::Reach::Everywhere => everywhere.push(quad),
+                view_bins::Reach::Outside => {}
+                view_bins::Reach::Box { entry, range } => bins.for_each_inside(&entry, range, |p| {
+                    let corner = p.wrapping_sub(quad);
+                    let own = corner <= 1 || corner.wrapping_sub(width) <= 1;
+                    if own || blocked[p as usize].load(Ordering::Relaxed) {
+                        return;
+                    }
+                    let hits = ray_to(p as usize).is_some_and(|ray| mesh.blocks_segment(quad as usize, &ray, Some(p)));
+                    if hits {
+                        blocked[p as usize].store(true, Ordering::Relaxed);
+                    }
+                }),
+            }
+        };
         let block_rows = (BLOCK * mesh.width).max(1);
         let everywhere: Vec<u32> = separates
             .par_chunks_mut(block_rows)
@@ -751,49 +770,34 @@ impl MeshView<'_> {
             .enumerate()
             .flat_map_iter(|(index, (separates, good))| {
                 let mut everywhere = Vec::new();
-                let range = (index * block_rows, index * block_rows + separates.len());
+                let band_start = index * block_rows;
                 let band_rows = separates.len() / mesh.width.max(1);
-                for (column, &good) in good.iter().enumerate() {
-                    for quarter in 0..4 {
-                        let first_column = column * BLOCK + quarter % 2 * QUARTER;
-                        let columns = (first_column.min(mesh.width), (first_column + QUARTER).min(mesh.width));
-                        let rows =
-                            ((quarter / 2 * QUARTER).min(band_rows), (quarter / 2 * QUARTER + QUARTER).min(band_rows));
-                        if columns.0 == columns.1 || rows.0 == rows.1 {
-                            continue;
-                        }
-                        // The quarter's rows, as indices into the band's quads.
-                        let (first, end) = (rows.0 * mesh.width, rows.1 * mesh.width);
-                        if good & (1 << quarter) != 0 {
-                            // Thick triangles separate at their shared diagonal (`view_bins::thick_quad`).
-                            for row in separates[first..end].chunks_mut(mesh.width) {
-                                row[columns.0..columns.1].fill(true);
-                            }
-                            continue;
-                        }
-                        let quads = (range.0 + first, range.0 + end);
-                        self.band_quads(projection, quads, columns, |offset, corners, separating| {
-                            separates[first + offset] = separating;
-                            let Some((lo, hi)) = corners else { return };
-                            let quad = (quads.0 + offset) as u32;
-                            match view_bins::Reach::of_range(lo, hi, near, size) {
-                                view_bins::Reach::Everywhere => everywhere.push(quad),
-                                view_bins::Reach::Outside => {}
-                                view_bins::Reach::Box { entry, range } => bins.for_each_inside(&entry, range, |p| {
-                                    let corner = p.wrapping_sub(quad);
-                                    let own = corner <= 1 || corner.wrapping_sub(width) <= 1;
-                                    if own || blocked[p as usize].load(Ordering::Relaxed) {
-                                        return;
-                                    }
-                                    let hits = ray_to(p as usize)
-                                        .is_some_and(|ray| mesh.blocks_segment(quad as usize, &ray, Some(p)));
-                                    if hits {
-                                        blocked[p as usize].store(true, Ordering::Relaxed);
-                                    }
-                                }),
-                            }
-                        });
+                // Per quarter of each block of the band: its pixel columns, and its quads as a
+                // range of indices into the band's (whole rows).
+                let quarters = (0..good.len()).flat_map(|column| (0..4).map(move |quarter| (column, quarter)));
+                for (column, quarter) in quarters {
+                    let first_column = column * BLOCK + quarter % 2 * QUARTER;
+                    let columns = (first_column.min(mesh.width), (first_column + QUARTER).min(mesh.width));
+                    let first_row = quarter / 2 * QUARTER;
+                    let rows = (first_row.min(band_rows), (first_row + QUARTER).min(band_rows));
+                    if columns.0 == columns.1 || rows.0 == rows.1 {
+                        continue;
                     }
+                    let (first, end) = (rows.0 * mesh.width, rows.1 * mesh.width);
+                    if good[column] & (1 << quarter) != 0 {
+                        // Thick triangles separate at their shared diagonal (`view_bins::thick_quad`).
+                        for row in separates[first..end].chunks_mut(mesh.width) {
+                            row[columns.0..columns.1].fill(true);
+                        }
+                        continue;
+                    }
+                    let quads = (band_start + first, band_start + end);
+                    self.band_quads(projection, quads, columns, |offset, corners, separating| {
+                        separates[first + offset] = separating;
+                        if let Some(corners) = corners {
+                            test_quad((quads.0 + offset) as u32, corners, &mut everywhere);
+                        }
+                    });
                 }
                 everywhere
             })

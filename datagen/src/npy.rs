@@ -528,13 +528,10 @@ pub fn read_npy_f32_planes(path: &Path, expected: &[Axis]) -> Result<(Vec<usize>
     let shape = declared.info.shape.clone();
     let (count, plane) = (shape.first().copied().unwrap_or(0), shape.iter().skip(1).product::<usize>());
     let planes = match declared.kind {
-        // The common case, read plane by plane (converted as `read_values` converts); other
-        // dtypes go through the whole-array reader.
+        // The common case, read plane by plane (f32 through f64 and back is the value itself, as
+        // `read_values` gives it); other dtypes go through the whole-array reader.
         Kind::F4 if declared.little_endian() => (0..count)
-            .map(|_| {
-                read_little_endian(&mut reader, plane, |b| f32::from_f64(f64::from(f32::from_le_bytes(b))))
-                    .map_err(|e| data_error(source, e))
-            })
+            .map(|_| read_little_endian(&mut reader, plane, f32::from_le_bytes).map_err(|e| data_error(source, e)))
             .collect::<Result<_>>()?,
         _ => read_values::<_, f32>(declared, reader, source)?.into_planes(),
     };

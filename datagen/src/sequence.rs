@@ -258,6 +258,12 @@ impl DepthStack {
     fn from_array(array: NdArray<f32>) -> Self {
         Self { shape: array.shape.clone(), planes: array.into_planes() }
     }
+
+    /// An `(N, H, W)` `.npy` stack, read plane by plane.
+    fn read_npy(path: &Path) -> Result<Self> {
+        let (shape, planes) = read_npy_f32_planes(path, &[Axis::Any, Axis::Pixels, Axis::Pixels])?;
+        Ok(Self { shape, planes })
+    }
 }
 
 /// The reconstruction part of a sequence: depth (N,H,W), optional K and poses, with their files.
@@ -313,8 +319,7 @@ pub fn read_with_frames(
 fn cog_nvs_reconstruction(dir: &Path) -> Result<Reconstruction> {
     let cam = dir.join("cam_info");
     let depth_path = cam.join("megasam_depth.npy");
-    let (shape, planes) = read_npy_f32_planes(&depth_path, &[Axis::Any, Axis::Pixels, Axis::Pixels])?;
-    let depth = DepthStack { shape, planes };
+    let depth = DepthStack::read_npy(&depth_path)?;
     let intrinsics_path = cam.join("megasam_intrinsics.npy");
     let intrinsics = if intrinsics_path.is_file() {
         let k = read_npy_f64_shaped(&intrinsics_path, &[Axis::Is(3), Axis::Is(3)])?;
@@ -676,12 +681,7 @@ pub fn read_exr_folder(depth_dir: &Path) -> Result<DepthStack> {
 /// Per-frame depth maps from a folder of `*.exr` files or an `(N, H, W)` `.npy` array, resampled
 /// (nearest) to `width × height`; there must be exactly `frames` of them.
 pub fn read_depth_stack(path: &Path, frames: usize, width: u32, height: u32) -> Result<Vec<DepthMap>> {
-    let stack = if path.is_dir() {
-        read_exr_folder(path)?
-    } else {
-        let (shape, planes) = read_npy_f32_planes(path, &[Axis::Any, Axis::Pixels, Axis::Pixels])?;
-        DepthStack { shape, planes }
-    };
+    let stack = if path.is_dir() { read_exr_folder(path)? } else { DepthStack::read_npy(path)? };
     let (n, h, w) = (stack.shape[0], stack.shape[1], stack.shape[2]);
     if n != frames {
         return Err(Error::invalid(path, "depth", format!("{n} depth maps for {frames} frames")));

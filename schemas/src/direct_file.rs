@@ -65,11 +65,6 @@ impl DirectFile {
         Ok(Self { path: path.to_owned(), file, direct, buffer, start, filled: 0, written: 0 })
     }
 
-    /// Whether the bytes go to the device directly (false after falling back to buffered writes).
-    pub fn is_direct(&self) -> bool {
-        self.direct
-    }
-
     /// Writes the gathered chunk (`len` bytes of it, a multiple of [`BLOCK`] in direct mode) at
     /// the file's current position, falling back to buffered writes if the filesystem refuses
     /// the direct ones.

@@ -81,6 +81,9 @@ pub fn decode_video(path: &Path) -> Result<Video> {
 
     let mut frames = Vec::new();
     let mut scaler: Option<Scaler> = None;
+    // The RGB conversion's output, one frame reused for all: a fresh frame per picture is a fresh
+    // megabyte whose pages the kernel clears and maps, on the decode's critical path.
+    let mut rgb = VideoFrame::empty();
     let mut receive = |decoder: &mut ffmpeg::decoder::Video, frames: &mut Vec<RgbImage>| -> Result<()> {
         let mut decoded = VideoFrame::empty();
         while decoder.receive_frame(&mut decoded).is_ok() {
@@ -105,7 +108,6 @@ pub fn decode_video(path: &Path) -> Result<Video> {
                         .map_err(|e| video_error(path, "cannot convert to RGB", e))?;
                 scaler = Some(created);
             }
-            let mut rgb = VideoFrame::empty();
             scaler
                 .as_mut()
                 .expect("scaler created above")

@@ -17,10 +17,11 @@ step() { printf '\n==> %s\n' "$*"; }
 fail() { printf '\nsetup.sh: FAILED at step: %s\n' "$*" >&2; exit 1; }
 
 TORCH_VERSION="2.13.0"
+# FFmpeg: the command-line tool, and the development files of the four libraries `ffmpeg-next`
+# links with the features the workspace enables (avcodec, avformat, avutil, swscale).
 APT_PACKAGES=(
   pkg-config clang libclang-dev ffmpeg
-  libavcodec-dev libavformat-dev libavutil-dev libavfilter-dev libavdevice-dev
-  libswscale-dev libswresample-dev
+  libavcodec-dev libavformat-dev libavutil-dev libswscale-dev
   chromium
   libgloo-dev slurm-wlm munge
 )

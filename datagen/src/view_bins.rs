@@ -460,9 +460,10 @@ impl Drop for PointBins {
 
 impl PointBins {
     /// Bins the points `0..count` of an image of `size` pixels: `query(id)` gives a query's
-    /// pixel coordinates K · (p / p.z) and depth p.z in the novel camera (None for no query).
-    /// A query whose pixel rounds outside the bins (outside the image, or behind the camera)
-    /// is [`UNBINNED_QUERY`]; its caller answers it another way.
+    /// pixel coordinates K · (p / p.z) and depth p.z in the novel camera (None for no query),
+    /// and is asked twice for each binned point, so it must answer the same both times. A query
+    /// whose pixel rounds outside the bins (outside the image, or behind the camera) is
+    /// [`UNBINNED_QUERY`]; its caller answers it another way.
     pub fn new(count: usize, query: impl Fn(usize) -> Option<(DVec2, f64)>, (width, height): (usize, usize)) -> Self {
         let mut buffers = POINT_POOL.take();
         let PointBuffers { bins, starts, points } = &mut buffers;

@@ -447,6 +447,8 @@ struct PointBuffers {
     /// Per pixel the points binned there: `starts[p]..starts[p + 1]` of `points`.
     starts: Vec<u32>,
     points: Vec<BinnedPoint>,
+    /// Per point its entry, while sorting.
+    staged: Vec<BinnedPoint>,
 }
 
 static POINT_POOL: Pool<PointBuffers> = Pool::new();
@@ -460,20 +462,20 @@ impl Drop for PointBins {
 
 impl PointBins {
     /// Bins the points `0..count` of an image of `size` pixels: `query(id)` gives a query's
-    /// pixel coordinates K · (p / p.z) and depth p.z in the novel camera (None for no query),
-    /// and is asked twice for each binned point, so it must answer the same both times. A query
-    /// whose pixel rounds outside the bins (outside the image, or behind the camera) is
-    /// [`UNBINNED_QUERY`]; its caller answers it another way.
+    /// pixel coordinates K · (p / p.z) and depth p.z in the novel camera (None for no query).
+    /// A query whose pixel rounds outside the bins (outside the image, or behind the camera)
+    /// is [`UNBINNED_QUERY`]; its caller answers it another way.
     pub fn new(count: usize, query: impl Fn(usize) -> Option<(DVec2, f64)>, (width, height): (usize, usize)) -> Self {
         let mut buffers = POINT_POOL.take();
-        let PointBuffers { bins, starts, points } = &mut buffers;
+        let PointBuffers { bins, starts, points, staged } = &mut buffers;
         let extent = DVec2::new(width as f64, height as f64);
-        // Counting sort by bin, as in `ViewBins::new`: the first pass counts, the second asks for
-        // each binned point again and writes its entry into place (no staged copy of every entry).
+        // Counting sort by bin, as in `ViewBins::new`; each point's entry is made once, staged in
+        // id order.
         bins.resize(count, NO_QUERY);
+        staged.resize(count, BinnedPoint::default());
         starts.clear();
         starts.resize(width * height + 1, 0);
-        for (id, bin) in bins.iter_mut().enumerate() {
+        for (id, (bin, entry)) in bins.iter_mut().zip(staged.iter_mut()).enumerate() {
             *bin = match query(id) {
                 None => NO_QUERY,
                 Some((pixel, depth)) => match bin_of(pixel, depth, extent) {
@@ -481,6 +483,9 @@ impl PointBins {
                     Some([x, y]) => {
                         let bin = y * width + x;
                         starts[bin + 1] += 1;
+                        let (x, y) = (pixel.x as f32, pixel.y as f32);
+                        let limit = (depth * (1.0 + DEPTH_SLACK)) as f32;
+                        *entry = BinnedPoint { pixel: [x, y, -x, -y], limit, id: id as u32 };
                         bin as u32
                     }
                 },
@@ -488,14 +493,11 @@ impl PointBins {
         }
         let total = running_sum(starts);
         points.resize(total as usize, BinnedPoint::default());
-        for (id, &bin) in bins.iter().enumerate().rev() {
+        for (&bin, entry) in bins.iter().zip(staged.iter()).rev() {
             if bin < UNBINNED_QUERY {
-                let (pixel, depth) = query(id).expect("a binned point is a query");
-                let (x, y) = (pixel.x as f32, pixel.y as f32);
-                let limit = (depth * (1.0 + DEPTH_SLACK)) as f32;
                 let slot = &mut starts[bin as usize + 1];
                 *slot -= 1;
-                points[*slot as usize] = BinnedPoint { pixel: [x, y, -x, -y], limit, id: id as u32 };
+                points[*slot as usize] = *entry;
             }
         }
         starts.copy_within(1.., 0);

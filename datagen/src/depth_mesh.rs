@@ -400,21 +400,153 @@ impl DepthMesh {
     /// The mesh seen from a novel camera, for the batches of rays leaving its centre.
     pub fn view(&self, novel: &PinholeCamera) -> MeshView<'_> {
         let novel_from_world = novel.camera_from_world();
-        let projection = matches!(self.acceleration, Acceleration::ImageGrids(_)).then(|| {
-            let mut points = VIEW_POOL.take();
-            // Every element is written below; only growth initialises.
-            points.resize(self.points.len(), DVec3::ZERO);
-            let row = self.width.max(1);
-            points.par_chunks_mut(row).zip(self.points.par_chunks(row)).for_each(|(projected, points)| {
-                for (projected, point) in projected.iter_mut().zip(points) {
-                    *projected = point.map_or(DVec3::new(0.0, 0.0, f64::NAN), |p| project(&novel_from_world, novel, p));
-                }
-            });
-            Projection { points, quad_bins: OnceLock::new() }
-        });
+        let projection =
+            matches!(self.acceleration, Acceleration::ImageGrids(_)).then(|| self.projection(&novel_from_world, novel));
         MeshView { mesh: self, novel: *novel, novel_from_world, eye: novel.center(), projection }
     }
 
+    /// The per-view arrays of the image-grid accelerator: every point projected into `novel`,
+    /// the points binned by the novel pixel they project to, and the integral image of the
+    /// quads that cannot be part of a good block ([`MeshView::good_blocks`]). They come from
+    /// one pass over bands of pixel rows ([`Self::project_band`]): separate passes over the
+    /// 8 MB of projections at 480×720 waited on memory for most of their time.
+    fn projection(&self, novel_from_world: &DMat4, novel: &PinholeCamera) -> Projection {
+        let (width, height) = (self.width, self.height);
+        let size = (novel.width as usize, novel.height as usize);
+        let setup = BandSetup {
+            novel_from_world,
+            novel,
+            grid: view_bins::PointGrid::new(size),
+            near: ViewBins::near_limit(self.nearest_depth),
+        };
+        let mut points = VIEW_POOL.take();
+        let mut bad = BAD_POOL.take();
+        // Every element is written below; only growth initialises.
+        points.resize(self.points.len(), DVec3::ZERO);
+        bad.resize((width + 1) * (height + 1), 0);
+        // Row 0 of the integral image; each band writes its rows' sums along the row.
+        bad[..width + 1].fill(0);
+        let band = QUAD_ROWS_PER_BAND * width.max(1);
+        let point_bins = view_bins::PointBins::new(self.points.len(), size, |bins, entries| {
+            let bands = points
+                .par_chunks_mut(band)
+                .zip(bins.par_chunks_mut(band).zip(entries.par_chunks_mut(band)))
+                .zip(bad[width + 1..].par_chunks_mut(QUAD_ROWS_PER_BAND * (width + 1)));
+            bands.enumerate().for_each(|(index, ((projected, binned), sums))| {
+                self.project_band(index * QUAD_ROWS_PER_BAND, &setup, projected, binned, sums);
+            });
+        });
+        // Summed down the columns.
+        for v in 1..=height {
+            let (above, rows) = bad[(v - 1) * (width + 1)..].split_at_mut(width + 1);
+            for (sum, &above) in rows[..width + 1].iter_mut().zip(above.iter()) {
+                *sum += above;
+            }
+        }
+        Projection { points, bad, point_bins, quad_bins: OnceLock::new() }
+    }
+
+    /// [`Self::projection`] of the band of pixel rows from `first_row`: projects its points into
+    /// `projected`, gives each its [`view_bins::PointBins::entry`] in `bins` and `entries`, and
+    /// writes into `sums` (width + 1 per row) the rows of the integral image of bad quads summed
+    /// along each row ([`bad_quads`]), all while the band's projections are in cache.
+    fn project_band(
+        &self,
+        first_row: usize,
+        setup: &BandSetup,
+        projected: &mut [DVec3],
+        (bins, entries): (&mut [u32], &mut [view_bins::PointEntry]),
+        sums: &mut [u32],
+    ) {
+        let width = self.width;
+        let first = first_row * width;
+        setup.project(projected, &self.points[first..first + projected.len()]);
+        let binned = projected.iter().zip(bins.iter_mut().zip(entries.iter_mut())).enumerate();
+        for (offset, (&q, (bin, entry))) in binned {
+            (*bin, *entry) = view_bins::PointBins::entry(&setup.grid, first + offset, query_of(q));
+        }
+        let mut next_row = Vec::new();
+        for (r, sums) in sums.chunks_mut(width + 1).enumerate() {
+            let v = first_row + r;
+            let lower = match projected.get((r + 1) * width..(r + 2) * width) {
+                Some(lower) => Some(lower),
+                None if v + 1 < self.height => {
+                    // The band's last quad row: its lower corners begin the next band, projected
+                    // here too (the same arithmetic, so the same values).
+                    next_row.resize(width, DVec3::ZERO);
+                    setup.project(&mut next_row, &self.points[(v + 1) * width..(v + 2) * width]);
+                    Some(&next_row[..])
+                }
+                None => None,
+            };
+            let upper = &projected[r * width..(r + 1) * width];
+            sums[0] = 0;
+            bad_quads(upper, lower, &self.quads[v * width..(v + 1) * width], setup.near, &mut sums[1..]);
+        }
+    }
+}
+
+/// What [`DepthMesh::project_band`] needs of the view.
+struct BandSetup<'a> {
+    novel_from_world: &'a DMat4,
+    novel: &'a PinholeCamera,
+    grid: view_bins::PointGrid,
+    /// [`ViewBins::near_limit`] of the mesh.
+    near: f64,
+}
+
+impl BandSetup<'_> {
+    /// `points` projected into `projected` ([`project`]; depth NaN without a point).
+    fn project(&self, projected: &mut [DVec3], points: &[Option<DVec3>]) {
+        for (projected, point) in projected.iter_mut().zip(points) {
+            *projected =
+                point.map_or(DVec3::new(0.0, 0.0, f64::NAN), |p| project(self.novel_from_world, self.novel, p));
+        }
+    }
+}
+
+/// A projected point (pixel x, pixel y, depth; depth NaN for none) as a co-visibility query:
+/// its pixel coordinates and depth, if it has a point. [`view_bins::PointBins`] bins those in
+/// front of the camera and inside its image; the others, answered one by one
+/// ([`MeshView::covisible_single`]), are not co-visible without a segment test.
+#[inline]
+fn query_of(q: DVec3) -> Option<(DVec2, f64)> {
+    (!q.z.is_nan()).then_some((q.truncate(), q.z))
+}
+
+/// Per quad of one row, with corners `upper` and `lower` (projected; None below the last
+/// row), 1 unless it is a surface quad beyond the `near` limit whose two triangles are thick
+/// ([`view_bins::thick_quad`]), summed along the row into `sums` (one per pixel column; the
+/// last column has no quad and counts as bad).
+fn bad_quads(upper: &[DVec3], lower: Option<&[DVec3]>, kinds: &[u32], near: f64, sums: &mut [u32]) {
+    let Some(lower) = lower else {
+        for (u, sum) in sums.iter_mut().enumerate() {
+            *sum = u as u32 + 1;
+        }
+        return;
+    };
+    let (Some(&first_upper), Some(&first_lower)) = (upper.first(), lower.first()) else { return };
+    // Each quad's right corners are the next one's left corners: loaded once.
+    let mut left = (first_upper, first_lower);
+    let mut running = 0;
+    let quads = sums.iter_mut().zip(kinds).zip(upper[1..].iter().zip(&lower[1..]));
+    for ((sum, &kind), (&c1, &c3)) in quads {
+        let (c0, c2) = std::mem::replace(&mut left, (c1, c3));
+        // Surface quads have four valid points: no NaN depth, so plain selects suffice.
+        let smaller = view_bins::smaller;
+        let good = kind == SURFACE
+            && smaller(smaller(c0.z, c1.z), smaller(c2.z, c3.z)) > near
+            && view_bins::thick_quad(c0.truncate(), c1.truncate(), c2.truncate(), c3.truncate(), 2.0);
+        running += u32::from(!good);
+        *sum = running;
+    }
+    // The last column: no quad.
+    if let Some(last) = sums.last_mut() {
+        *last = running + 1;
+    }
+}
+
+impl DepthMesh {
     /// Calls `emit(offset, quad, separates)` for each quad `first + offset` of a band of whole
     /// quad rows ending before `end`: `quad` the smallest (x, y, depth) and largest (x, y) of its
     /// corners as (pixel x, pixel y, depth) in the novel camera (None without triangles), one
@@ -598,6 +730,11 @@ struct Projection {
     /// and the depth of `novel_from_world` applied to [`DepthMesh::point`], computed once per
     /// view for the bins and the co-visibility queries alike; depth NaN where there is no point.
     points: Vec<DVec3>,
+    /// The integral image of the quads that no good block may hold ([`MeshView::good_blocks`]):
+    /// `bad[(v + 1)(width + 1) + u + 1]` counts those in quad rows ..=v and columns ..=u.
+    bad: Vec<u32>,
+    /// The points binned by the novel pixel they project to, for the co-visibility batch.
+    point_bins: view_bins::PointBins,
     /// The triangle bins, for single segments and the render rays, built on first use (the
     /// co-visibility batch, [`MeshView::covisibility`], bins the points instead).
     quad_bins: OnceLock<QuadBins>,
@@ -618,6 +755,7 @@ struct QuadBins {
 /// flags), reused for the same reason as the bins' ([`view_bins`]): fresh image-sized
 /// allocations per view cost the kernel's page clearing.
 static VIEW_POOL: Pool<Vec<DVec3>> = Pool::new();
+static BAD_POOL: Pool<Vec<u32>> = Pool::new();
 static FLAG_POOL: Pool<(Vec<AtomicBool>, Vec<bool>)> = Pool::new();
 
 /// Quad rows per parallel task of the passes over a view's quads.
@@ -639,8 +777,8 @@ const RING: usize = 4;
 
 impl Drop for Projection {
     fn drop(&mut self) {
-        let points = std::mem::take(&mut self.points);
-        VIEW_POOL.give(points);
+        VIEW_POOL.give(std::mem::take(&mut self.points));
+        BAD_POOL.give(std::mem::take(&mut self.bad));
     }
 }
 
@@ -734,14 +872,14 @@ impl MeshView<'_> {
             return mask;
         };
         let (size, near) = self.bin_settings();
-        let bins = view_bins::PointBins::new(pixels, |p| Self::query(projection, p), size);
+        let bins = &projection.point_bins;
         let (mut blocked, mut separates) = FLAG_POOL.take();
         blocked.resize_with(pixels, || AtomicBool::new(false));
         blocked.par_iter().for_each(|flag| flag.store(false, Ordering::Relaxed));
         separates.resize(mesh.quads.len(), false);
         let ray_to = |p: usize| mesh.points[p].and_then(|point| segment_ray_for_triangles(self.eye, point, epsilon));
         let width = mesh.width as u32;
-        let blocks = self.good_blocks(projection, near, size, &bins);
+        let blocks = self.good_blocks(projection, near, size);
         // A quad of a block that is not skipped, with the smallest (x, y, depth) and largest (x, y)
         // of its corners, against the binned points inside its box but its own four corners; a
         // quad reaching close to the camera is left to the per-pixel pass (`everywhere`).
@@ -868,49 +1006,11 @@ impl MeshView<'_> {
     /// reaches: the margin argument of [`view_bins`] keeps every f32 ray to it clear of them. A
     /// quad can hide only points inside its box, which is inside the block's: those of the
     /// rectangle it cannot hide, and there are no others.
-    fn good_blocks(
-        &self,
-        projection: &Projection,
-        near: f64,
-        size: (usize, usize),
-        bins: &view_bins::PointBins,
-    ) -> Vec<u8> {
+    fn good_blocks(&self, projection: &Projection, near: f64, size: (usize, usize)) -> Vec<u8> {
         let mesh = self.mesh;
         let (width, height) = (mesh.width, mesh.height);
         let points = &projection.points;
-        // Per quad: a surface quad beyond the near limit with two thick triangles.
-        let mut bad = vec![0u32; (width + 1) * (height + 1)];
-        bad[width + 2..].par_chunks_mut(width + 1).enumerate().for_each(|(v, flags)| {
-            let columns = width.min(flags.len());
-            let flags = &mut flags[..columns];
-            flags.fill(1);
-            if v + 1 >= height {
-                return;
-            }
-            let (upper, lower) = (&points[v * width..(v + 1) * width], &points[(v + 1) * width..(v + 2) * width]);
-            let kinds = &mesh.quads[v * width..(v + 1) * width];
-            // Each quad's right corners are the next one's left corners: loaded once.
-            let mut left = (upper[0], lower[0]);
-            let quads = flags.iter_mut().zip(kinds).zip(upper[1..].iter().zip(&lower[1..]));
-            for ((flag, &kind), (&c1, &c3)) in quads {
-                let (c0, c2) = std::mem::replace(&mut left, (c1, c3));
-                // Surface quads have four valid points: no NaN depth, so plain selects suffice.
-                let smaller = view_bins::smaller;
-                let good = kind == SURFACE
-                    && smaller(smaller(c0.z, c1.z), smaller(c2.z, c3.z)) > near
-                    && view_bins::thick_quad(c0.truncate(), c1.truncate(), c2.truncate(), c3.truncate(), 2.0);
-                *flag = u32::from(!good);
-            }
-        });
-        // Summed into an integral image: bad[(v + 1)(width + 1) + u + 1] counts the bad quads in
-        // rows ..=v and columns ..=u.
-        for v in 1..=height {
-            let mut running = 0;
-            for u in 1..=width {
-                running += bad[v * (width + 1) + u];
-                bad[v * (width + 1) + u] = running + bad[(v - 1) * (width + 1) + u];
-            }
-        }
+        let (bad, bins) = (&projection.bad, &projection.point_bins);
         let bad_in = |(u0, u1): (usize, usize), (v0, v1): (usize, usize)| {
             let at = |u: usize, v: usize| bad[v * (width + 1) + u];
             at(u1, v1) + at(u0, v0) - at(u0, v1) - at(u1, v0)
@@ -962,18 +1062,8 @@ impl MeshView<'_> {
     pub fn skipped_quad_blocks(&self) -> Option<(usize, usize)> {
         let projection = self.projection.as_ref()?;
         let (size, near) = self.bin_settings();
-        let bins = view_bins::PointBins::new(self.mesh.points.len(), |p| Self::query(projection, p), size);
-        let blocks = self.good_blocks(projection, near, size, &bins);
+        let blocks = self.good_blocks(projection, near, size);
         Some((blocks.iter().map(|quarters| quarters.count_ones() as usize).sum(), 4 * blocks.len()))
-    }
-
-    /// Pixel `p` as a co-visibility query: its point's pixel coordinates and depth in the novel
-    /// camera, if it has a point. [`view_bins::PointBins`] bins those in front of the camera and
-    /// inside its image; the others, answered one by one ([`Self::covisible_single`]), are not
-    /// co-visible without a segment test.
-    fn query(projection: &Projection, p: usize) -> Option<(DVec2, f64)> {
-        let q = projection.points[p];
-        (!q.z.is_nan()).then_some((q.truncate(), q.z))
     }
 
     /// Co-visibility of pixel `p` by a single segment query (the points the batch does not bin,

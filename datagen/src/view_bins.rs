@@ -426,17 +426,42 @@ pub struct PointBins {
 
 /// [`PointBins::all`] of a point that is no query.
 pub const NO_QUERY: u32 = u32::MAX;
-/// [`PointBins::all`] of a query outside the bins (see [`PointBins::new`]).
+/// [`PointBins::all`] of a query outside the bins (see [`PointBins::entry`]).
 pub const UNBINNED_QUERY: u32 = u32::MAX - 1;
 
-/// A binned point as the primitives' scans read it: its pixel coordinates as (x, y, −x, −y),
-/// so that the box test is one SIMD comparison with a box stored as [`Entry::bounds`], the
-/// largest depth a primitive may start at to count ([`DEPTH_SLACK`] included), and its id.
+/// The image a [`PointBins`] covers, as [`PointBins::entry`] reads it.
+#[derive(Clone, Copy)]
+pub struct PointGrid {
+    width: usize,
+    /// (width, height) as f64.
+    extent: DVec2,
+}
+
+impl PointGrid {
+    /// The grid of an image of `size` (width, height) pixels.
+    pub fn new((width, height): (usize, usize)) -> Self {
+        Self { width, extent: DVec2::new(width as f64, height as f64) }
+    }
+}
+
+/// A binned point as the primitives' scans read it: its pixel coordinates, the largest depth
+/// a primitive may start at to count ([`DEPTH_SLACK`] included), and its id; 16 bytes, four to
+/// a cache line (the sorting and the scans wait on memory more than they compute).
 #[derive(Clone, Copy, Default)]
-struct BinnedPoint {
-    pixel: [f32; 4],
+pub struct PointEntry {
+    pixel: [f32; 2],
     limit: f32,
     id: u32,
+}
+
+impl PointEntry {
+    /// Its pixel as (x, y, −x, −y): inside a box stored as [`Entry::bounds`] when the box is ≤
+    /// it, one SIMD comparison.
+    #[inline]
+    fn signed_pixel(&self) -> Vec4 {
+        let [x, y] = self.pixel;
+        Vec4::new(x, y, -x, -y)
+    }
 }
 
 /// The arrays of one view's point bins, pooled like [`BinBuffers`].
@@ -446,9 +471,9 @@ struct PointBuffers {
     bins: Vec<u32>,
     /// Per pixel the points binned there: `starts[p]..starts[p + 1]` of `points`.
     starts: Vec<u32>,
-    points: Vec<BinnedPoint>,
+    points: Vec<PointEntry>,
     /// Per point its entry, while sorting.
-    staged: Vec<BinnedPoint>,
+    staged: Vec<PointEntry>,
 }
 
 static POINT_POOL: Pool<PointBuffers> = Pool::new();
@@ -461,38 +486,30 @@ impl Drop for PointBins {
 }
 
 impl PointBins {
-    /// Bins the points `0..count` of an image of `size` pixels: `query(id)` gives a query's
-    /// pixel coordinates K · (p / p.z) and depth p.z in the novel camera (None for no query).
-    /// A query whose pixel rounds outside the bins (outside the image, or behind the camera)
-    /// is [`UNBINNED_QUERY`]; its caller answers it another way.
-    pub fn new(count: usize, query: impl Fn(usize) -> Option<(DVec2, f64)>, (width, height): (usize, usize)) -> Self {
+    /// Bins the points `0..count` of an image of `size` pixels: `fill` must write each point's
+    /// [`PointBins::entry`] into the two slices it is given (index = id; they hold a previous
+    /// view's values), in whatever order and parallelism suits the caller.
+    pub fn new(
+        count: usize,
+        (width, height): (usize, usize),
+        fill: impl FnOnce(&mut [u32], &mut [PointEntry]),
+    ) -> Self {
         let mut buffers = POINT_POOL.take();
         let PointBuffers { bins, starts, points, staged } = &mut buffers;
-        let extent = DVec2::new(width as f64, height as f64);
-        // Counting sort by bin, as in `ViewBins::new`; each point's entry is made once, staged in
-        // id order.
+        // Pooled arrays keep their length: `fill` overwrites every element.
         bins.resize(count, NO_QUERY);
-        staged.resize(count, BinnedPoint::default());
+        staged.resize(count, PointEntry::default());
+        fill(bins, staged);
+        // Counting sort by bin, as in `ViewBins::new`.
         starts.clear();
         starts.resize(width * height + 1, 0);
-        for (id, (bin, entry)) in bins.iter_mut().zip(staged.iter_mut()).enumerate() {
-            *bin = match query(id) {
-                None => NO_QUERY,
-                Some((pixel, depth)) => match bin_of(pixel, depth, extent) {
-                    None => UNBINNED_QUERY,
-                    Some([x, y]) => {
-                        let bin = y * width + x;
-                        starts[bin + 1] += 1;
-                        let (x, y) = (pixel.x as f32, pixel.y as f32);
-                        let limit = (depth * (1.0 + DEPTH_SLACK)) as f32;
-                        *entry = BinnedPoint { pixel: [x, y, -x, -y], limit, id: id as u32 };
-                        bin as u32
-                    }
-                },
-            };
+        for &bin in bins.iter() {
+            if bin < UNBINNED_QUERY {
+                starts[bin as usize + 1] += 1;
+            }
         }
         let total = running_sum(starts);
-        points.resize(total as usize, BinnedPoint::default());
+        points.resize(total as usize, PointEntry::default());
         for (&bin, entry) in bins.iter().zip(staged.iter()).rev() {
             if bin < UNBINNED_QUERY {
                 let slot = &mut starts[bin as usize + 1];
@@ -503,6 +520,21 @@ impl PointBins {
         starts.copy_within(1.., 0);
         starts[width * height] = points.len() as u32;
         Self { width, buffers }
+    }
+
+    /// Point `id`'s bin (row-major pixel, [`NO_QUERY`] or [`UNBINNED_QUERY`]) and entry, for
+    /// [`PointBins::new`] on `grid`: `query` is its pixel coordinates K · (p / p.z) and depth p.z
+    /// in the novel camera (None for no query). A query whose pixel rounds outside the bins
+    /// (outside the image, or behind the camera) is [`UNBINNED_QUERY`]; its caller answers it
+    /// another way.
+    #[inline]
+    pub fn entry(grid: &PointGrid, id: usize, query: Option<(DVec2, f64)>) -> (u32, PointEntry) {
+        let Some((pixel, depth)) = query else { return (NO_QUERY, PointEntry::default()) };
+        let Some([x, y]) = bin_of(pixel, depth, grid.extent) else { return (UNBINNED_QUERY, PointEntry::default()) };
+        let bin = y * grid.width + x;
+        let (x, y) = (pixel.x as f32, pixel.y as f32);
+        let limit = (depth * (1.0 + DEPTH_SLACK)) as f32;
+        (bin as u32, PointEntry { pixel: [x, y], limit, id: id as u32 })
     }
 
     /// Where each point is binned, by id: its pixel (row-major), [`NO_QUERY`] or
@@ -521,7 +553,7 @@ impl PointBins {
         (y0..=y1).any(|row| {
             let base = row * self.width;
             points[starts[base + x0] as usize..starts[base + x1 + 1] as usize].iter().any(|point| {
-                bounds.cmple(Vec4::from_array(point.pixel)).all() & (entry.nearest <= point.limit) && test(point.id)
+                bounds.cmple(point.signed_pixel()).all() & (entry.nearest <= point.limit) && test(point.id)
             })
         })
     }

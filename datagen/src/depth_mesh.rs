@@ -108,6 +108,9 @@ fn valid(depth: f32) -> bool {
 /// 3 = (u+1, v+1).
 const SPLIT: [[usize; 3]; 2] = [[0, 1, 2], [1, 3, 2]];
 
+/// [`DepthMesh::points`] of a pixel without a point (invalid depth); a valid point is finite.
+const NO_POINT: DVec3 = DVec3::NAN;
+
 /// A quad with no triangles (a corner has invalid depth, or it spans an edge without a skirt).
 const NO_TRIANGLES: u32 = u32::MAX;
 /// A surface quad, whose triangles join its corners' surface points.
@@ -135,7 +138,7 @@ type QuadRow = (usize, Vec<(usize, [Triangle; 2])>);
 /// ([`MESH_POOL`]) rather than allocated anew, for the same reason as the per-view arrays.
 #[derive(Default)]
 struct MeshArrays {
-    points: Vec<Option<DVec3>>,
+    points: Vec<DVec3>,
     vertices: Vec<Vec3A>,
     quads: Vec<u32>,
     columns: Vec<u32>,
@@ -160,8 +163,9 @@ impl Drop for DepthMesh {
 pub struct DepthMesh {
     width: usize,
     height: usize,
-    /// World-space surface point of each pixel (None where depth is invalid).
-    points: Vec<Option<DVec3>>,
+    /// World-space surface point of each pixel ([`NO_POINT`] where depth is invalid: 24 bytes a
+    /// pixel where an `Option` takes 32, and the per-view pass over them waits on memory).
+    points: Vec<DVec3>,
     /// The same points in f32, the triangles' corners (zero where depth is invalid).
     vertices: Vec<Vec3A>,
     /// Per pixel, the quad whose corner 0 it is (see [`SPLIT`]; none in the last column and row):
@@ -196,7 +200,7 @@ impl DepthMesh {
         let MeshArrays { mut points, mut vertices, mut quads, mut columns } = MESH_POOL.take();
         // Points, their f32 copies and the nearest depth in one pass by rows (every element is
         // written; pooled arrays of the right length are not cleared first).
-        points.resize(depth.values.len(), None);
+        points.resize(depth.values.len(), NO_POINT);
         vertices.resize(depth.values.len(), Vec3A::ZERO);
         let row = width.max(1);
         let nearest_depth = points
@@ -207,10 +211,12 @@ impl DepthMesh {
             .map(|(v, ((points, vertices), depths))| {
                 let mut nearest = f64::INFINITY;
                 for (u, ((point, vertex), &d)) in points.iter_mut().zip(vertices.iter_mut()).zip(depths).enumerate() {
-                    *point = valid(d).then(|| center + f64::from(d) * ray(u as u32, v as u32));
-                    *vertex = point.map_or(Vec3A::ZERO, to_vec3a);
-                    if point.is_some() {
+                    if valid(d) {
+                        *point = center + f64::from(d) * ray(u as u32, v as u32);
+                        *vertex = to_vec3a(*point);
                         nearest = nearest.min(f64::from(d));
+                    } else {
+                        (*point, *vertex) = (NO_POINT, Vec3A::ZERO);
                     }
                 }
                 nearest
@@ -497,10 +503,13 @@ struct BandSetup<'a> {
 
 impl BandSetup<'_> {
     /// `points` projected into `projected` ([`project`]; depth NaN without a point).
-    fn project(&self, projected: &mut [DVec3], points: &[Option<DVec3>]) {
-        for (projected, point) in projected.iter_mut().zip(points) {
-            *projected =
-                point.map_or(DVec3::new(0.0, 0.0, f64::NAN), |p| project(self.novel_from_world, self.novel, p));
+    fn project(&self, projected: &mut [DVec3], points: &[DVec3]) {
+        for (projected, &point) in projected.iter_mut().zip(points) {
+            *projected = if point.x.is_nan() {
+                DVec3::new(0.0, 0.0, f64::NAN)
+            } else {
+                project(self.novel_from_world, self.novel, point)
+            };
         }
     }
 }
@@ -604,7 +613,8 @@ impl DepthMesh {
 
     /// The surface point of pixel `index` (row-major), if its depth is valid.
     pub fn point(&self, index: usize) -> Option<DVec3> {
-        self.points[index]
+        let point = self.points[index];
+        (!point.x.is_nan()).then_some(point)
     }
 
     /// Image width the mesh was lifted from.
@@ -875,9 +885,10 @@ impl MeshView<'_> {
         let bins = &projection.point_bins;
         let (mut blocked, mut separates) = FLAG_POOL.take();
         blocked.resize_with(pixels, || AtomicBool::new(false));
-        blocked.par_iter().for_each(|flag| flag.store(false, Ordering::Relaxed));
+        // Plain stores through `&mut` (a memset), not one atomic store per flag.
+        blocked.iter_mut().for_each(|flag| *flag.get_mut() = false);
         separates.resize(mesh.quads.len(), false);
-        let ray_to = |p: usize| mesh.points[p].and_then(|point| segment_ray_for_triangles(self.eye, point, epsilon));
+        let ray_to = |p: usize| mesh.point(p).and_then(|point| segment_ray_for_triangles(self.eye, point, epsilon));
         let width = mesh.width as u32;
         let blocks = self.good_blocks(projection, near, size);
         // A quad of a block that is not skipped, with the smallest (x, y, depth) and largest (x, y)

@@ -403,7 +403,9 @@ impl DepthMesh {
         self.quad_hits(quad, ray, true, exclude).any(|t| t < ray.tmax)
     }
 
-    /// The mesh seen from a novel camera, for the batches of rays leaving its centre.
+    /// The mesh seen from a novel camera, for the batches of rays leaving its centre. With the
+    /// image-grid accelerator this projects and bins every point for the co-visibility batch
+    /// (`projection`); the triangle bins of single queries are built on their first use.
     pub fn view(&self, novel: &PinholeCamera) -> MeshView<'_> {
         let novel_from_world = novel.camera_from_world();
         let projection =
@@ -490,72 +492,7 @@ impl DepthMesh {
             bad_quads(upper, lower, &self.quads[v * width..(v + 1) * width], setup.near, &mut sums[1..]);
         }
     }
-}
 
-/// What [`DepthMesh::project_band`] needs of the view.
-struct BandSetup<'a> {
-    novel_from_world: &'a DMat4,
-    novel: &'a PinholeCamera,
-    grid: view_bins::PointGrid,
-    /// [`ViewBins::near_limit`] of the mesh.
-    near: f64,
-}
-
-impl BandSetup<'_> {
-    /// `points` projected into `projected` ([`project`]; depth NaN without a point).
-    fn project(&self, projected: &mut [DVec3], points: &[DVec3]) {
-        for (projected, &point) in projected.iter_mut().zip(points) {
-            *projected = if point.x.is_nan() {
-                DVec3::new(0.0, 0.0, f64::NAN)
-            } else {
-                project(self.novel_from_world, self.novel, point)
-            };
-        }
-    }
-}
-
-/// A projected point (pixel x, pixel y, depth; depth NaN for none) as a co-visibility query:
-/// its pixel coordinates and depth, if it has a point. [`view_bins::PointBins`] bins those in
-/// front of the camera and inside its image; the others, answered one by one
-/// ([`MeshView::covisible_single`]), are not co-visible without a segment test.
-#[inline]
-fn query_of(q: DVec3) -> Option<(DVec2, f64)> {
-    (!q.z.is_nan()).then_some((q.truncate(), q.z))
-}
-
-/// Per quad of one row, with corners `upper` and `lower` (projected; None below the last
-/// row), 1 unless it is a surface quad beyond the `near` limit whose two triangles are thick
-/// ([`view_bins::thick_quad`]), summed along the row into `sums` (one per pixel column; the
-/// last column has no quad and counts as bad).
-fn bad_quads(upper: &[DVec3], lower: Option<&[DVec3]>, kinds: &[u32], near: f64, sums: &mut [u32]) {
-    let Some(lower) = lower else {
-        for (u, sum) in sums.iter_mut().enumerate() {
-            *sum = u as u32 + 1;
-        }
-        return;
-    };
-    let (Some(&first_upper), Some(&first_lower)) = (upper.first(), lower.first()) else { return };
-    // Each quad's right corners are the next one's left corners: loaded once.
-    let mut left = (first_upper, first_lower);
-    let mut running = 0;
-    let quads = sums.iter_mut().zip(kinds).zip(upper[1..].iter().zip(&lower[1..]));
-    for ((sum, &kind), (&c1, &c3)) in quads {
-        let (c0, c2) = std::mem::replace(&mut left, (c1, c3));
-        // Surface quads have four valid points: no NaN depth, so plain selects suffice.
-        let smaller = view_bins::smaller;
-        let good = kind == SURFACE
-            && smaller(smaller(c0.z, c1.z), smaller(c2.z, c3.z)) > near
-            && view_bins::thick_quad(c0.truncate(), c1.truncate(), c2.truncate(), c3.truncate(), 2.0);
-        running += u32::from(!good);
-        *sum = running;
-    }
-    // The last column: no quad.
-    if let Some(last) = sums.last_mut() {
-        *last = running + 1;
-    }
-}
-
-impl DepthMesh {
     /// Calls `emit(offset, quad, separates)` for each quad `first + offset` of a band of whole
     /// quad rows ending before `end`: `quad` the smallest (x, y, depth) and largest (x, y) of its
     /// corners as (pixel x, pixel y, depth) in the novel camera (None without triangles), one
@@ -693,6 +630,69 @@ impl DepthMesh {
         let nearest =
             (0..self.quads.len()).map(|quad| self.hit_quad(quad, &ray, false, None)).fold(f32::INFINITY, f32::min);
         nearest.is_finite().then_some(f64::from(nearest))
+    }
+}
+
+/// What [`DepthMesh::project_band`] needs of the view.
+struct BandSetup<'a> {
+    novel_from_world: &'a DMat4,
+    novel: &'a PinholeCamera,
+    grid: view_bins::PointGrid,
+    /// [`ViewBins::near_limit`] of the mesh.
+    near: f64,
+}
+
+impl BandSetup<'_> {
+    /// `points` projected into `projected` ([`project`]; depth NaN without a point).
+    fn project(&self, projected: &mut [DVec3], points: &[DVec3]) {
+        for (projected, &point) in projected.iter_mut().zip(points) {
+            *projected = if point.x.is_nan() {
+                DVec3::new(0.0, 0.0, f64::NAN)
+            } else {
+                project(self.novel_from_world, self.novel, point)
+            };
+        }
+    }
+}
+
+/// A projected point (pixel x, pixel y, depth; depth NaN for none) as a co-visibility query:
+/// its pixel coordinates and depth, if it has a point. [`view_bins::PointBins`] bins those in
+/// front of the camera and inside its image; the others, answered one by one
+/// ([`MeshView::covisible_single`]), are not co-visible without a segment test.
+#[inline]
+fn query_of(q: DVec3) -> Option<(DVec2, f64)> {
+    (!q.z.is_nan()).then_some((q.truncate(), q.z))
+}
+
+/// Per quad of one row, with corners `upper` and `lower` (projected; None below the last
+/// row), 1 unless it is a surface quad beyond the `near` limit whose two triangles are thick
+/// ([`view_bins::thick_quad`]), summed along the row into `sums` (one per pixel column; the
+/// last column has no quad and counts as bad).
+fn bad_quads(upper: &[DVec3], lower: Option<&[DVec3]>, kinds: &[u32], near: f64, sums: &mut [u32]) {
+    let Some(lower) = lower else {
+        for (u, sum) in sums.iter_mut().enumerate() {
+            *sum = u as u32 + 1;
+        }
+        return;
+    };
+    let (Some(&first_upper), Some(&first_lower)) = (upper.first(), lower.first()) else { return };
+    // Each quad's right corners are the next one's left corners: loaded once.
+    let mut left = (first_upper, first_lower);
+    let mut running = 0;
+    let quads = sums.iter_mut().zip(kinds).zip(upper[1..].iter().zip(&lower[1..]));
+    for ((sum, &kind), (&c1, &c3)) in quads {
+        let (c0, c2) = std::mem::replace(&mut left, (c1, c3));
+        // Surface quads have four valid points: no NaN depth, so plain selects suffice.
+        let smaller = view_bins::smaller;
+        let good = kind == SURFACE
+            && smaller(smaller(c0.z, c1.z), smaller(c2.z, c3.z)) > near
+            && view_bins::thick_quad(c0.truncate(), c1.truncate(), c2.truncate(), c3.truncate(), 2.0);
+        running += u32::from(!good);
+        *sum = running;
+    }
+    // The last column: no quad.
+    if let Some(last) = sums.last_mut() {
+        *last = running + 1;
     }
 }
 

@@ -111,6 +111,12 @@ const SPLIT: [[usize; 3]; 2] = [[0, 1, 2], [1, 3, 2]];
 /// [`DepthMesh::points`] of a pixel without a point (invalid depth); a valid point is finite.
 const NO_POINT: DVec3 = DVec3::NAN;
 
+/// A stored point as an `Option`: None for [`NO_POINT`].
+#[inline]
+fn stored_point(point: DVec3) -> Option<DVec3> {
+    (!point.x.is_nan()).then_some(point)
+}
+
 /// A quad with no triangles (a corner has invalid depth, or it spans an edge without a skirt).
 const NO_TRIANGLES: u32 = u32::MAX;
 /// A surface quad, whose triangles join its corners' surface points.
@@ -420,11 +426,10 @@ impl DepthMesh {
     /// 8 MB of projections at 480×720 waited on memory for most of their time.
     fn projection(&self, novel_from_world: &DMat4, novel: &PinholeCamera) -> Projection {
         let (width, height) = (self.width, self.height);
-        let size = (novel.width as usize, novel.height as usize);
         let setup = BandSetup {
             novel_from_world,
             novel,
-            grid: view_bins::PointGrid::new(size),
+            grid: view_bins::PointGrid::new((novel.width as usize, novel.height as usize)),
             near: ViewBins::near_limit(self.nearest_depth),
         };
         let mut points = VIEW_POOL.take();
@@ -435,7 +440,7 @@ impl DepthMesh {
         // Row 0 of the integral image; each band writes its rows' sums along the row.
         bad[..width + 1].fill(0);
         let band = QUAD_ROWS_PER_BAND * width.max(1);
-        let point_bins = view_bins::PointBins::new(self.points.len(), size, |bins, entries| {
+        let point_bins = view_bins::PointBins::new(self.points.len(), &setup.grid, |bins, entries| {
             let bands = points
                 .par_chunks_mut(band)
                 .zip(bins.par_chunks_mut(band).zip(entries.par_chunks_mut(band)))
@@ -455,7 +460,7 @@ impl DepthMesh {
     }
 
     /// [`Self::projection`] of the band of pixel rows from `first_row`: projects its points into
-    /// `projected`, gives each its [`view_bins::PointBins::entry`] in `bins` and `entries`, and
+    /// `projected`, gives each its [`view_bins::PointGrid::entry`] in `bins` and `entries`, and
     /// writes into `sums` (width + 1 per row) the rows of the integral image of bad quads summed
     /// along each row ([`bad_quads`]), all while the band's projections are in cache.
     fn project_band(
@@ -471,7 +476,7 @@ impl DepthMesh {
         setup.project(projected, &self.points[first..first + projected.len()]);
         let binned = projected.iter().zip(bins.iter_mut().zip(entries.iter_mut())).enumerate();
         for (offset, (&q, (bin, entry))) in binned {
-            (*bin, *entry) = view_bins::PointBins::entry(&setup.grid, first + offset, query_of(q));
+            (*bin, *entry) = setup.grid.entry(first + offset, query_of(q));
         }
         let mut next_row = Vec::new();
         for (r, sums) in sums.chunks_mut(width + 1).enumerate() {
@@ -550,8 +555,7 @@ impl DepthMesh {
 
     /// The surface point of pixel `index` (row-major), if its depth is valid.
     pub fn point(&self, index: usize) -> Option<DVec3> {
-        let point = self.points[index];
-        (!point.x.is_nan()).then_some(point)
+        stored_point(self.points[index])
     }
 
     /// Image width the mesh was lifted from.
@@ -646,11 +650,8 @@ impl BandSetup<'_> {
     /// `points` projected into `projected` ([`project`]; depth NaN without a point).
     fn project(&self, projected: &mut [DVec3], points: &[DVec3]) {
         for (projected, &point) in projected.iter_mut().zip(points) {
-            *projected = if point.x.is_nan() {
-                DVec3::new(0.0, 0.0, f64::NAN)
-            } else {
-                project(self.novel_from_world, self.novel, point)
-            };
+            *projected = stored_point(point)
+                .map_or(DVec3::new(0.0, 0.0, f64::NAN), |p| project(self.novel_from_world, self.novel, p));
         }
     }
 }
@@ -851,8 +852,7 @@ impl MeshView<'_> {
     /// depth p.z, p = `novel.camera_from_world()` applied to [`DepthMesh::point`], as computed
     /// there (None without a point, or with the BVH accelerator).
     pub fn projected(&self, index: usize) -> Option<(DVec2, f64)> {
-        let p = *self.projection.as_ref()?.points.get(index)?;
-        (!p.z.is_nan()).then_some((p.truncate(), p.z))
+        query_of(*self.projection.as_ref()?.points.get(index)?)
     }
 
     /// Bin entries and unbinned primitives of the per-view triangle bins (None with the BVH).

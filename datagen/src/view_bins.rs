@@ -426,21 +426,36 @@ pub struct PointBins {
 
 /// [`PointBins::all`] of a point that is no query.
 pub const NO_QUERY: u32 = u32::MAX;
-/// [`PointBins::all`] of a query outside the bins (see [`PointBins::entry`]).
+/// [`PointBins::all`] of a query outside the bins (see [`PointGrid::entry`]).
 pub const UNBINNED_QUERY: u32 = u32::MAX - 1;
 
-/// The image a [`PointBins`] covers, as [`PointBins::entry`] reads it.
+/// The image a [`PointBins`] covers: one bin per pixel.
 #[derive(Clone, Copy)]
 pub struct PointGrid {
     width: usize,
-    /// (width, height) as f64.
+    height: usize,
+    /// (width, height) as f64, for [`bin_of`].
     extent: DVec2,
 }
 
 impl PointGrid {
     /// The grid of an image of `size` (width, height) pixels.
     pub fn new((width, height): (usize, usize)) -> Self {
-        Self { width, extent: DVec2::new(width as f64, height as f64) }
+        Self { width, height, extent: DVec2::new(width as f64, height as f64) }
+    }
+
+    /// Point `id`'s bin (row-major pixel, [`NO_QUERY`] or [`UNBINNED_QUERY`]) and entry, for
+    /// [`PointBins::new`]: `query` is its pixel coordinates K · (p / p.z) and depth p.z in the
+    /// novel camera (None for no query). A query whose pixel rounds outside the bins (outside the
+    /// image, or behind the camera) is [`UNBINNED_QUERY`]; its caller answers it another way.
+    #[inline]
+    pub fn entry(&self, id: usize, query: Option<(DVec2, f64)>) -> (u32, PointEntry) {
+        let Some((pixel, depth)) = query else { return (NO_QUERY, PointEntry::default()) };
+        let Some([x, y]) = bin_of(pixel, depth, self.extent) else { return (UNBINNED_QUERY, PointEntry::default()) };
+        let bin = y * self.width + x;
+        let (x, y) = (pixel.x as f32, pixel.y as f32);
+        let limit = (depth * (1.0 + DEPTH_SLACK)) as f32;
+        (bin as u32, PointEntry { pixel: [x, y], limit, id: id as u32 })
     }
 }
 
@@ -486,14 +501,11 @@ impl Drop for PointBins {
 }
 
 impl PointBins {
-    /// Bins the points `0..count` of an image of `size` pixels: `fill` must write each point's
-    /// [`PointBins::entry`] into the two slices it is given (index = id; they hold a previous
-    /// view's values), in whatever order and parallelism suits the caller.
-    pub fn new(
-        count: usize,
-        (width, height): (usize, usize),
-        fill: impl FnOnce(&mut [u32], &mut [PointEntry]),
-    ) -> Self {
+    /// Bins the points `0..count` on `grid`: `fill` must write each point's [`PointGrid::entry`]
+    /// into the two slices it is given (index = id; they hold a previous view's values), in
+    /// whatever order and parallelism suits the caller.
+    pub fn new(count: usize, grid: &PointGrid, fill: impl FnOnce(&mut [u32], &mut [PointEntry])) -> Self {
+        let (width, height) = (grid.width, grid.height);
         let mut buffers = POINT_POOL.take();
         let PointBuffers { bins, starts, points, staged } = &mut buffers;
         // Pooled arrays keep their length: `fill` overwrites every element.
@@ -520,21 +532,6 @@ impl PointBins {
         starts.copy_within(1.., 0);
         starts[width * height] = points.len() as u32;
         Self { width, buffers }
-    }
-
-    /// Point `id`'s bin (row-major pixel, [`NO_QUERY`] or [`UNBINNED_QUERY`]) and entry, for
-    /// [`PointBins::new`] on `grid`: `query` is its pixel coordinates K · (p / p.z) and depth p.z
-    /// in the novel camera (None for no query). A query whose pixel rounds outside the bins
-    /// (outside the image, or behind the camera) is [`UNBINNED_QUERY`]; its caller answers it
-    /// another way.
-    #[inline]
-    pub fn entry(grid: &PointGrid, id: usize, query: Option<(DVec2, f64)>) -> (u32, PointEntry) {
-        let Some((pixel, depth)) = query else { return (NO_QUERY, PointEntry::default()) };
-        let Some([x, y]) = bin_of(pixel, depth, grid.extent) else { return (UNBINNED_QUERY, PointEntry::default()) };
-        let bin = y * grid.width + x;
-        let (x, y) = (pixel.x as f32, pixel.y as f32);
-        let limit = (depth * (1.0 + DEPTH_SLACK)) as f32;
-        (bin as u32, PointEntry { pixel: [x, y], limit, id: id as u32 })
     }
 
     /// Where each point is binned, by id: its pixel (row-major), [`NO_QUERY`] or

@@ -198,6 +198,31 @@ fn every_accelerator_equals_brute_force_pixel_for_pixel() {
     }
 }
 
+/// Asserts that a co-visibility `mask` of `mesh` seen from `novel` keeps exactly the pixels with a
+/// point in front of the camera, inside its image, and not blocked by brute force; gives how many
+/// such points were blocked. `context` names the case in failures.
+fn assert_mask_is_brute_force(
+    mesh: &DepthMesh,
+    novel: &PinholeCamera,
+    config: &CovisibilityConfig,
+    mask: &[bool],
+    context: &str,
+) -> usize {
+    let mut blocked = 0;
+    for (index, &kept) in mask.iter().enumerate() {
+        let Some(point) = mesh.point(index) else {
+            assert!(!kept, "{context}: pixel {index} has no point");
+            continue;
+        };
+        let brute = mesh.segment_blocked_brute_force(novel.center(), point, Some(index as u32), config.epsilon);
+        let in_novel = novel.camera_from_world().transform_point3(point);
+        let seen = in_novel.z > 0.0 && novel.contains(datagen::camera::pixel_of(&novel.intrinsics, in_novel));
+        assert_eq!(kept, seen && !brute, "{context}: pixel {index}");
+        blocked += usize::from(seen && brute);
+    }
+    blocked
+}
+
 /// The co-visibility batch skips the quads of regular blocks only where nothing else can be
 /// hidden by them: a tilted plane (regular everywhere) with a square floating in front of it,
 /// seen from cameras moved sideways and turned, so that the square's blocks cover background
@@ -221,6 +246,7 @@ fn skipped_quad_blocks_hide_nothing_brute_force_would_find() {
     let depth = datagen::depth_exr::DepthMap { width: width as usize, height: height as usize, values };
     let config = CovisibilityConfig::default();
     let mesh = DepthMesh::new(&depth, &source, &config.mesh);
+    assert!((0..(width * height) as usize).all(|index| mesh.point(index).is_some()), "every depth is valid");
     let (mut skipped, mut tested, mut blocked) = (0, 0, 0);
     for (shift, turn) in [(0.4, 2.0), (-0.6, -4.0), (0.3, 25.0)] {
         let rotation = glam::DMat4::from_rotation_y(f64::to_radians(turn)) * glam::DMat4::from_rotation_z(0.2);
@@ -230,14 +256,7 @@ fn skipped_quad_blocks_hide_nothing_brute_force_would_find() {
         let (s, all) = view.skipped_quad_blocks().expect("image grids");
         (skipped, tested) = (skipped + s, tested + all - s);
         let mask = covisibility_mask(&mesh, &source, &novel, &config);
-        for (index, &kept) in mask.iter().enumerate() {
-            let point = mesh.point(index).expect("every depth is valid");
-            let brute = mesh.segment_blocked_brute_force(novel.center(), point, Some(index as u32), config.epsilon);
-            let in_novel = novel.camera_from_world().transform_point3(point);
-            let seen = in_novel.z > 0.0 && novel.contains(datagen::camera::pixel_of(&novel.intrinsics, in_novel));
-            assert_eq!(kept, seen && !brute, "shift {shift}, turn {turn}: pixel {index}");
-            blocked += usize::from(seen && brute);
-        }
+        blocked += assert_mask_is_brute_force(&mesh, &novel, &config, &mask, &format!("shift {shift}, turn {turn}"));
     }
     assert!(blocked > 100, "the square must hide part of the plane ({blocked})");
     assert!(skipped > 0 && tested > 0, "blocks skipped {skipped}, tested {tested}");
@@ -285,17 +304,8 @@ fn masks_of_images_cut_into_partial_bands_equal_brute_force() {
             skipped += mesh.view(&novel).skipped_quad_blocks().expect("image grids").0;
             let mask = covisibility_mask(&mesh, &source, &novel, &config);
             assert_eq!(mask.len(), (width * height) as usize);
-            for (index, &kept) in mask.iter().enumerate() {
-                let Some(point) = mesh.point(index) else {
-                    assert!(!kept, "{width}×{height}: pixel {index} has no point");
-                    continue;
-                };
-                let brute = mesh.segment_blocked_brute_force(novel.center(), point, Some(index as u32), config.epsilon);
-                let in_novel = novel.camera_from_world().transform_point3(point);
-                let seen = in_novel.z > 0.0 && novel.contains(datagen::camera::pixel_of(&novel.intrinsics, in_novel));
-                assert_eq!(kept, seen && !brute, "{width}×{height}, shift {shift}, turn {turn}: pixel {index}");
-                blocked += usize::from(seen && brute);
-            }
+            let context = format!("{width}×{height}, shift {shift}, turn {turn}");
+            blocked += assert_mask_is_brute_force(&mesh, &novel, &config, &mask, &context);
         }
     }
     assert!(blocked > 100, "the ridges and the square must hide something ({blocked})");

@@ -26,6 +26,18 @@ if [[ ! -f "$base/src/Cargo.toml" || "$(cat "$base/commit" 2>/dev/null)" != "$co
     git archive "$commit" | tar -x -C "$base/src"
     echo "$commit" >"$base/commit"
 fi
+# Revisions before the workspace narrowed ffmpeg-next's features (aee6d46 among them) build it with
+# its defaults, which also link libavfilter, libavdevice and libswresample: scripts/setup.sh
+# installs only the four libraries the working tree needs, so the others are installed here,
+# as setup installs its packages, when pkg-config lacks them.
+bench_packages=(libavfilter-dev libavdevice-dev libswresample-dev)
+if ! pkg-config --exists libavfilter libavdevice libswresample; then
+    echo "installing ${bench_packages[*]} (FFmpeg libraries that older revisions link) ..."
+    sudo_cmd=()
+    [[ $(id -u) -ne 0 ]] && sudo_cmd=(sudo)
+    "${sudo_cmd[@]}" apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive "${sudo_cmd[@]}" apt-get install -y -qq "${bench_packages[@]}"
+fi
 echo "building $rev ($commit) in $base (release) ..."
 (cd "$base/src" && CARGO_TARGET_DIR="$root/$base/target" cargo build --release -p datagen --quiet)
 cp "$base/target/release/datagen" "$base/datagen-$commit"

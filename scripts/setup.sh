@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # One-step, idempotent set-up of a fresh Debian machine for this workspace:
 #   1. Debian packages: FFmpeg development libraries and CLI, clang/libclang, pkg-config,
+#      libzstd-dev (Parquet's zstd links it: see `.cargo/config.toml`),
 #      chromium (headless, renders `datagen inspect --report` pages in a test); gloo's headers (the
 #      c10d shim of `trainer` compiles against them); slurm-wlm and munge (a one-node Slurm that
 #      `scripts/test_slurm.sh` starts and stops);
@@ -22,6 +23,7 @@ TORCH_VERSION="2.13.0"
 APT_PACKAGES=(
   pkg-config clang libclang-dev ffmpeg
   libavcodec-dev libavformat-dev libavutil-dev libswscale-dev
+  libzstd-dev
   chromium
   libgloo-dev slurm-wlm munge
 )

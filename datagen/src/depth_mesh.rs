@@ -891,7 +891,11 @@ impl MeshView<'_> {
         blocked.resize_with(pixels, || AtomicBool::new(false));
         // Plain stores through `&mut` (a memset), not one atomic store per flag.
         blocked.iter_mut().for_each(|flag| *flag.get_mut() = false);
-        separates.resize(mesh.quads.len(), false);
+        // The quads of good quarters keep `true`: thick triangles separate at their shared
+        // diagonal (`view_bins::thick_quad`). The others' flags are written as they are tested.
+        // One fill of the whole array, not a few bytes per row of each of ~20 000 quarters.
+        separates.clear();
+        separates.resize(mesh.quads.len(), true);
         let ray_to = |p: usize| mesh.point(p).and_then(|point| segment_ray_for_triangles(self.eye, point, epsilon));
         let width = mesh.width as u32;
         let blocks = self.good_blocks(projection, near, size);
@@ -925,10 +929,10 @@ impl MeshView<'_> {
                 let mut everywhere = Vec::new();
                 let band_start = index * block_rows;
                 let band_rows = separates.len() / mesh.width.max(1);
-                // Per quarter of each block of the band: its pixel columns, and its quads as a
-                // range of indices into the band's (whole rows).
+                // Per quarter of each block of the band that is not good: its pixel columns, and its
+                // quads as a range of indices into the band's (whole rows).
                 let quarters = (0..good.len()).flat_map(|column| (0..4).map(move |quarter| (column, quarter)));
-                for (column, quarter) in quarters {
+                for (column, quarter) in quarters.filter(|&(column, quarter)| good[column] & (1 << quarter) == 0) {
                     let first_column = column * BLOCK + quarter % 2 * QUARTER;
                     let columns = (first_column.min(mesh.width), (first_column + QUARTER).min(mesh.width));
                     let first_row = quarter / 2 * QUARTER;
@@ -937,13 +941,6 @@ impl MeshView<'_> {
                         continue;
                     }
                     let (first, end) = (rows.0 * mesh.width, rows.1 * mesh.width);
-                    if good[column] & (1 << quarter) != 0 {
-                        // Thick triangles separate at their shared diagonal (`view_bins::thick_quad`).
-                        for row in separates[first..end].chunks_mut(mesh.width) {
-                            row[columns.0..columns.1].fill(true);
-                        }
-                        continue;
-                    }
                     let quads = (band_start + first, band_start + end);
                     self.band_quads(projection, quads, columns, |offset, corners, separating| {
                         separates[first + offset] = separating;

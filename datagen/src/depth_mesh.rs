@@ -1038,8 +1038,9 @@ impl MeshView<'_> {
             // The widest rectangle of at most RINGS rings without a bad quad: a wider one accepts
             // every point a narrower one does (its inner vertices include theirs).
             let rectangle = |rings: usize| {
-                let u = (bu.saturating_sub(rings), (u1 + rings).min(quad_columns));
-                (u, (bv.saturating_sub(rings), (v1 + rings).min(quad_rows)))
+                let widen =
+                    |(start, end): (usize, usize), last: usize| (start.saturating_sub(rings), (end + rings).min(last));
+                (widen((bu, u1), quad_columns), widen((bv, v1), quad_rows))
             };
             let Some((ring_u, ring_v)) = (1..=RINGS).rev().map(rectangle).find(|&(u, v)| bad_in(u, v) == 0) else {
                 return false;

@@ -902,22 +902,30 @@ impl MeshView<'_> {
         // A quad of a block that is not skipped, with the smallest (x, y, depth) and largest (x, y)
         // of its corners, against the binned points inside its box but its own four corners; a
         // quad reaching close to the camera is left to the per-pixel pass (`everywhere`).
-        let test_quad = |quad: u32, (lo, hi): (DVec3, DVec2), everywhere: &mut Vec<u32>| {
+        let test_quad = |quad: u32, (lo, hi): (DVec3, DVec2), (everywhere, candidates): &mut (Vec<u32>, Vec<u32>)| {
             let reach = view_bins::Reach::of_range(lo, hi, near, size);
             match reach {
                 view_bins::Reach::Everywhere => everywhere.push(quad),
                 view_bins::Reach::Outside => {}
-                view_bins::Reach::Box { entry, range } => bins.for_each_inside(&entry, range, |p| {
-                    let corner = p.wrapping_sub(quad);
-                    let own = corner <= 1 || corner.wrapping_sub(width) <= 1;
-                    if own || blocked[p as usize].load(Ordering::Relaxed) {
-                        return;
+                view_bins::Reach::Box { entry, range } => {
+                    // The quad's own corners (most of the points inside its box) are left out.
+                    let own = |p: u32| {
+                        let corner = p.wrapping_sub(quad);
+                        (corner <= 1) | (corner.wrapping_sub(width) <= 1)
+                    };
+                    candidates.clear();
+                    bins.collect_inside(&entry, range, own, candidates);
+                    for &p in candidates.iter() {
+                        if blocked[p as usize].load(Ordering::Relaxed) {
+                            continue;
+                        }
+                        let hits =
+                            ray_to(p as usize).is_some_and(|ray| mesh.blocks_segment(quad as usize, &ray, Some(p)));
+                        if hits {
+                            blocked[p as usize].store(true, Ordering::Relaxed);
+                        }
                     }
-                    let hits = ray_to(p as usize).is_some_and(|ray| mesh.blocks_segment(quad as usize, &ray, Some(p)));
-                    if hits {
-                        blocked[p as usize].store(true, Ordering::Relaxed);
-                    }
-                }),
+                }
             }
         };
         let block_rows = (BLOCK * mesh.width).max(1);
@@ -926,7 +934,8 @@ impl MeshView<'_> {
             .zip(blocks.par_chunks(mesh.width.div_ceil(BLOCK).max(1)))
             .enumerate()
             .flat_map_iter(|(index, (separates, good))| {
-                let mut everywhere = Vec::new();
+                // The quads tested by every ray, and the candidates of one quad at a time.
+                let mut lists = (Vec::new(), Vec::new());
                 let band_start = index * block_rows;
                 let band_rows = separates.len() / mesh.width.max(1);
                 // Per quarter of each block of the band that is not good: its pixel columns, and its
@@ -945,11 +954,11 @@ impl MeshView<'_> {
                     self.band_quads(projection, quads, columns, |offset, corners, separating| {
                         separates[first + offset] = separating;
                         if let Some(corners) = corners {
-                            test_quad((quads.0 + offset) as u32, corners, &mut everywhere);
+                            test_quad((quads.0 + offset) as u32, corners, &mut lists);
                         }
                     });
                 }
-                everywhere
+                lists.0
             })
             .collect();
         let nothing_everywhere = everywhere.is_empty();

@@ -414,7 +414,7 @@ impl ViewBins {
 
 /// The co-visibility queries of one view (points seen from the novel camera) binned by the
 /// novel pixel they project to, the other way round from [`ViewBins`]: each primitive visits the
-/// points inside its box ([`PointBins::for_each_inside`]), one contiguous run of the sorted array
+/// points inside its box ([`PointBins::collect_inside`]), one contiguous run of the sorted array
 /// per pixel row of the box. With one entry per point and no tiles (a box reaches a few bins),
 /// building and scanning them is a fraction of the triangle bins' cost, and the pairs met are
 /// the same: a point is inside a box here exactly when the box is a candidate of the point's ray
@@ -555,13 +555,34 @@ impl PointBins {
         })
     }
 
-    /// Calls `visit(id)` for every point [`Self::any_inside`] would test.
+    /// Appends to `out` the ids of the points [`Self::any_inside`] would test but those `skip`
+    /// names, in the same order. No branch depends on a point: each id is written and the end
+    /// moves past it only if it passes, since which of a box's few points pass is unpredictable
+    /// (the callers visit the few that do afterwards). Against a branch per point, the quad tests
+    /// of the co-visibility batch took 968 instead of 1,051 ms on the benchmark clip (medians of
+    /// 9 interleaved one-thread runs).
     #[inline]
-    pub fn for_each_inside(&self, entry: &Entry, range: [usize; 4], mut visit: impl FnMut(u32)) {
-        self.any_inside(entry, range, |id| {
-            visit(id);
-            false
-        });
+    pub fn collect_inside(
+        &self,
+        entry: &Entry,
+        [x0, x1, y0, y1]: [usize; 4],
+        skip: impl Fn(u32) -> bool,
+        out: &mut Vec<u32>,
+    ) {
+        let PointBuffers { starts, points, .. } = &self.buffers;
+        let bounds = Vec4::from_array(entry.bounds);
+        for row in y0..=y1 {
+            let base = row * self.width;
+            let run = &points[starts[base + x0] as usize..starts[base + x1 + 1] as usize];
+            let mut end = out.len();
+            out.resize(end + run.len(), 0);
+            for point in run {
+                out[end] = point.id;
+                let inside = bounds.cmple(point.signed_pixel()).all() & (entry.nearest <= point.limit);
+                end += usize::from(inside & !skip(point.id));
+            }
+            out.truncate(end);
+        }
     }
 }
 

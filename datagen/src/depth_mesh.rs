@@ -913,9 +913,8 @@ impl MeshView<'_> {
                         let corner = p.wrapping_sub(quad);
                         (corner <= 1) | (corner.wrapping_sub(width) <= 1)
                     };
-                    candidates.clear();
-                    bins.collect_inside(&entry, range, own, candidates);
-                    for &p in candidates.iter() {
+                    let found = bins.collect_inside(&entry, range, own, candidates);
+                    for &p in &candidates[..found] {
                         if blocked[p as usize].load(Ordering::Relaxed) {
                             continue;
                         }

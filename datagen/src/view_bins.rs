@@ -555,12 +555,14 @@ impl PointBins {
         })
     }
 
-    /// Appends to `out` the ids of the points [`Self::any_inside`] would test but those `skip`
-    /// names, in the same order. No branch depends on a point: each id is written and the end
-    /// moves past it only if it passes, since which of a box's few points pass is unpredictable
-    /// (the callers visit the few that do afterwards). Against a branch per point, the quad tests
-    /// of the co-visibility batch took 968 instead of 1,051 ms on the benchmark clip (medians of
-    /// 9 interleaved one-thread runs).
+    /// Writes to the front of `out` the ids of the points [`Self::any_inside`] would test but
+    /// those `skip` names, in the same order, and gives their number (`out` is scratch space,
+    /// grown when a box holds more points than it has room for, never shrunk). No branch depends
+    /// on a point: each id is written and the end moves past it only if it passes, since which of
+    /// a box's few points pass is unpredictable (the callers visit the few that do afterwards).
+    /// Against a branch per point, the quad tests of the co-visibility batch took 926 instead of
+    /// 1,039 ms on the benchmark clip (medians of 9 interleaved one-thread runs), although they
+    /// run 2 % more instructions.
     #[inline]
     pub fn collect_inside(
         &self,
@@ -568,21 +570,23 @@ impl PointBins {
         [x0, x1, y0, y1]: [usize; 4],
         skip: impl Fn(u32) -> bool,
         out: &mut Vec<u32>,
-    ) {
+    ) -> usize {
         let PointBuffers { starts, points, .. } = &self.buffers;
         let bounds = Vec4::from_array(entry.bounds);
+        let mut end = 0;
         for row in y0..=y1 {
             let base = row * self.width;
             let run = &points[starts[base + x0] as usize..starts[base + x1 + 1] as usize];
-            let mut end = out.len();
-            out.resize(end + run.len(), 0);
+            if out.len() < end + run.len() {
+                out.resize(end + run.len(), 0);
+            }
             for point in run {
                 out[end] = point.id;
                 let inside = bounds.cmple(point.signed_pixel()).all() & (entry.nearest <= point.limit);
                 end += usize::from(inside & !skip(point.id));
             }
-            out.truncate(end);
         }
+        end
     }
 }
 

@@ -902,7 +902,7 @@ impl MeshView<'_> {
         // A quad of a block that is not skipped, with the smallest (x, y, depth) and largest (x, y)
         // of its corners, against the binned points inside its box but its own four corners; a
         // quad reaching close to the camera is left to the per-pixel pass (`everywhere`).
-        let test_quad = |quad: u32, (lo, hi): (DVec3, DVec2), (everywhere, candidates): &mut (Vec<u32>, Vec<u32>)| {
+        let test_quad = |quad: u32, (lo, hi): (DVec3, DVec2), everywhere: &mut Vec<u32>, candidates: &mut Vec<u32>| {
             let reach = view_bins::Reach::of_range(lo, hi, near, size);
             match reach {
                 view_bins::Reach::Everywhere => everywhere.push(quad),
@@ -934,7 +934,7 @@ impl MeshView<'_> {
             .enumerate()
             .flat_map_iter(|(index, (separates, good))| {
                 // The quads tested by every ray, and the candidates of one quad at a time.
-                let mut lists = (Vec::new(), Vec::new());
+                let (mut everywhere, mut candidates) = (Vec::new(), Vec::new());
                 let band_start = index * block_rows;
                 let band_rows = separates.len() / mesh.width.max(1);
                 // Per quarter of each block of the band that is not good: its pixel columns, and its
@@ -953,11 +953,11 @@ impl MeshView<'_> {
                     self.band_quads(projection, quads, columns, |offset, corners, separating| {
                         separates[first + offset] = separating;
                         if let Some(corners) = corners {
-                            test_quad((quads.0 + offset) as u32, corners, &mut lists);
+                            test_quad((quads.0 + offset) as u32, corners, &mut everywhere, &mut candidates);
                         }
                     });
                 }
-                lists.0
+                everywhere
             })
             .collect();
         let nothing_everywhere = everywhere.is_empty();

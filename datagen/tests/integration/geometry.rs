@@ -427,9 +427,9 @@ fn masks_are_identical_for_any_thread_count() {
 /// cases the hand-made tests do not think of are where a shortcut of the batch (the skipped
 /// blocks, the separating diagonals, the triangles tested by every ray) would first go wrong:
 /// when the blocks and diagonals ignore the triangles' orientation in the novel image, this test
-/// fails, and of the others only the comparison with the BVH on a Blender fixture, none of the
-/// brute-force ones. `DATAGEN_STRESS_CASES` runs more scenes than the default 24
-/// (`DATAGEN_STRESS_SEED` another series).
+/// fails, and of the others only the comparisons with the BVH and with aee6d46's masks on the
+/// Blender fixtures, none of the brute-force ones. `DATAGEN_STRESS_CASES` runs more scenes than
+/// the default 24 (`DATAGEN_STRESS_SEED` another series).
 #[test]
 fn random_scenes_and_cameras_equal_brute_force() {
     use rand::{Rng, SeedableRng};

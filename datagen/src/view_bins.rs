@@ -423,8 +423,9 @@ impl ViewBins {
 /// The co-visibility queries of one view (points seen from the novel camera) binned by the
 /// novel pixel they project to, the other way round from [`ViewBins`]: each primitive gathers
 /// the points inside its box ([`PointBins::collect_inside`]; [`PointBins::any_inside`] asks
-/// whether one passes a test), one contiguous run of the sorted array per pixel row of the box. With one entry per point and no tiles (a box reaches a few bins),
-/// building and scanning them is a fraction of the triangle bins' cost, and the pairs met are
+/// whether one passes a test), one contiguous run of the sorted array per pixel row of the box.
+/// With one entry per point and no tiles (a box reaches a few bins), building and scanning them
+/// is a fraction of the triangle bins' cost, and the pairs met are
 /// the same: a point is inside a box here exactly when the box is a candidate of the point's ray
 /// there, the same f32 comparisons of the same values.
 pub struct PointBins {

@@ -240,7 +240,6 @@ fn image_centre(width: u32, height: u32) -> (f64, f64) {
 }
 
 /// What one view's co-visibility batch did, checked against brute force.
-#[derive(Default)]
 struct BatchCheck {
     /// Quarter blocks skipped, and tested.
     skipped: usize,
@@ -446,7 +445,7 @@ fn random_scenes_and_cameras_equal_brute_force() {
         disc: bool,
     }
     let turn = 40f64.to_radians();
-    let mut total = BatchCheck::default();
+    let (mut skipped, mut blocked, mut close_views) = (0, 0, 0);
     for case in 0..cases {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed.wrapping_mul(1_000_003).wrapping_add(case));
         let (width, height) = (rng.random_range(24..=88u32), rng.random_range(16..=64u32));
@@ -520,12 +519,10 @@ fn random_scenes_and_cameras_equal_brute_force() {
             let novel = PinholeCamera { world_from_camera: glam::DMat4::from_translation(shift) * rotation, ..source };
             let context = format!("seed {seed} case {case} view {view} ({width}×{height}, {config:?})");
             let check = check_batch(&mesh, &novel, &config, &context);
-            total.skipped += check.skipped;
-            total.blocked += check.blocked;
-            total.unbinned_triangles += usize::from(check.unbinned_triangles > 0);
+            (skipped, blocked) = (skipped + check.skipped, blocked + check.blocked);
+            close_views += usize::from(check.unbinned_triangles > 0);
         }
     }
-    let BatchCheck { skipped, blocked, unbinned_triangles: close_views, .. } = total;
     println!("{cases} random scenes: {blocked} points blocked, {skipped} quarter blocks skipped");
     println!("{close_views} views with triangles tested by every ray");
     assert!(blocked > 100, "the random views must hide points ({blocked})");

@@ -425,9 +425,9 @@ impl ViewBins {
 /// the points inside its box ([`PointBins::collect_inside`]; [`PointBins::any_inside`] asks
 /// whether one passes a test), one contiguous run of the sorted array per pixel row of the box.
 /// With one entry per point and no tiles (a box reaches a few bins), building and scanning them
-/// is a fraction of the triangle bins' cost, and the pairs met are
-/// the same: a point is inside a box here exactly when the box is a candidate of the point's ray
-/// there, the same f32 comparisons of the same values.
+/// is a fraction of the triangle bins' cost, and the pairs met are the same: a point is inside a
+/// box here exactly when the box is a candidate of the point's ray there, the same f32
+/// comparisons of the same values.
 pub struct PointBins {
     width: usize,
     buffers: PointBuffers,

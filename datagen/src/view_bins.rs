@@ -228,10 +228,17 @@ pub struct Entry {
 }
 
 impl Entry {
+    /// Whether the pixel given as (x, y, −x, −y) is inside the box and the nearest corner is no
+    /// deeper than `limit`; without a branch.
+    #[inline]
+    fn covers(&self, signed_pixel: Vec4, limit: f32) -> bool {
+        Vec4::from_array(self.bounds).cmple(signed_pixel).all() & (self.nearest <= limit)
+    }
+
     /// Whether a binned point is inside the box and at least as deep as its nearest corner.
     #[inline]
     fn holds(&self, point: &PointEntry) -> bool {
-        Vec4::from_array(self.bounds).cmple(point.signed_pixel()).all() & (self.nearest <= point.limit)
+        self.covers(point.signed_pixel(), point.limit)
     }
 }
 
@@ -366,9 +373,8 @@ impl ViewBins {
             let run = &entries[starts[base + first_column] as usize..starts[base + x + 1] as usize];
             for &Tile { entry, id } in run {
                 // Branch-free: which entries pass is unpredictable, and most are the query's own.
-                let inside = Vec4::from_array(entry.bounds).cmple(point).all();
                 let skipped = (id == skip[0]) | (id == skip[1]) | (id == skip[2]) | (id == skip[3]);
-                if inside & (entry.nearest <= limit) & !skipped && visit(id) {
+                if entry.covers(point, limit) & !skipped && visit(id) {
                     return true;
                 }
             }

@@ -65,5 +65,7 @@ fn build_c10d_shim(libtorch: &Path, cuda: bool) {
     println!("cargo:rustc-link-lib=dylib=c10");
     if cuda {
         println!("cargo:rustc-link-lib=dylib=torch_cuda");
+        // The CUDA caching allocator's statistics (the shim's memory peaks).
+        println!("cargo:rustc-link-lib=dylib=c10_cuda");
     }
 }

@@ -7,6 +7,7 @@
 #include "c10d_shim.h"
 
 #ifdef TRAINER_C10D_NCCL
+#include <c10/cuda/CUDACachingAllocator.h>
 #include <torch/csrc/distributed/c10d/ProcessGroupNCCL.hpp>
 
 // The CUDA runtime is loaded with libtorch_cuda; the two calls below bind to it at run time
@@ -42,6 +43,22 @@ int trainer_c10d_cuda_mem_get_info(int device, uint64_t* free_bytes, uint64_t* t
   return 0;
 }
 
+int trainer_c10d_cuda_memory_peaks(int device, uint64_t* allocated, uint64_t* reserved, int reset) {
+  try {
+    namespace allocator = c10::cuda::CUDACachingAllocator;
+    const auto stats = allocator::getDeviceStats(static_cast<c10::DeviceIndex>(device));
+    const auto aggregate = static_cast<size_t>(c10::CachingAllocator::StatType::AGGREGATE);
+    *allocated = static_cast<uint64_t>(stats.allocated_bytes[aggregate].peak);
+    *reserved = static_cast<uint64_t>(stats.reserved_bytes[aggregate].peak);
+    if (reset != 0) {
+      allocator::resetPeakStats(static_cast<c10::DeviceIndex>(device));
+    }
+    return 0;
+  } catch (...) {
+    return -1;
+  }
+}
+
 }  // extern "C"
 
 #else
@@ -57,6 +74,8 @@ char* trainer_c10d_nccl_new(trainer_c10d_store*, int, int, int64_t, trainer_c10d
 }
 
 int trainer_c10d_cuda_mem_get_info(int, uint64_t*, uint64_t*) { return -1; }
+
+int trainer_c10d_cuda_memory_peaks(int, uint64_t*, uint64_t*, int) { return -1; }
 
 }  // extern "C"
 

@@ -63,6 +63,9 @@ char* trainer_c10d_nccl_new(trainer_c10d_store* store, int rank, int size, int64
                             trainer_c10d_group** out);
 int trainer_c10d_has_nccl();
 int trainer_c10d_cuda_mem_get_info(int device, uint64_t* free_bytes, uint64_t* total_bytes);
+// Peak bytes allocated and reserved by libtorch's CUDA caching allocator on `device` since the
+// process started or the last reset (`reset` != 0 resets after reading); -1 without CUDA.
+int trainer_c10d_cuda_memory_peaks(int device, uint64_t* allocated, uint64_t* reserved, int reset);
 void trainer_c10d_group_free(trainer_c10d_group* group);
 char* trainer_c10d_allreduce_sum(trainer_c10d_group* group, at::Tensor* tensor, int64_t timeout_ms,
                                  trainer_c10d_work** work);

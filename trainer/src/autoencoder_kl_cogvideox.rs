@@ -349,6 +349,31 @@ impl TilingConfig {
         }
     }
 
+    /// Whether the tiles land on whole latent pixels, so that a tiled encode or decode has the
+    /// untiled size: every tile and every stride between tiles a multiple of `spatial_ratio`
+    /// pixels, and what each tile keeps after its blend exactly one stride. True of the default
+    /// tiles of the 480×720 VAE; diffusers' default tiles of smaller nominal frames can break
+    /// this (a 64×80 VAE encodes a 64×80 clip to 9×10 latents), which is why sampling tiles
+    /// only where it holds.
+    pub fn lands_on_latent_pixels(&self, spatial_ratio: i64) -> bool {
+        let p = TilePlan::new(self, spatial_ratio);
+        let axis = |tile: i64, latent_tile: i64, stride: i64, latent_blend: i64, latent_stride: i64, blend: i64| {
+            tile % spatial_ratio == 0
+                && stride % spatial_ratio == 0
+                && latent_tile - latent_blend == stride / spatial_ratio
+                && tile - blend == latent_stride * spatial_ratio
+        };
+        axis(p.sample_tile_h, p.latent_tile_h, p.sample_stride_h, p.latent_blend_h, p.latent_stride_h, p.sample_blend_h)
+            && axis(
+                p.sample_tile_w,
+                p.latent_tile_w,
+                p.sample_stride_w,
+                p.latent_blend_w,
+                p.latent_stride_w,
+                p.sample_blend_w,
+            )
+    }
+
     fn validate(&self, spatial_ratio: i64) -> Result<()> {
         let bad = |reason: String| Error::InvalidConfig {
             source_name: "tiling".to_string(),
@@ -1213,6 +1238,8 @@ pub fn build(
     kind: Kind,
 ) -> Result<(nn::VarStore, AutoencoderKLCogVideoX)> {
     let mut vs = nn::VarStore::new(device);
+    // New variables are created in `kind` (no fp32 copy of the whole model on the device first).
+    vs.set_kind(kind);
     let vae = AutoencoderKLCogVideoX::new(&vs.root(), config)?;
     vs.set_kind(kind);
     Ok((vs, vae))
@@ -1220,6 +1247,20 @@ pub fn build(
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn default_tiles_land_on_latent_pixels_only_where_the_frame_allows() {
+        let tiles = |h, w| {
+            TilingConfig::for_config(&AutoencoderKLCogVideoXConfig {
+                sample_height: h,
+                sample_width: w,
+                ..AutoencoderKLCogVideoXConfig::tiny()
+            })
+        };
+        assert!(tiles(480, 720).lands_on_latent_pixels(8));
+        assert!(tiles(96, 80).lands_on_latent_pixels(8));
+        assert!(!tiles(64, 80).lands_on_latent_pixels(8));
+    }
+
     use super::*;
 
     #[test]

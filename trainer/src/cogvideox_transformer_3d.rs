@@ -779,6 +779,8 @@ pub fn build(
     kind: Kind,
 ) -> Result<(nn::VarStore, CogVideoXTransformer3DModel)> {
     let mut vs = nn::VarStore::new(device);
+    // New variables are created in `kind` (no fp32 copy of the whole model on the device first).
+    vs.set_kind(kind);
     let model = CogVideoXTransformer3DModel::new(&Vars::new(vs.root()), config)?;
     vs.set_kind(kind);
     Ok((vs, model))

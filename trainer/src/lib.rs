@@ -16,12 +16,14 @@ pub mod forward;
 pub mod lora;
 pub mod metrics;
 pub mod normalization;
+pub mod nvs;
 pub mod plan;
 pub mod sampling;
 pub mod scheduling_cogvideox_dpm;
 pub mod scheduling_ddim;
 pub mod tensorboard;
 pub mod training;
+pub mod video_processor;
 pub mod weights;
 
 pub use error::{Error, Result};

@@ -39,6 +39,13 @@ enum Command {
     /// Test-time finetuning: build the video's own self-supervised pairs in-process (datagen
     /// library) and finetune a checkpoint on them.
     Finetune(FinetuneArgs),
+    /// The whole novel-view job on one video: test-time finetune a checkpoint (the released
+    /// CogNVS one, or a run's) on the video's own pairs, render the video from each --trajectory,
+    /// sample every render with one load of the finetuned model, and write OUT/<name>.mp4, PNG
+    /// frames, a contact sheet (source | render | result) and OUT/nvs.json (settings, seeds,
+    /// digests). Run again with the same arguments after a kill, it continues from the last
+    /// finished phase.
+    Nvs(NvsArgs),
     /// Merge a LoRA file into a base transformer and write the full diffusers transformer folder
     /// (config.json + diffusion_pytorch_model.safetensors).
     MergeLora(MergeLoraArgs),
@@ -83,6 +90,66 @@ struct PlanArgs {
     /// needed to plan.
     #[arg(long, default_value = "cuda")]
     device: String,
+    /// Plan sampling instead of training: the config's models and [data] frames and size, its
+    /// precision, with VAE tiling unless --no-vae-tiling.
+    #[arg(long)]
+    sampling: bool,
+    /// With --sampling: guidance against another prompt (a batch of two).
+    #[arg(long, requires = "sampling")]
+    guided: bool,
+    /// With --sampling: without VAE tiling.
+    #[arg(long, requires = "sampling")]
+    no_vae_tiling: bool,
+}
+
+#[derive(Debug, Args)]
+struct NvsArgs {
+    /// Checkpoint to finetune and sample: the released CogNVS transformer folder (with
+    /// --base-model), a run's checkpoint, or a pipeline folder with transformer/.
+    #[arg(long)]
+    init: PathBuf,
+    /// The video's sequence folder (cog-nvs, MegaSAM npz or generic layout).
+    #[arg(long)]
+    sequence: PathBuf,
+    /// A camera path (.npy (N,4,4), .json, or the public trajs/*.txt); repeatable. The outputs
+    /// are named after the file's stem.
+    #[arg(long = "trajectory", required = true)]
+    trajectories: Vec<PathBuf>,
+    /// Output folder.
+    #[arg(long)]
+    out: PathBuf,
+    /// Test-time finetuning steps (0: sample the checkpoint as it is).
+    #[arg(long, default_value_t = 200)]
+    steps: u64,
+    /// Sampled trajectories per clip for the finetuning pairs (the paper: 5 for DyCheck, 9 for
+    /// Kubric-4D and ParDom-4D).
+    #[arg(long = "finetune-trajectories", default_value_t = 5)]
+    finetune_trajectories: u32,
+    /// Training TOML for finetuning (required for a checkpoint that is not a trainer run's:
+    /// configs/finetune_cognvs_lora.toml or configs/finetune_cognvs_full.toml).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    #[command(flatten)]
+    model: ModelArgs,
+    /// Denoising steps per sample.
+    #[arg(long, default_value_t = 50)]
+    sample_steps: usize,
+    #[command(flatten)]
+    sampling: SamplingArgs,
+    /// Fill render holes from the static background stacked over all frames: auto (when the
+    /// video has more frames than are sampled), on or off.
+    #[arg(long, value_enum, default_value_t = SwitchArg::Auto)]
+    stack_background: SwitchArg,
+    /// Compute device: cpu, cuda or cuda:N.
+    #[arg(long, default_value = "cpu")]
+    device: String,
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum SwitchArg {
+    Auto,
+    On,
+    Off,
 }
 
 #[derive(Debug, Args)]
@@ -116,50 +183,163 @@ struct FinetuneArgs {
     /// Sampled trajectories per clip.
     #[arg(long, default_value_t = 2)]
     trajectories: u32,
-    /// Training TOML overriding the init run's settings.
+    /// Training TOML overriding the init run's settings (required for a checkpoint that is not
+    /// a trainer run's, such as the released CogNVS transformer: configs/finetune_cognvs_*.toml).
     #[arg(long)]
     config: Option<PathBuf>,
-    /// A LoRA file (pytorch_lora_weights.safetensors) merged into the init transformer first.
+    #[command(flatten)]
+    model: ModelArgs,
+    /// Continue the run in --out from its latest checkpoint.
     #[arg(long)]
-    lora: Option<PathBuf>,
+    resume: bool,
     /// Compute device: cpu, cuda or cuda:N.
     #[arg(long, default_value = "cpu")]
     device: String,
 }
 
+/// Where the models come from besides the checkpoint (shared by `sample`, `finetune` and `nvs`).
 #[derive(Debug, Args)]
-struct SampleArgs {
-    /// Checkpoint folder (RUN/checkpoints/step-N, with transformer/ or a LoRA run's adapters) or a
-    /// transformer folder.
+struct ModelArgs {
+    /// A CogVideoX pipeline folder in CogVideoX-5B-I2V's layout (vae/, scheduler/, text_encoder/,
+    /// tokenizer/, transformer/): the VAE and the scheduler config come from it when the
+    /// checkpoint has none (the released CogNVS transformer is such a checkpoint).
     #[arg(long)]
-    ckpt: PathBuf,
+    base_model: Option<PathBuf>,
+    /// VAE folder [default: CKPT/vae, the run's vae/, or --base-model's vae/].
+    #[arg(long)]
+    vae: Option<PathBuf>,
     /// A LoRA file (pytorch_lora_weights.safetensors) merged into the checkpoint's transformer.
     #[arg(long)]
     lora: Option<PathBuf>,
-    /// Conditioning: a `datagen render` folder, a folder of frames, or a video (4k+1 frames).
+    /// Text embedding safetensors (`encoder_hidden_states` [226, 4096] for the released models),
+    /// made once with `scripts/encode_prompt.py` [default: the run's, else required for
+    /// T5-XXL-shaped transformers].
+    #[arg(long)]
+    text_embedding: Option<PathBuf>,
+    /// Use zeros as the text embedding, also for a transformer trained on T5-XXL text.
+    #[arg(long, conflicts_with = "text_embedding")]
+    zero_text_embedding: bool,
+}
+
+impl ModelArgs {
+    fn source(&self, checkpoint: PathBuf) -> trainer::sampling::ModelSource {
+        trainer::sampling::ModelSource {
+            checkpoint,
+            base_model: self.base_model.clone(),
+            vae: self.vae.clone(),
+            lora: self.lora.clone(),
+            text_embedding: self.text_embedding.clone(),
+            negative_text_embedding: None,
+            zero_text_embedding: self.zero_text_embedding,
+        }
+    }
+}
+
+/// How a conditioning is sampled (shared by `sample` and `nvs`); the defaults are the public
+/// CogNVS demo's.
+#[derive(Debug, Args)]
+struct SamplingArgs {
+    /// Classifier-free guidance scale (no effect when prompt and negative prompt are the same).
+    #[arg(long, default_value_t = 6.0)]
+    guidance: f64,
+    /// Seed of every draw (the public pipeline's `torch.Generator(device).manual_seed(SEED)`).
+    #[arg(long, default_value_t = 42)]
+    seed: u64,
+    /// Arithmetic: auto (bf16 on CUDA as the demo, fp32 on CPUs), fp32 or bf16.
+    #[arg(long, value_enum, default_value_t = DtypeArg::Auto)]
+    dtype: DtypeArg,
+    /// Decode and encode without spatial VAE tiles (the demo tiles; tiles bound memory).
+    #[arg(long)]
+    no_vae_tiling: bool,
+    /// Frames sampled: the first N of the conditioning (fewer when it is shorter: the most
+    /// that make 1 + 4k).
+    #[arg(long, default_value_t = trainer::sampling::DEMO_FRAMES)]
+    frames: usize,
+    /// How frames of another size reach the model's size: area (stretch with an area average,
+    /// as the demo) or crop (scale to cover and crop the centre, as the training loader).
+    #[arg(long, value_enum, default_value_t = ResizeArg::Area)]
+    resize: ResizeArg,
+    /// The model's input size WIDTHxHEIGHT [default: the transformer's own, 720x480 for CogNVS].
+    #[arg(long, value_parser = parse_size)]
+    size: Option<(u32, u32)>,
+    /// Keep the model's size instead of resizing the result back to the conditioning's.
+    #[arg(long)]
+    keep_model_size: bool,
+    /// Frame rate of mp4 outputs.
+    #[arg(long, default_value_t = trainer::sampling::DEMO_FPS)]
+    fps: f64,
+}
+
+impl SamplingArgs {
+    fn framing(&self) -> trainer::sampling::Framing {
+        trainer::sampling::Framing {
+            frames: self.frames,
+            resize: match self.resize {
+                ResizeArg::Area => trainer::video_processor::ResizeMode::Area,
+                ResizeArg::Crop => trainer::video_processor::ResizeMode::Crop,
+            },
+            size: self.size,
+            restore_size: !self.keep_model_size,
+            fps: self.fps,
+        }
+    }
+
+    fn load(&self, device: tch::Device) -> trainer::sampling::LoadOptions {
+        trainer::sampling::LoadOptions { device, precision: self.dtype.precision(), vae_tiling: !self.no_vae_tiling }
+    }
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum DtypeArg {
+    Auto,
+    Fp32,
+    Bf16,
+}
+
+impl DtypeArg {
+    fn precision(self) -> trainer::training::Precision {
+        match self {
+            Self::Auto => trainer::training::Precision::Auto,
+            Self::Fp32 => trainer::training::Precision::Fp32,
+            Self::Bf16 => trainer::training::Precision::Bf16,
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum ResizeArg {
+    Area,
+    Crop,
+}
+
+fn parse_size(text: &str) -> Result<(u32, u32), String> {
+    let (w, h) = text.split_once(['x', 'X']).ok_or_else(|| format!("{text}: expected WIDTHxHEIGHT"))?;
+    let parse = |v: &str| v.trim().parse::<u32>().map_err(|e| format!("{text}: {e}"));
+    Ok((parse(w)?, parse(h)?))
+}
+
+#[derive(Debug, Args)]
+struct SampleArgs {
+    /// Checkpoint: a run's (RUN/checkpoints/step-N, full or LoRA), a transformer folder (the
+    /// released CogNVS transformer) or a pipeline folder with transformer/.
+    #[arg(long)]
+    ckpt: PathBuf,
+    #[command(flatten)]
+    model: ModelArgs,
+    /// Conditioning: a `datagen render` folder, a folder of frames, or a video.
     #[arg(long)]
     cond: PathBuf,
     /// Output: a video (.mp4), or a folder of lossless PNG frames (any other path).
     #[arg(long)]
     out: PathBuf,
-    /// Denoising steps.
-    #[arg(long, default_value_t = 50)]
-    steps: usize,
-    /// Classifier-free guidance scale (no effect when prompt and negative prompt are the same).
-    #[arg(long, default_value_t = 6.0)]
-    guidance: f64,
-    /// Seed of the noise.
-    #[arg(long, default_value_t = 0)]
-    seed: u64,
-    /// VAE folder [default: CKPT/vae or the run's vae/].
-    #[arg(long)]
-    vae: Option<PathBuf>,
-    /// Text embedding safetensors (`encoder_hidden_states` [S, D]) [default: the run's, else zeros].
-    #[arg(long)]
-    text_embedding: Option<PathBuf>,
     /// Negative text embedding for guidance [default: the prompt's].
     #[arg(long)]
     negative_text_embedding: Option<PathBuf>,
+    /// Denoising steps.
+    #[arg(long, default_value_t = 50)]
+    steps: usize,
+    #[command(flatten)]
+    sampling: SamplingArgs,
     /// Compute device: cpu, cuda or cuda:N.
     #[arg(long, default_value = "cpu")]
     device: String,
@@ -314,6 +494,7 @@ fn main() -> anyhow::Result<()> {
         Command::Pretrain(args) => run_pretrain(args),
         Command::Sample(args) => run_sample(args),
         Command::Finetune(args) => run_finetune(args),
+        Command::Nvs(args) => run_nvs(args),
         Command::Plan(args) => run_plan(args),
         Command::CommCheck(args) => run_comm_check(args),
         Command::MergeLora(args) => {
@@ -452,12 +633,17 @@ fn run_finetune(args: FinetuneArgs) -> anyhow::Result<()> {
     let bar = step_bar(args.steps);
     let request = trainer::training::FinetuneRequest {
         init: args.init,
+        base_model: args.model.base_model,
+        vae: args.model.vae,
+        text_embedding: args.model.text_embedding,
+        zero_text_embedding: args.model.zero_text_embedding,
         sequence: args.sequence,
         out: args.out.clone(),
         steps: args.steps,
         trajectories: args.trajectories,
         config: args.config,
-        lora: args.lora,
+        lora: args.model.lora,
+        resume: args.resume,
     };
     let timeout = match &request.config {
         Some(path) => trainer::training::PretrainConfig::from_toml_file(path)?.distributed.timeout_seconds,
@@ -478,31 +664,134 @@ fn run_finetune(args: FinetuneArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+fn run_nvs(args: NvsArgs) -> anyhow::Result<()> {
+    use trainer::nvs::Progress;
+    let device = forward::parse_device(&args.device)?;
+    let request = trainer::nvs::NvsRequest {
+        model: args.model.source(args.init),
+        sequence: args.sequence,
+        trajectories: args.trajectories,
+        out: args.out.clone(),
+        steps: args.steps,
+        finetune_trajectories: args.finetune_trajectories,
+        config: args.config,
+        sample_steps: args.sample_steps,
+        guidance: args.sampling.guidance,
+        seed: args.sampling.seed,
+        load: args.sampling.load(device),
+        framing: args.sampling.framing(),
+        stack_background: match args.stack_background {
+            SwitchArg::Auto => None,
+            SwitchArg::On => Some(true),
+            SwitchArg::Off => Some(false),
+        },
+    };
+    let timeout = match &request.config {
+        Some(path) => trainer::training::PretrainConfig::from_toml_file(path)?.distributed.timeout_seconds,
+        None => trainer::training::DistributedConfig::default().timeout_seconds,
+    };
+    let (device, pg) = join_job(device, timeout)?;
+    let lead = pg.as_ref().is_none_or(|pg| pg.rank == 0);
+    let mut bar = indicatif::ProgressBar::hidden();
+    let record = trainer::nvs::run(&request, device, pg.as_ref(), &mut |event| {
+        if !lead {
+            return;
+        }
+        match event {
+            Progress::Phase(phase, len) => {
+                bar.finish();
+                bar = match phase {
+                    "finetune" => step_bar(len),
+                    _ => progress_bar(len, &format!("{phase:<8}")),
+                };
+            }
+            Progress::Skipped(phase) => eprintln!("{phase}: finished by an earlier run"),
+            Progress::Step(m) => show_step(&bar, m),
+            Progress::Trajectory(name) => {
+                bar.inc(1);
+                bar.set_message(name.to_string());
+            }
+            Progress::Denoise(step, steps) => bar.set_message(format!("denoising {step}/{steps}")),
+        }
+    })?;
+    bar.finish();
+    if let Some(record) = record {
+        for output in &record.outputs {
+            println!(
+                "{}: {} ({} frames), {}",
+                output.name,
+                args.out.join(output.video.as_deref().unwrap_or_default()).display(),
+                output.digests.len().saturating_sub(2),
+                args.out.join(output.sheet.as_deref().unwrap_or_default()).display()
+            );
+        }
+        println!("settings, seeds and digests: {}", args.out.join("nvs.json").display());
+    }
+    Ok(())
+}
+
 fn run_sample(args: SampleArgs) -> anyhow::Result<()> {
+    let device = forward::parse_device(&args.device)?;
+    let mut model = args.model.source(args.ckpt);
+    model.negative_text_embedding = args.negative_text_embedding;
     let request = trainer::sampling::SampleRequest {
-        checkpoint: args.ckpt,
-        lora: args.lora,
-        vae: args.vae,
-        text_embedding: args.text_embedding,
-        negative_text_embedding: args.negative_text_embedding,
+        model,
         condition: args.cond,
         out: args.out.clone(),
         steps: args.steps,
-        guidance: args.guidance,
-        seed: args.seed,
-        device: forward::parse_device(&args.device)?,
+        guidance: args.sampling.guidance,
+        seed: args.sampling.seed,
+        load: args.sampling.load(device),
+        framing: args.sampling.framing(),
     };
-    let report = trainer::sampling::sample(&request)?;
+    let bar = progress_bar(request.steps as u64, "denoising");
+    let report = trainer::sampling::sample(&request, &mut |i, _| bar.set_position(i as u64))?;
+    bar.finish_and_clear();
+    if report.source_size != report.model_size {
+        let ((w, h), (mw, mh)) = (report.source_size, report.model_size);
+        let back =
+            if request.framing.restore_size { format!(" and the result back to {w}x{h}") } else { String::new() };
+        eprintln!(
+            "note: resized the conditioning from {w}x{h} to the model's {mw}x{mh} ({:?}){back}",
+            request.framing.resize
+        );
+    }
+    if report.frames < report.source_frames.min(request.framing.frames) {
+        eprintln!(
+            "note: sampled the first {} of the conditioning's {} frames (1 + 8k frames decode back to as many)",
+            report.frames, report.source_frames
+        );
+    }
+    if let Some((allocated, reserved)) = report.cuda_peaks {
+        let gib = |b: u64| b as f64 / (1u64 << 30) as f64;
+        println!("cuda memory: peak allocated {:.2} GiB, peak reserved {:.2} GiB", gib(allocated), gib(reserved));
+    }
+    let t = &report.timings;
+    println!("seconds: encode {:.2}, denoise {:.2}, decode {:.2}", t.encode, t.denoise, t.decode);
     println!(
-        "wrote {} ({} frames, {}x{}) after {} steps in {:.1} s",
+        "wrote {} ({} frames, {}x{}; sampled at {}x{}) after {} steps in {:.1} s",
         args.out.display(),
         report.frames,
         report.size.0,
         report.size.1,
-        args.steps,
+        report.model_size.0,
+        report.model_size.1,
+        request.steps,
         report.seconds
     );
     Ok(())
+}
+
+/// A progress bar of `len` units named `what`, on stderr.
+fn progress_bar(len: u64, what: &str) -> indicatif::ProgressBar {
+    let bar = indicatif::ProgressBar::new(len);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(&format!(
+            "{what} {{bar:30}} {{pos}}/{{len}} {{msg}} [{{elapsed_precise}}, eta {{eta}}]"
+        ))
+        .expect("valid template"),
+    );
+    bar
 }
 
 fn run_pretrain(args: PretrainArgs) -> anyhow::Result<()> {
@@ -534,6 +823,23 @@ fn run_pretrain(args: PretrainArgs) -> anyhow::Result<()> {
 fn run_plan(args: PlanArgs) -> anyhow::Result<()> {
     let config = trainer::training::PretrainConfig::from_toml_file(&args.config)?;
     let device = trainer::plan::parse_device(&args.device)?;
+    if args.sampling {
+        let (transformer, vae) = config.model.configs(true)?;
+        let tiles = trainer::autoencoder_kl_cogvideox::TilingConfig::for_config(&vae);
+        let aligned = !args.no_vae_tiling && tiles.lands_on_latent_pixels(vae.spatial_compression_ratio());
+        let d = &config.data;
+        let plan = trainer::plan::sampling_plan(
+            &transformer,
+            &vae,
+            (d.frames as u64, u64::from(d.height), u64::from(d.width)),
+            config.train.precision.kind(device),
+            device,
+            aligned.then_some(&tiles),
+            args.guided,
+        )?;
+        println!("{plan}");
+        return Ok(());
+    }
     let plan = make_plan(&config, args.world_size.map(|n| n as usize), device)?;
     println!("{plan}");
     Ok(())

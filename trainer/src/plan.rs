@@ -695,3 +695,175 @@ mod tests {
         assert!(activation_plan(None, &shape, 4, true).used() < full.used());
     }
 }
+
+/// `[B, L, D]` units alive at once in a block's forward without autograd: the residual stream,
+/// the normalised input and the feed-forward's hidden and GELU outputs (`FF_MULT` each), the
+/// largest point of a block (attention holds fewer: q, k, v, rotated q and k, and its output).
+const INFERENCE_LIVE_UNITS: u64 = 2 + 2 * FF_MULT;
+/// Tiled decoding keeps every decoded tile until they are blended: the output video and the
+/// tiles' overlaps, about half as much again at diffusers' default overlaps.
+const TILED_OUTPUT_COPIES: f64 = 1.5;
+
+/// What one device holds to sample a video with [`crate::sampling::CogNvsPipeline`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct SamplingPlan {
+    /// The device.
+    pub device: Device,
+    /// The models' element type.
+    pub kind: Kind,
+    /// Frames, height and width sampled.
+    pub video: (u64, u64, u64),
+    /// Whether guidance runs a batch of two.
+    pub guided: bool,
+    /// Whether the VAE tiles.
+    pub tiling: bool,
+    /// Resident rows: weights and text.
+    pub persistent: Vec<PlanRow>,
+    /// Peak of loading: the weights plus one tensor converted in fp32.
+    pub load_peak: u64,
+    /// Activations of one transformer forward (no autograd).
+    pub denoise_peak: u64,
+    /// Peak of the VAE encode of the conditioning.
+    pub vae_encode_peak: u64,
+    /// Peak of the VAE decode of the result.
+    pub vae_decode_peak: u64,
+    /// Runtime overhead (CPU only, as for training).
+    pub runtime: u64,
+    /// The predicted peak.
+    pub total: u64,
+}
+
+/// The memory plan of sampling `frames` frames of `height × width` with these models in `kind`:
+/// the same counting as [`plan`]'s VAE peaks, a forward's live activations
+/// ([`INFERENCE_LIVE_UNITS`]) at batch 2 when `guided`, and the load's one-tensor conversions.
+#[allow(clippy::too_many_arguments)]
+pub fn sampling_plan(
+    transformer: &CogVideoXTransformer3DModelConfig,
+    vae_config: &AutoencoderKLCogVideoXConfig,
+    (frames, height, width): (u64, u64, u64),
+    kind: Kind,
+    device: Device,
+    tiling: Option<&vae::TilingConfig>,
+    guided: bool,
+) -> Result<SamplingPlan> {
+    let working = element_bytes(kind);
+    let numel = |shape: &Vec<i64>| shape.iter().map(|&d| d.max(0) as u64).product::<u64>();
+    let shapes = variable_shapes(transformer)?;
+    let transformer_parameters: u64 = shapes.values().map(numel).sum();
+    let largest = shapes.values().map(numel).max().unwrap_or(0);
+    let vae_parameters = vae_parameter_count(vae_config)?;
+    let batch = if guided { 2 } else { 1 };
+    let spatial = vae_config.spatial_compression_ratio() as u64;
+    let temporal = vae_config.effective_temporal_compression_ratio() as u64;
+    let patch = transformer.patch_size as u64;
+    let latent_frames = (frames - 1) / temporal + 1;
+    let video_tokens = latent_frames.div_ceil(transformer.patch_size_t.unwrap_or(1) as u64)
+        * (height / spatial / patch)
+        * (width / spatial / patch);
+    let tokens = video_tokens + transformer.max_text_seq_length as u64;
+    let text_bytes = 2 * transformer.max_text_seq_length as u64 * transformer.text_embed_dim as u64 * working;
+    let persistent = vec![
+        PlanRow {
+            what: "transformer weights".to_string(),
+            bytes: transformer_parameters * working,
+            note: format!("{} parameters × {working} B ({})", human_count(transformer_parameters), kind_name(kind)),
+        },
+        PlanRow {
+            what: "VAE weights".to_string(),
+            bytes: vae_parameters * working,
+            note: format!("{} parameters × {working} B", human_count(vae_parameters)),
+        },
+        PlanRow {
+            what: "text embeddings".to_string(),
+            bytes: text_bytes,
+            note: "prompt and negative prompt".to_string(),
+        },
+    ];
+    let resident: u64 = persistent.iter().map(|r| r.bytes).sum();
+    let denoise_peak = INFERENCE_LIVE_UNITS * batch * tokens * transformer.inner_dim() as u64 * working;
+    let (tile_h, tile_w) = match tiling {
+        Some(t) => ((t.tile_sample_min_height as u64).min(height), (t.tile_sample_min_width as u64).min(width)),
+        None => (height, width),
+    };
+    let level0 = vae_config.block_out_channels.first().copied().unwrap_or(0) as u64;
+    let pixels = frames * height * width;
+    let video_bytes = RGB * pixels * working;
+    let tile_plane = level0 * tile_h * tile_w * working;
+    let first_batch = first_temporal_batch(frames, vae::SAMPLE_FRAMES_BATCH_SIZE as u64);
+    let output_copies = if tiling.is_some() { TILED_OUTPUT_COPIES } else { 1.0 };
+    let vae_encode_peak = 2 * video_bytes + encoder_live_frames(first_batch) * tile_plane;
+    let decode_first = first_temporal_batch(latent_frames, vae::LATENT_FRAMES_BATCH_SIZE as u64);
+    let decode_frames = (decode_first - 1) * temporal + 1;
+    let vae_decode_peak = (encoder_live_frames(decode_frames) + DECODER_EXTRA_TENSORS * decode_frames) * tile_plane
+        + (output_copies * video_bytes as f64) as u64;
+    // Built in the working type; loading converts one checkpoint tensor at a time, and a LoRA
+    // merge holds one layer in fp32.
+    let load_peak = resident + largest * FP32_BYTES;
+    let runtime = if device == Device::Cpu { CPU_RUNTIME_BYTES } else { 0 };
+    let total = load_peak.max(resident + denoise_peak.max(vae_encode_peak).max(vae_decode_peak)) + runtime;
+    Ok(SamplingPlan {
+        device,
+        kind,
+        video: (frames, height, width),
+        guided,
+        tiling: tiling.is_some(),
+        persistent,
+        load_peak,
+        denoise_peak,
+        vae_encode_peak,
+        vae_decode_peak,
+        runtime,
+        total,
+    })
+}
+
+impl fmt::Display for SamplingPlan {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let (frames, height, width) = self.video;
+        writeln!(
+            f,
+            "sampling memory plan: {:?}, {}, {frames} frames of {width}x{height}, guidance batch {}, VAE tiling {}",
+            self.device,
+            kind_name(self.kind),
+            if self.guided { 2 } else { 1 },
+            if self.tiling { "on" } else { "off" }
+        )?;
+        let line = |f: &mut fmt::Formatter<'_>, what: &str, bytes: u64, note: &str| {
+            writeln!(f, "  {what:<38} {:>11}  {note}", human_bytes(bytes))
+        };
+        for row in &self.persistent {
+            line(f, &row.what, row.bytes, &row.note)?;
+        }
+        line(f, "denoising activations", self.denoise_peak, "one forward's live tensors, no autograd")?;
+        line(f, "VAE encode peak", self.vae_encode_peak, "the conditioning")?;
+        line(f, "VAE decode peak", self.vae_decode_peak, "the result")?;
+        line(f, "load peak", self.load_peak, "weights + one tensor converted in fp32")?;
+        if self.runtime > 0 {
+            line(f, "runtime (CPU process)", self.runtime, "libraries and allocator arenas")?;
+        }
+        line(f, "total (predicted peak)", self.total, "")
+    }
+}
+
+/// Checks a sampling plan against the free memory of its CUDA device (nothing elsewhere).
+pub fn check_sampling_fits(plan: &SamplingPlan) -> Result<()> {
+    let Device::Cuda(index) = plan.device else { return Ok(()) };
+    let Some((free, total)) = crate::distributed::cuda_mem_get_info(index) else { return Ok(()) };
+    let usable = (free as f64 * (1.0 - CUDA_MARGIN_FRACTION)) as u64;
+    if plan.total <= usable {
+        return Ok(());
+    }
+    Err(Error::InvalidArgument {
+        name: "device".to_string(),
+        reason: format!(
+            "sampling needs {} on {:?} but only {} of its {} are free ({} after the {:.0} % margin){}",
+            human_bytes(plan.total),
+            plan.device,
+            human_bytes(free),
+            human_bytes(total),
+            human_bytes(usable),
+            CUDA_MARGIN_FRACTION * 100.0,
+            if plan.tiling { "" } else { "; VAE tiling would lower the decode peak" }
+        ),
+    })
+}

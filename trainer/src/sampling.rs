@@ -1,151 +1,162 @@
-//! Sampling a novel-view video (DESIGN §1, §6): the conditioning render (`datagen render` output
-//! or a video) is VAE-encoded (posterior mean × `scaling_factor`), concatenated on channels with
-//! the noisy latent, and denoised with CogVideoX's DPM scheduler (50 steps by default), with
-//! classifier-free guidance between the prompt and the negative-prompt text embeddings; the
-//! result is VAE-decoded and written as an H.264 mp4.
+//! Sampling novel views: the CogNVS pipeline (the public `CogNVSPipeline` and its demo), from a
+//! conditioning render to a video.
 //!
-//! CogNVS prompts with the empty string on both sides, so the two guidance branches are the same
-//! and guidance changes nothing; the second branch is then skipped. Give a
-//! `negative_text_embedding` to guide against another prompt.
+//! What a call computes, in the order of the public pipeline, so that a seed gives the same video
+//! as the pipeline called with `generator=torch.Generator(device).manual_seed(seed)`:
+//! 1. the conditioning `[1, 3, F, H, W]` in [−1, 1] is VAE-encoded (spatial tiles where enabled)
+//!    and a *sample* of the posterior is drawn (first draw), cast to the model's element type,
+//!    put frames-first and multiplied by the VAE's `scaling_factor`;
+//! 2. the initial latents `[1, F', C, h, w]` are drawn in the model's element type (second draw);
+//! 3. 50 (or `steps`) steps of CogVideoX's DPM solver: the noisy and the condition latents
+//!    concatenated on channels, the transformer run on the negative and the positive text
+//!    embedding as one batch of two (classifier-free guidance `uncond + g·(cond − uncond)` in
+//!    f32), the scheduler's step drawing its noise in the latents' element type, the latents
+//!    cast back to the model's element type after each step;
+//! 4. the latents divided by the scaling factor and VAE-decoded.
 //!
-//! Models come from a checkpoint folder: `transformer/` (diffusers layout) inside it, or the folder
-//! itself; the VAE from `--vae`, `CKPT/vae/` or the run folder's `vae/` (`CKPT/../../vae`); the
-//! text embedding from the run's `config.json` when it names one, else zeros. All draws come from
-//! tch's generator seeded with `seed`: the same seed gives the same video.
+//! Positions: the pipeline's rotary table (`grid_type="linspace"`, cropped to the transformer's
+//! base grid when the input's differs). Where the prompt and the negative prompt are the same
+//! embedding (CogNVS prompts with the empty string on both sides) the two halves of the batch
+//! are equal, guidance returns the unconditional half, and one forward computes it.
+//!
+//! Models come from a [`ModelSource`]: a run's checkpoint, a diffusers transformer folder (the
+//! released CogNVS transformer) or a CogVideoX pipeline folder, with the VAE and the scheduler
+//! config from the checkpoint, its run, or a base model folder (CogVideoX-5B-I2V's layout).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use image::RgbImage;
-use tch::{Device, Kind, Tensor};
+use tch::{Device, Kind, Tensor, nn};
 
-use crate::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoX, AutoencoderKLCogVideoXConfig};
+use crate::autoencoder_kl_cogvideox::{
+    self as vae, AutoencoderKLCogVideoX, AutoencoderKLCogVideoXConfig, TilingConfig,
+};
 use crate::cogvideox_transformer_3d::{
     self as transformer, CogVideoXTransformer3DModel, CogVideoXTransformer3DModelConfig, TransformerInput,
 };
 use crate::diffusers_config::DiffusersConfig;
+use crate::embeddings::RotaryEmbedding;
 use crate::error::{Error, Result};
 use crate::scheduling_cogvideox_dpm::CogVideoXDPMScheduler;
 use crate::scheduling_ddim::CogVideoXSchedulerConfig;
+use crate::training::Precision;
+use crate::video_processor::{self, ResizeMode};
 use crate::weights;
 
-/// What to sample.
-#[derive(Debug, Clone)]
-pub struct SampleRequest {
-    /// A checkpoint folder (with `transformer/`, or a LoRA run's with
-    /// `pytorch_lora_weights.safetensors`) or a transformer model folder.
+/// The text shape of the released CogVideoX-5B / CogNVS transformers: T5-XXL's 226 tokens of
+/// 4096 channels (`max_text_seq_length`, `text_embed_dim`). Such a model never saw zeros there.
+pub const T5_XXL_TEXT_SHAPE: [i64; 2] = [226, 4096];
+
+/// The script that writes a text embedding file from a CogVideoX model folder.
+pub const ENCODE_PROMPT_SCRIPT: &str = "scripts/encode_prompt.py";
+
+/// Where the models of a sampling or finetuning run come from, as the user names them.
+#[derive(Debug, Clone, Default)]
+pub struct ModelSource {
+    /// A run's checkpoint (`RUN/checkpoints/step-N`, full or LoRA), a diffusers transformer
+    /// folder (the released CogNVS transformer), or a pipeline folder with `transformer/`.
     pub checkpoint: PathBuf,
-    /// A LoRA file merged into the checkpoint's transformer before sampling (a base plus an
-    /// adapter); a LoRA checkpoint brings its own.
-    pub lora: Option<PathBuf>,
-    /// The VAE folder (default: found next to the checkpoint, see the module docs).
+    /// A CogVideoX pipeline folder (CogVideoX-5B-I2V's layout: `vae/`, `scheduler/`,
+    /// `text_encoder/`, `tokenizer/`, `transformer/`) that supplies what the checkpoint lacks.
+    pub base_model: Option<PathBuf>,
+    /// The VAE folder, overriding every other place.
     pub vae: Option<PathBuf>,
-    /// Text embedding `encoder_hidden_states` `[S, D]` (default: the run's, else zeros).
+    /// A LoRA file merged into the transformer (after a LoRA checkpoint's own adapter).
+    pub lora: Option<PathBuf>,
+    /// The prompt's text embedding file (`encoder_hidden_states` `[S, D]`).
     pub text_embedding: Option<PathBuf>,
-    /// Negative text embedding for guidance (default: the same as the prompt's).
+    /// The negative prompt's text embedding file (default: the prompt's).
     pub negative_text_embedding: Option<PathBuf>,
-    /// The conditioning: a `datagen render` folder (its `frames/`), a folder of frames, or a video.
-    pub condition: PathBuf,
-    /// Output: an `.mp4` file (H.264), or any other path: a folder of lossless PNG frames
-    /// (`00000.png`, …), bit-for-bit the sampled frames.
-    pub out: PathBuf,
-    /// Denoising steps.
-    pub steps: usize,
-    /// Classifier-free guidance scale.
-    pub guidance: f64,
-    /// Seed of the initial noise and of the sampler's noise.
-    pub seed: u64,
-    /// Compute device.
-    pub device: Device,
+    /// Use zeros where no text embedding is given, also for a T5-XXL-shaped transformer.
+    pub zero_text_embedding: bool,
 }
 
-/// What sampling produced.
-#[derive(Debug, Clone)]
-pub struct SampleReport {
-    /// Frames written.
-    pub frames: usize,
-    /// Frame size.
-    pub size: (u32, u32),
-    /// Seconds of the denoising loop.
-    pub seconds: f64,
-    /// The conditioning's own frame size when it was resized to `size` (see [`fit_condition`]).
-    pub resized_from: Option<(u32, u32)>,
+/// The files a [`ModelSource`] resolves to.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModelPaths {
+    /// The transformer folder (diffusers layout).
+    pub transformer: PathBuf,
+    /// LoRA files merged into it, in order.
+    pub adapters: Vec<PathBuf>,
+    /// The VAE folder.
+    pub vae: PathBuf,
+    /// The folder holding `scheduler_config.json`, if any (else CogVideoX-5B's schedule).
+    pub scheduler: Option<PathBuf>,
+    /// The prompt's text embedding (None: zeros).
+    pub text_embedding: Option<PathBuf>,
+    /// The negative prompt's text embedding (None: the prompt's).
+    pub negative_text_embedding: Option<PathBuf>,
+    /// Zeros asked for where no text embedding is given.
+    pub zero_text_embedding: bool,
 }
 
-/// A conditioning brought to a size the model takes.
-#[derive(Debug, Clone)]
-pub struct FittedCondition {
-    /// The frames, all of `size`.
-    pub frames: Vec<RgbImage>,
-    /// Their size.
-    pub size: (u32, u32),
-    /// The size they had when they were resized.
-    pub resized_from: Option<(u32, u32)>,
+impl ModelSource {
+    /// Finds every file the models need (nothing large is read). Whether a T5-XXL-shaped
+    /// transformer got a text embedding is [`ModelPaths::check_text_embedding`]'s to say.
+    pub fn resolve(&self) -> Result<ModelPaths> {
+        let checkpoint = &self.checkpoint;
+        let (transformer, mut adapters) = match crate::lora::lora_checkpoint(checkpoint)? {
+            Some((base, file)) => (base, vec![file]),
+            None => (transformer_dir(checkpoint), Vec::new()),
+        };
+        adapters.extend(self.lora.clone());
+        let base = self.base_model.as_deref();
+        let vae = find_vae(checkpoint, self.vae.as_deref().or(base.map(|b| b.join("vae")).as_deref()))?;
+        let scheduler = [base.map(|b| b.join("scheduler")), Some(checkpoint.join("scheduler"))]
+            .into_iter()
+            .flatten()
+            .find(|d| d.join(CogVideoXSchedulerConfig::FILE_NAME).is_file());
+        let text_embedding = match &self.text_embedding {
+            Some(p) => Some(p.clone()),
+            None => run_text_embedding(checkpoint)?,
+        };
+        Ok(ModelPaths {
+            transformer,
+            adapters,
+            vae,
+            scheduler,
+            text_embedding,
+            negative_text_embedding: self.negative_text_embedding.clone(),
+            zero_text_embedding: self.zero_text_embedding,
+        })
+    }
 }
 
-/// Brings conditioning frames to a size the model takes, the way the training loader brings
-/// pairs to the training resolution ([`crate::data::cover_crop`]: scale to cover, centre crop):
-/// to the learned positional table's size when the transformer has one, else to the largest
-/// multiple of the VAE's spatial compression × the patch size that fits. Frames must share one
-/// size (an error names the first that differs) and number 1 + r·k for the VAE's temporal
-/// compression r (an error names the input).
-pub fn fit_condition(
-    condition: &crate::metrics::NamedFrames,
-    input: &Path,
+impl ModelPaths {
+    /// Refuses zeros as the text of a transformer trained on T5-XXL text unless asked for (see
+    /// [`require_text_embedding`]); reads the transformer's config only.
+    pub fn check_text_embedding(&self) -> Result<()> {
+        let config = CogVideoXTransformer3DModelConfig::from_json_file(&self.transformer)?;
+        require_text_embedding(&config, self.text_embedding.as_deref(), self.zero_text_embedding, &self.transformer)
+    }
+}
+
+/// Refuses a transformer with the released checkpoints' T5-XXL text shape and no embedding, unless
+/// zeros are asked for explicitly: such a model never saw zero text tokens in training.
+pub fn require_text_embedding(
     config: &CogVideoXTransformer3DModelConfig,
-    vae_config: &AutoencoderKLCogVideoXConfig,
-) -> Result<FittedCondition> {
-    let (width, height) = condition.uniform_size()?;
-    let temporal = vae_config.effective_temporal_compression_ratio() as usize;
-    let count = condition.frames.len();
-    if count == 0 || count > crate::data::MAX_FRAMES || !(count - 1).is_multiple_of(temporal) {
-        return Err(Error::InvalidInput {
-            path: input.to_path_buf(),
-            what: "frame count".to_string(),
+    embedding: Option<&Path>,
+    zeros_allowed: bool,
+    transformer: &Path,
+) -> Result<()> {
+    let t5_xxl = [config.max_text_seq_length, config.text_embed_dim] == T5_XXL_TEXT_SHAPE;
+    if embedding.is_none() && t5_xxl && !zeros_allowed {
+        return Err(Error::InvalidArgument {
+            name: "text-embedding".to_string(),
             reason: format!(
-                "{count} frames: the VAE needs {temporal}k + 1 frames (at most {})",
-                crate::data::MAX_FRAMES
+                "{} takes T5-XXL text ({} × {}) and was trained on the empty prompt's encoding, not on zeros: \
+                 make the file once with `.venv/bin/python {ENCODE_PROMPT_SCRIPT} --model COGVIDEOX_5B_I2V_DIR \
+                 --out empty_prompt.safetensors` and pass `--text-embedding empty_prompt.safetensors` \
+                 (`[model] text_embedding` in a training config), or pass `--zero-text-embedding` \
+                 (`[model] zero_text_embedding = true`) to use zeros anyway",
+                transformer.display(),
+                T5_XXL_TEXT_SHAPE[0],
+                T5_XXL_TEXT_SHAPE[1]
             ),
         });
     }
-    let spatial = vae_config.spatial_compression_ratio();
-    let multiple = (spatial * config.patch_size) as u32;
-    let target = if config.use_learned_positional_embeddings {
-        ((config.sample_width * spatial) as u32, (config.sample_height * spatial) as u32)
-    } else {
-        (width - width % multiple, height - height % multiple)
-    };
-    if target.0 == 0 || target.1 == 0 || width > crate::data::MAX_SIDE || height > crate::data::MAX_SIDE {
-        return Err(Error::InvalidInput {
-            path: input.to_path_buf(),
-            what: "frame size".to_string(),
-            reason: format!(
-                "{width}x{height}: frames must be at least {multiple} and at most {} pixels a side",
-                crate::data::MAX_SIDE
-            ),
-        });
-    }
-    if target == (width, height) {
-        return Ok(FittedCondition { frames: condition.frames.clone(), size: target, resized_from: None });
-    }
-    let frames = condition
-        .frames
-        .iter()
-        .map(|f| crate::data::cover_crop(f, target.0, target.1, image::imageops::FilterType::Triangle))
-        .collect();
-    Ok(FittedCondition { frames, size: target, resized_from: Some((width, height)) })
-}
-
-/// Reads the conditioning frames: a `datagen render` folder (`frames/`), a frame folder or a video.
-pub fn read_condition(path: &Path) -> Result<(Vec<RgbImage>, f64)> {
-    let named = read_condition_named(path)?;
-    Ok((named.frames, named.fps))
-}
-
-/// [`read_condition`] keeping each frame's file, for messages.
-pub fn read_condition_named(path: &Path) -> Result<crate::metrics::NamedFrames> {
-    let folder = if path.is_dir() && path.join("frames").is_dir() { path.join("frames") } else { path.to_path_buf() };
-    crate::metrics::read_named_frames(&folder)
+    Ok(())
 }
 
 /// The VAE folder of a checkpoint: `explicit`, `CKPT/vae` or the run's `vae/`.
@@ -153,13 +164,14 @@ pub fn find_vae(checkpoint: &Path, explicit: Option<&Path>) -> Result<PathBuf> {
     if let Some(v) = explicit {
         return Ok(v.to_path_buf());
     }
-    let candidates = [checkpoint.join("vae"), checkpoint.join("../../vae")];
+    let candidates = [checkpoint.join("vae"), checkpoint.join("../../vae"), checkpoint.join("../vae")];
     candidates.iter().find(|c| c.join("config.json").is_file()).cloned().ok_or_else(|| Error::InvalidArgument {
         name: "vae".to_string(),
         reason: format!(
-            "no VAE given and none at {} or {}; pass --vae",
+            "no VAE given and none at {}, {} or {}; pass --vae VAE_DIR or --base-model COGVIDEOX_5B_I2V_DIR",
             candidates[0].display(),
-            candidates[1].display()
+            candidates[1].display(),
+            candidates[2].display()
         ),
     })
 }
@@ -189,7 +201,7 @@ fn run_text_embedding(checkpoint: &Path) -> Result<Option<PathBuf>> {
 }
 
 /// The text embedding `[1, S, D]` from a safetensors file's `encoder_hidden_states` `[S, D]`
-/// (shape checked against the transformer config), or zeros without a file.
+/// (shape checked against the transformer config), or zeros without a file; f32.
 pub fn load_text_embedding(
     path: Option<&Path>,
     config: &CogVideoXTransformer3DModelConfig,
@@ -199,58 +211,215 @@ pub fn load_text_embedding(
     match path {
         None => Ok(Tensor::f_zeros([1, shape[0], shape[1]], (Kind::Float, device))?),
         Some(path) => {
-            let tensor = weights::read_safetensors(path)?.remove("encoder_hidden_states").ok_or_else(|| {
-                Error::MissingTensor {
-                    path: path.to_path_buf(),
-                    tensor: "encoder_hidden_states".to_string(),
-                    expected: shape.to_vec(),
-                }
+            let mut tensors = weights::read_safetensors(path)?;
+            let tensor = tensors.remove("encoder_hidden_states").ok_or_else(|| Error::MissingTensor {
+                path: path.to_path_buf(),
+                tensor: "encoder_hidden_states".to_string(),
+                expected: shape.to_vec(),
             })?;
             weights::check_floating(path, "encoder_hidden_states", &tensor)?;
+            // The script's files may keep the batch axis of `(1, S, D)`.
+            let tensor = if tensor.dim() == 3 && tensor.size()[0] == 1 { tensor.f_squeeze_dim(0)? } else { tensor };
             weights::check_shape(&format!("encoder_hidden_states` in `{}", path.display()), &tensor, &shape)?;
             Ok(tensor.f_to_kind(Kind::Float)?.f_to_device(device)?.f_unsqueeze(0)?)
         }
     }
 }
 
-/// Samples the novel-view video and writes it to `request.out`. Configs, checkpoint headers,
-/// text embeddings and the conditioning are all checked before a model is built; a
-/// conditioning of another size than the model takes is resized as the training loader does
-/// (see [`fit_condition`]).
-pub fn sample(request: &SampleRequest) -> Result<SampleReport> {
-    let device = request.device;
-    let timesteps = CogVideoXSchedulerConfig::cogvideox_5b().num_train_timesteps;
-    if request.steps == 0 || request.steps as i64 > timesteps {
-        return Err(Error::InvalidArgument {
-            name: "steps".to_string(),
-            reason: format!("{} must be in 1..={timesteps} (the scheduler's training timesteps)", request.steps),
-        });
-    }
-    if !request.guidance.is_finite() {
-        return Err(Error::InvalidArgument {
-            name: "guidance".to_string(),
-            reason: format!("{} must be finite", request.guidance),
-        });
-    }
-    let (transformer_path, lora_files) = match crate::lora::lora_checkpoint(&request.checkpoint)? {
-        Some((base, file)) => (base, [Some(file), request.lora.clone()]),
-        None => (transformer_dir(&request.checkpoint), [None, request.lora.clone()]),
+/// The scheduler config a pipeline samples with: the folder's `scheduler_config.json` when one
+/// is given, else CogVideoX-5B's, with trailing timestep spacing as the CogNVS demo sets it.
+pub fn scheduler_config(folder: Option<&Path>) -> Result<CogVideoXSchedulerConfig> {
+    let mut config = match folder {
+        Some(folder) => CogVideoXSchedulerConfig::from_json_file(folder)?,
+        None => CogVideoXSchedulerConfig::cogvideox_5b(),
     };
-    // Adapters are read and checked before any model is built.
-    let adapters = lora_files
-        .into_iter()
-        .flatten()
-        .map(|file| Ok((crate::lora::LoraFile::read(&file)?, file)))
-        .collect::<Result<Vec<_>>>()?;
-    let config = CogVideoXTransformer3DModelConfig::from_json_file(&transformer_path)?;
-    weights::check_against(
-        &transformer::variable_shapes(&config)?,
-        &weights::read_checkpoint_info(&transformer_path)?,
-        &transformer_path,
-    )?;
-    let vae_path = find_vae(&request.checkpoint, request.vae.as_deref())?;
-    let vae_config = AutoencoderKLCogVideoXConfig::from_json_file(&vae_path)?;
-    weights::read_checkpoint_info(&vae_path)?;
+    config.timestep_spacing = "trailing".to_string();
+    Ok(config)
+}
+
+/// How a pipeline is loaded.
+#[derive(Debug, Clone, Copy)]
+pub struct LoadOptions {
+    /// Compute device.
+    pub device: Device,
+    /// Arithmetic: `auto` is bf16 on CUDA (the demo's `torch_dtype=torch.bfloat16`), f32 on CPUs.
+    pub precision: Precision,
+    /// Spatial VAE tiling with diffusers' default tiles (the demo enables it), where those land on
+    /// whole latent pixels (see [`CogNvsPipeline::vae_tiling`]).
+    pub vae_tiling: bool,
+}
+
+/// A loaded CogNVS pipeline: transformer, VAE, text embeddings and scheduler config, ready to
+/// sample any number of conditionings.
+#[derive(Debug)]
+pub struct CogNvsPipeline {
+    transformer: CogVideoXTransformer3DModel,
+    vae: AutoencoderKLCogVideoX,
+    text: Tensor,
+    negative: Tensor,
+    scheduler: CogVideoXSchedulerConfig,
+    // The variable stores own the weights the models' tensors share.
+    _stores: (nn::VarStore, nn::VarStore),
+}
+
+impl CogNvsPipeline {
+    /// Checks every config and header, then builds and loads the models on the device in the
+    /// requested arithmetic.
+    pub fn load(paths: &ModelPaths, options: LoadOptions) -> Result<Self> {
+        paths.check_text_embedding()?;
+        let device = options.device;
+        let kind = options.precision.kind(device);
+        let adapters = paths
+            .adapters
+            .iter()
+            .map(|file| Ok((crate::lora::LoraFile::read(file)?, file)))
+            .collect::<Result<Vec<_>>>()?;
+        let config = CogVideoXTransformer3DModelConfig::from_json_file(&paths.transformer)?;
+        weights::check_against(
+            &transformer::variable_shapes(&config)?,
+            &weights::read_checkpoint_info(&paths.transformer)?,
+            &paths.transformer,
+        )?;
+        let vae_config = AutoencoderKLCogVideoXConfig::from_json_file(&paths.vae)?;
+        weights::read_checkpoint_info(&paths.vae)?;
+        check_latent_channels(&config, &vae_config, &paths.transformer, &paths.vae)?;
+        let scheduler = scheduler_config(paths.scheduler.as_deref())?;
+        let text = load_text_embedding(paths.text_embedding.as_deref(), &config, device)?;
+        let negative = match &paths.negative_text_embedding {
+            Some(path) => load_text_embedding(Some(path), &config, device)?,
+            None => text.shallow_clone(),
+        };
+
+        // Built in the working type: each checkpoint tensor is converted as it is copied in, and
+        // adapters are merged in f32 layer by layer.
+        let (vs, model) = transformer::build(&config, device, kind)?;
+        weights::load(&vs, &paths.transformer)?;
+        for (adapter, file) in &adapters {
+            adapter.merge_into(&vs, file)?;
+        }
+        let (vae_vs, mut vae_model) = vae::build(&vae_config, device, kind)?;
+        weights::load(&vae_vs, &paths.vae)?;
+        let tiles = TilingConfig::for_config(&vae_config);
+        if options.vae_tiling && tiles.lands_on_latent_pixels(vae_config.spatial_compression_ratio()) {
+            vae_model.enable_tiling(tiles)?;
+        }
+        Ok(Self {
+            transformer: model,
+            vae: vae_model,
+            text: text.f_to_kind(kind)?,
+            negative: negative.f_to_kind(kind)?,
+            scheduler,
+            _stores: (vs, vae_vs),
+        })
+    }
+
+    /// The frame size (width, height) the model was trained at: its positional table's.
+    pub fn model_size(&self) -> (u32, u32) {
+        let (c, spatial) = (self.transformer.config(), self.vae.config().spatial_compression_ratio());
+        ((c.sample_width * spatial) as u32, (c.sample_height * spatial) as u32)
+    }
+
+    /// The transformer's config.
+    pub fn transformer_config(&self) -> &CogVideoXTransformer3DModelConfig {
+        self.transformer.config()
+    }
+
+    /// The VAE's config.
+    pub fn vae_config(&self) -> &AutoencoderKLCogVideoXConfig {
+        self.vae.config()
+    }
+
+    /// Whether the VAE encodes and decodes in spatial tiles: asked for, and diffusers' default
+    /// tiles land on whole latent pixels for this VAE (see
+    /// [`TilingConfig::lands_on_latent_pixels`]; otherwise they change the latent size).
+    pub fn vae_tiling(&self) -> bool {
+        self.vae.tiling().is_some()
+    }
+
+    /// The models' element type.
+    pub fn kind(&self) -> Kind {
+        self.vae.kind()
+    }
+
+    /// A frame size the models take, or an error naming the rule: a multiple of the VAE's spatial
+    /// compression × the patch size, and the positional table's size for a transformer with a
+    /// learned one.
+    pub fn check_size(&self, (width, height): (u32, u32)) -> Result<()> {
+        let c = self.transformer.config();
+        let multiple = (self.vae.config().spatial_compression_ratio() * c.patch_size) as u32;
+        let reason = if width == 0 || height == 0 || width % multiple != 0 || height % multiple != 0 {
+            format!("{width}x{height} is not a positive multiple of {multiple} on both sides")
+        } else if c.use_learned_positional_embeddings && (width, height) != self.model_size() {
+            let (w, h) = self.model_size();
+            format!("this transformer has a learned positional table for {w}x{h} only")
+        } else {
+            return Ok(());
+        };
+        Err(Error::InvalidArgument { name: "size".to_string(), reason })
+    }
+
+    /// The video `[1, 3, F, H, W]` (f32, [−1, 1]) sampled for `condition` (same shape, any float
+    /// type; F = 1 + 4k) with `steps` DPM steps and guidance scale `guidance`, every draw from
+    /// tch's generator reseeded with `seed`. `progress(i, steps)` is called after each step.
+    pub fn generate(
+        &self,
+        condition: &Tensor,
+        steps: usize,
+        guidance: f64,
+        seed: u64,
+        progress: &mut dyn FnMut(usize, usize),
+    ) -> Result<Tensor> {
+        Ok(self.generate_timed(condition, steps, guidance, seed, progress)?.0)
+    }
+
+    /// [`Self::generate`] with the time of each part.
+    pub fn generate_timed(
+        &self,
+        condition: &Tensor,
+        steps: usize,
+        guidance: f64,
+        seed: u64,
+        progress: &mut dyn FnMut(usize, usize),
+    ) -> Result<(Tensor, Timings)> {
+        tch::manual_seed(seed as i64);
+        let negative = (!self.negative.equal(&self.text)).then_some(&self.negative);
+        let denoiser = Denoiser { transformer: &self.transformer, vae: &self.vae, scheduler: &self.scheduler };
+        let mut timings = Timings::default();
+        let video = denoiser.run(condition, &self.text, negative, steps, guidance, progress, &mut timings)?;
+        Ok((video, timings))
+    }
+}
+
+/// The memory plan of sampling with `paths` as `options` and `framing` say (the model's size and
+/// `framing.frames`), guided when a negative prompt is given; reads the configs only.
+pub fn sampling_plan(paths: &ModelPaths, options: LoadOptions, framing: &Framing) -> Result<crate::plan::SamplingPlan> {
+    let config = CogVideoXTransformer3DModelConfig::from_json_file(&paths.transformer)?;
+    let vae_config = AutoencoderKLCogVideoXConfig::from_json_file(&paths.vae)?;
+    let spatial = vae_config.spatial_compression_ratio();
+    let (width, height) = framing
+        .size
+        .map_or(((config.sample_width * spatial) as u64, (config.sample_height * spatial) as u64), |(w, h)| {
+            (u64::from(w), u64::from(h))
+        });
+    let tiles = TilingConfig::for_config(&vae_config);
+    let tiling = (options.vae_tiling && tiles.lands_on_latent_pixels(spatial)).then_some(&tiles);
+    crate::plan::sampling_plan(
+        &config,
+        &vae_config,
+        (framing.frames as u64, height, width),
+        options.precision.kind(options.device),
+        options.device,
+        tiling,
+        paths.negative_text_embedding.is_some(),
+    )
+}
+
+fn check_latent_channels(
+    config: &CogVideoXTransformer3DModelConfig,
+    vae_config: &AutoencoderKLCogVideoXConfig,
+    transformer_path: &Path,
+    vae_path: &Path,
+) -> Result<()> {
     if config.in_channels != 2 * vae_config.latent_channels || config.output_channels() != vae_config.latent_channels {
         return Err(Error::InvalidConfig {
             source_name: transformer_path.join("config.json").display().to_string(),
@@ -264,58 +433,370 @@ pub fn sample(request: &SampleRequest) -> Result<SampleReport> {
             ),
         });
     }
-    let prompt_path = match &request.text_embedding {
-        Some(p) => Some(p.clone()),
-        None => run_text_embedding(&request.checkpoint)?,
-    };
-    let text = load_text_embedding(prompt_path.as_deref(), &config, device)?;
-    let negative = match &request.negative_text_embedding {
-        Some(path) => load_text_embedding(Some(path), &config, device)?,
-        None => text.shallow_clone(),
-    };
-    let guided = request.guidance > 1.0 && !text.equal(&negative);
+    Ok(())
+}
 
-    let condition = read_condition_named(&request.condition)?;
-    let fps = condition.fps;
-    let fitted = fit_condition(&condition, &request.condition, &config, &vae_config)?;
-    let (width, height) = fitted.size;
-    if let Some((w, h)) = fitted.resized_from {
-        // Said before the long denoising loop, as a log line the user can act on.
-        eprintln!(
-            "note: {}: resized the conditioning from {w}x{h} to {width}x{height} (scaled to cover, centre-cropped, \
-             as the training loader does) for this model",
-            request.condition.display()
-        );
+/// Where a generation's time went, in seconds (synchronised with the device on CUDA).
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct Timings {
+    /// The conditioning's VAE encode.
+    pub encode: f64,
+    /// The denoising loop.
+    pub denoise: f64,
+    /// The VAE decode.
+    pub decode: f64,
+}
+
+/// Waits for the device's queued work (CUDA), so that wall time is the work's own.
+fn synchronize(device: Device) {
+    if let Device::Cuda(index) = device {
+        tch::Cuda::synchronize(index as i64);
     }
-    let (frames, resized_from) = (fitted.frames, fitted.resized_from);
+}
 
-    let (vs, model) = transformer::build(&config, device, Kind::Float)?;
-    weights::load(&vs, &transformer_path)?;
-    for (adapter, file) in &adapters {
-        adapter.merge_into(&vs, file)?;
+/// The models and schedule of one denoising run.
+struct Denoiser<'a> {
+    transformer: &'a CogVideoXTransformer3DModel,
+    vae: &'a AutoencoderKLCogVideoX,
+    scheduler: &'a CogVideoXSchedulerConfig,
+}
+
+impl Denoiser<'_> {
+    /// Steps 1–4 of the module docs; draws from tch's global generator as it stands.
+    #[allow(clippy::too_many_arguments)]
+    fn run(
+        &self,
+        condition: &Tensor,
+        text: &Tensor,
+        negative: Option<&Tensor>,
+        steps: usize,
+        guidance: f64,
+        progress: &mut dyn FnMut(usize, usize),
+        timings: &mut Timings,
+    ) -> Result<Tensor> {
+        let timesteps_in_training = self.scheduler.num_train_timesteps;
+        if steps == 0 || steps as i64 > timesteps_in_training {
+            return Err(Error::InvalidArgument {
+                name: "steps".to_string(),
+                reason: format!("{steps} must be in 1..={timesteps_in_training} (the scheduler's training timesteps)"),
+            });
+        }
+        if !guidance.is_finite() {
+            return Err(Error::InvalidArgument {
+                name: "guidance".to_string(),
+                reason: format!("{guidance} must be finite"),
+            });
+        }
+        let config = self.transformer.config();
+        let device = text.device();
+        let kind = self.vae.kind();
+        tch::no_grad(|| -> Result<Tensor> {
+            synchronize(device);
+            let mut clock = Instant::now();
+            let mut lap = |device: Device| {
+                synchronize(device);
+                let seconds = clock.elapsed().as_secs_f64();
+                clock = Instant::now();
+                seconds
+            };
+            let scale = self.vae.config().scaling_factor;
+            let cond = self
+                .vae
+                .encode_posterior(&condition.f_to_kind(kind)?)?
+                .sample()?
+                .f_to_kind(kind)?
+                .f_permute([0, 2, 1, 3, 4])?
+                .f_mul_scalar(scale)?;
+            timings.encode = lap(device);
+            let [_, frames, _, height, width] = cond.size()[..] else { unreachable!("5-D latents") };
+            let mut latents = Tensor::f_randn([1, frames, config.output_channels(), height, width], (kind, device))?;
+            let rotary = pipeline_rotary(config, frames, height, width, device)?;
+            // Classifier-free guidance runs negative and positive as one batch of two.
+            let guided = guidance > 1.0 && negative.is_some();
+            let (text, cond) = match negative {
+                Some(negative) if guided => (
+                    Tensor::f_cat(&[negative.f_to_kind(kind)?, text.f_to_kind(kind)?], 0)?,
+                    Tensor::f_cat(&[&cond, &cond], 0)?,
+                ),
+                _ => (text.f_to_kind(kind)?, cond),
+            };
+            let mut scheduler = CogVideoXDPMScheduler::new(self.scheduler)?;
+            scheduler.set_timesteps(steps)?;
+            let timesteps = scheduler.timesteps().to_vec();
+            let mut old_pred: Option<Tensor> = None;
+            for (i, &t) in timesteps.iter().enumerate() {
+                let noisy = if guided { Tensor::f_cat(&[&latents, &latents], 0)? } else { latents.shallow_clone() };
+                let input = Tensor::f_cat(&[&noisy, &cond], 2)?;
+                let timestep = Tensor::from_slice(&[t]).f_to_device(device)?.f_expand([input.size()[0]], false)?;
+                let prediction = self
+                    .transformer
+                    .forward(
+                        &TransformerInput {
+                            hidden_states: &input,
+                            encoder_hidden_states: &text,
+                            timestep: &timestep,
+                            ofs: None,
+                            image_rotary_emb: rotary.as_ref(),
+                        },
+                        false,
+                    )?
+                    .f_to_kind(Kind::Float)?;
+                let v = if guided {
+                    let (uncond, conditioned) = (prediction.f_narrow(0, 0, 1)?, prediction.f_narrow(0, 1, 1)?);
+                    uncond.f_add(&conditioned.f_sub(&uncond)?.f_mul_scalar(guidance)?)?
+                } else {
+                    prediction
+                };
+                let back = if i > 0 { Some(timesteps[i - 1]) } else { None };
+                let out = scheduler.step(&v, old_pred.as_ref(), t, back, &latents)?;
+                latents = out.prev_sample.f_to_kind(kind)?;
+                old_pred = Some(out.pred_original_sample);
+                progress(i + 1, timesteps.len());
+            }
+            timings.denoise = lap(device);
+            // `1 / scaling_factor * latents`, as the pipeline writes it (not a division).
+            let latent = latents.f_permute([0, 2, 1, 3, 4])?.f_mul_scalar(1.0 / scale)?;
+            let video = self.vae.decode(&latent)?;
+            timings.decode = lap(device);
+            Ok(video)
+        })
     }
-    let (vae_vs, vae_model) = vae::build(&vae_config, device, Kind::Float)?;
-    weights::load(&vae_vs, &vae_path)?;
+}
 
-    let (f, h, w) = (frames.len() as i64, i64::from(height), i64::from(width));
-    let bytes: Vec<u8> = frames.iter().flat_map(|fr| fr.as_raw().iter().copied()).collect();
-    let video = Tensor::from_slice(&bytes)
-        .f_view([1, f, h, w, 3])?
-        .f_permute([0, 4, 1, 2, 3])?
-        .f_to_kind(Kind::Float)?
-        .f_div_scalar(127.5)?
-        .f_sub_scalar(1.0)?
-        .f_to_device(device)?;
+/// The rotary table a CogVideoX pipeline builds for a latent grid (`grid_type="linspace"`): the
+/// patch grid's positions cropped to the transformer's base grid (diffusers'
+/// `get_resize_crop_region_for_grid`); none for a transformer without rotary positions.
+pub fn pipeline_rotary(
+    config: &CogVideoXTransformer3DModelConfig,
+    frames: i64,
+    height: i64,
+    width: i64,
+    device: Device,
+) -> Result<Option<RotaryEmbedding>> {
+    if !config.use_rotary_positional_embeddings {
+        return Ok(None);
+    }
+    let p = config.patch_size;
+    let (grid_h, grid_w) = (height / p, width / p);
+    let (base_h, base_w) = (config.sample_height / p, config.sample_width / p);
+    // Fit the grid's aspect into the base grid, centred.
+    let (resize_h, resize_w) = if grid_h as f64 / grid_w as f64 > base_h as f64 / base_w as f64 {
+        (base_h, (base_h as f64 / grid_h as f64 * grid_w as f64).round_ties_even() as i64)
+    } else {
+        ((base_w as f64 / grid_w as f64 * grid_h as f64).round_ties_even() as i64, base_w)
+    };
+    let top = ((base_h - resize_h) as f64 / 2.0).round_ties_even() as i64;
+    let left = ((base_w - resize_w) as f64 / 2.0).round_ties_even() as i64;
+    let axis = |start: i64, stop: i64, n: i64| -> Result<Tensor> {
+        let end = stop as f64 * (n - 1) as f64 / n as f64;
+        Ok(Tensor::f_linspace(start as f64, end, n, (Kind::Float, device))?)
+    };
+    let t =
+        Tensor::f_linspace(0.0, frames as f64 * (frames - 1) as f64 / frames as f64, frames, (Kind::Float, device))?;
+    let t = if config.patch_size_t.is_some() { Tensor::f_arange(frames, (Kind::Float, device))? } else { t };
+    let y = axis(top, top + resize_h, grid_h)?;
+    let x = axis(left, left + resize_w, grid_w)?;
+    Ok(Some(RotaryEmbedding::from_positions(config.attention_head_dim, &t, &y, &x)?))
+}
 
-    tch::manual_seed(request.seed as i64);
+/// Generates a video `[1, 3, F, H, W]` in [-1, 1] for a conditioning video of the same shape with
+/// CogVideoX-5B's schedule, as [`CogNvsPipeline::generate`] does, drawing from tch's global
+/// generator as it stands (the training loop's validation samples seed it themselves). The
+/// models run in their weights' element type.
+pub fn generate(
+    model: &CogVideoXTransformer3DModel,
+    vae_model: &AutoencoderKLCogVideoX,
+    condition: &Tensor,
+    text: &Tensor,
+    negative: Option<&Tensor>,
+    steps: usize,
+    guidance: f64,
+) -> Result<Tensor> {
+    let scheduler = scheduler_config(None)?;
+    Denoiser { transformer: model, vae: vae_model, scheduler: &scheduler }.run(
+        condition,
+        text,
+        negative,
+        steps,
+        guidance,
+        &mut |_, _| {},
+        &mut Timings::default(),
+    )
+}
+
+/// The frames of a video tensor `[1, 3, F, H, W]` in [-1, 1] (see
+/// [`video_processor::video_to_frames`]).
+pub fn to_frames(video: &Tensor) -> Result<Vec<RgbImage>> {
+    video_processor::video_to_frames(video)
+}
+
+/// How a conditioning becomes the model's input and the result the user's output.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct Framing {
+    /// Frames sampled: the first this many, 1 + 4k (fewer when the input is shorter: see
+    /// [`video_processor::take_frames`]).
+    pub frames: usize,
+    /// How frames of another size reach the model's size.
+    pub resize: ResizeMode,
+    /// The model's input size (width, height); None: the transformer's own.
+    pub size: Option<(u32, u32)>,
+    /// Resize the result back to the conditioning's size (the demo does).
+    pub restore_size: bool,
+    /// Frame rate of an mp4 output (the demo writes 10 fps).
+    pub fps: f64,
+}
+
+impl Default for Framing {
+    /// The public demo's: 49 frames, area resize to the model's size, back to the input's size,
+    /// 10 fps.
+    fn default() -> Self {
+        Self { frames: DEMO_FRAMES, resize: ResizeMode::Area, size: None, restore_size: true, fps: DEMO_FPS }
+    }
+}
+
+/// Frames the public demo samples.
+pub const DEMO_FRAMES: usize = 49;
+/// Frame rate the public demo writes.
+pub const DEMO_FPS: f64 = 10.0;
+
+/// A conditioning ready for [`CogNvsPipeline::generate`].
+#[derive(Debug)]
+pub struct PreparedCondition {
+    /// The frames at the model's size.
+    pub frames: Vec<RgbImage>,
+    /// The input's own frame size.
+    pub source_size: (u32, u32),
+    /// The input frames that were used, at their own size.
+    pub used: usize,
+    /// The input's frames.
+    pub available: usize,
+}
+
+/// Reads a conditioning (a `datagen render` folder, a frame folder or a video) and brings it to
+/// the pipeline's input as `framing` says. Errors name the input.
+pub fn prepare_condition(path: &Path, pipeline: &CogNvsPipeline, framing: &Framing) -> Result<PreparedCondition> {
+    let named = read_condition_named(path)?;
+    let source_size = named.uniform_size()?;
+    let temporal = pipeline.vae_config().effective_temporal_compression_ratio() as usize;
+    if framing.frames == 0 || !(framing.frames - 1).is_multiple_of(temporal) {
+        return Err(Error::InvalidArgument {
+            name: "frames".to_string(),
+            reason: format!("{} is not 1 + {temporal}k (the VAE compresses time {temporal}×)", framing.frames),
+        });
+    }
+    let used = video_processor::take_frames(named.frames.len(), framing.frames, temporal).ok_or_else(|| {
+        Error::InvalidInput { path: path.to_path_buf(), what: "frames".to_string(), reason: "no frame".to_string() }
+    })?;
+    if used > crate::data::MAX_FRAMES || source_size.0 > crate::data::MAX_SIDE || source_size.1 > crate::data::MAX_SIDE
+    {
+        return Err(Error::InvalidInput {
+            path: path.to_path_buf(),
+            what: "video size".to_string(),
+            reason: format!(
+                "{used} frames of {}x{}: at most {} frames of {} pixels a side",
+                source_size.0,
+                source_size.1,
+                crate::data::MAX_FRAMES,
+                crate::data::MAX_SIDE
+            ),
+        });
+    }
+    let size = framing.size.unwrap_or_else(|| pipeline.model_size());
+    pipeline.check_size(size)?;
+    let frames = named.frames[..used].iter().map(|f| video_processor::fit(f, size.0, size.1, framing.resize)).collect();
+    Ok(PreparedCondition { frames, source_size, used, available: named.frames.len() })
+}
+
+/// Reads the conditioning frames: a `datagen render` folder (`frames/`), a frame folder or a video.
+pub fn read_condition_named(path: &Path) -> Result<crate::metrics::NamedFrames> {
+    let folder = if path.is_dir() && path.join("frames").is_dir() { path.join("frames") } else { path.to_path_buf() };
+    crate::metrics::read_named_frames(&folder)
+}
+
+/// The user's frames from a sampled video: back at the conditioning's size when `framing` asks
+/// (OpenCV's default linear resize, as the demo does).
+pub fn finish_frames(video: &Tensor, condition: &PreparedCondition, framing: &Framing) -> Result<Vec<RgbImage>> {
+    let frames = video_processor::video_to_frames(video)?;
+    let (w, h) = condition.source_size;
+    Ok(if framing.restore_size && frames.first().is_some_and(|f| f.dimensions() != (w, h)) {
+        frames.iter().map(|f| video_processor::resize_linear(f, w, h)).collect()
+    } else {
+        frames
+    })
+}
+
+/// What to sample with `trainer sample`.
+#[derive(Debug, Clone)]
+pub struct SampleRequest {
+    /// The models.
+    pub model: ModelSource,
+    /// The conditioning: a `datagen render` folder (its `frames/`), a folder of frames, or a video.
+    pub condition: PathBuf,
+    /// Output: an `.mp4` file (H.264), or any other path: a folder of lossless PNG frames
+    /// (`00000.png`, …), bit-for-bit the sampled frames.
+    pub out: PathBuf,
+    /// Denoising steps.
+    pub steps: usize,
+    /// Classifier-free guidance scale.
+    pub guidance: f64,
+    /// Seed of every draw.
+    pub seed: u64,
+    /// Device, arithmetic and VAE tiling.
+    pub load: LoadOptions,
+    /// Frames, sizes and frame rate.
+    pub framing: Framing,
+}
+
+/// What sampling produced.
+#[derive(Debug, Clone)]
+pub struct SampleReport {
+    /// Frames written.
+    pub frames: usize,
+    /// The model's input size.
+    pub model_size: (u32, u32),
+    /// The size written.
+    pub size: (u32, u32),
+    /// The conditioning's own size.
+    pub source_size: (u32, u32),
+    /// The conditioning's frames, of which `frames` were sampled.
+    pub source_frames: usize,
+    /// Seconds of generation (encode, denoising, decode).
+    pub seconds: f64,
+    /// Seconds of each part.
+    pub timings: Timings,
+    /// On CUDA: the caching allocator's peak bytes (allocated, reserved) over the whole command.
+    pub cuda_peaks: Option<(u64, u64)>,
+}
+
+/// `trainer sample`: loads the pipeline, prepares the conditioning, samples and writes the
+/// frames. Configs, headers, text embeddings and the conditioning are checked before a model is
+/// built.
+pub fn sample(request: &SampleRequest, progress: &mut dyn FnMut(usize, usize)) -> Result<SampleReport> {
+    let paths = request.model.resolve()?;
+    read_condition_named(&request.condition)?.uniform_size()?;
+    crate::plan::check_sampling_fits(&sampling_plan(&paths, request.load, &request.framing)?)?;
+    let pipeline = CogNvsPipeline::load(&paths, request.load)?;
+    let condition = prepare_condition(&request.condition, &pipeline, &request.framing)?;
+    let video = video_processor::frames_to_video(&condition.frames, pipeline.kind(), request.load.device)?;
     let started = Instant::now();
-    let negative = guided.then_some(&negative);
-    let output = generate(&model, &vae_model, &video, &text, negative, request.steps, request.guidance)?;
+    let (output, timings) = pipeline.generate_timed(&video, request.steps, request.guidance, request.seed, progress)?;
     let seconds = started.elapsed().as_secs_f64();
-    let images = to_frames(&output)?;
-    let frames_out = images.len();
-    write_frames(&request.out, &images, if fps > 0.0 { fps } else { DEFAULT_FPS })?;
-    Ok(SampleReport { frames: frames_out, size: (width, height), seconds, resized_from })
+    let cuda_peaks = match request.load.device {
+        Device::Cuda(index) => crate::distributed::cuda_memory_peaks(index, false),
+        _ => None,
+    };
+    let images = finish_frames(&output, &condition, &request.framing)?;
+    write_frames(&request.out, &images, request.framing.fps)?;
+    Ok(SampleReport {
+        frames: images.len(),
+        model_size: condition.frames[0].dimensions(),
+        size: images[0].dimensions(),
+        source_size: condition.source_size,
+        source_frames: condition.available,
+        seconds,
+        timings,
+        cuda_peaks,
+    })
 }
 
 /// Writes sampled frames to `out`: an H.264 video when it ends in `.mp4`, else a folder of PNG
@@ -343,87 +824,3 @@ pub fn write_frames(out: &Path, images: &[RgbImage], fps: f64) -> Result<()> {
     }
     Ok(())
 }
-
-/// Generates a video `[1, 3, F, H, W]` in [-1, 1] for a conditioning video of the same shape:
-/// encode, DPM denoising with guidance against `negative` (when given), decode. Draws from tch's
-/// global generator. The models run in their weights' element type (the transformer's must be
-/// the VAE's); the scheduler and the returned video are fp32.
-pub fn generate(
-    model: &CogVideoXTransformer3DModel,
-    vae_model: &AutoencoderKLCogVideoX,
-    condition: &Tensor,
-    text: &Tensor,
-    negative: Option<&Tensor>,
-    steps: usize,
-    guidance: f64,
-) -> Result<Tensor> {
-    let config = model.config();
-    let device = text.device();
-    tch::no_grad(|| -> Result<Tensor> {
-        let scale = vae_model.config().scaling_factor;
-        let kind = vae_model.kind();
-        let cond = vae_model
-            .encode(&condition.f_to_kind(kind)?)?
-            .f_mul_scalar(scale)?
-            .f_permute([0, 2, 1, 3, 4])?
-            .f_contiguous()?;
-        let mut latents =
-            cond.f_randn_like()?.f_narrow(2, 0, config.output_channels())?.f_to_kind(Kind::Float)?.f_contiguous()?;
-        let (text, negative) = (text.f_to_kind(kind)?, negative.map(|n| n.f_to_kind(kind)).transpose()?);
-        let mut scheduler = CogVideoXDPMScheduler::new(&CogVideoXSchedulerConfig::cogvideox_5b())?;
-        scheduler.set_timesteps(steps)?;
-        let timesteps = scheduler.timesteps().to_vec();
-        let mut old_pred: Option<Tensor> = None;
-        for (i, &t) in timesteps.iter().enumerate() {
-            let input = Tensor::f_cat(&[&latents.f_to_kind(kind)?, &cond], 2)?;
-            let timestep = Tensor::from_slice(&[t]).f_to_device(device)?;
-            let run = |text: &Tensor| {
-                model.forward(
-                    &TransformerInput {
-                        hidden_states: &input,
-                        encoder_hidden_states: text,
-                        timestep: &timestep,
-                        ofs: None,
-                        image_rotary_emb: None,
-                    },
-                    false,
-                )
-            };
-            let mut v = run(&text)?.f_to_kind(Kind::Float)?;
-            if let Some(negative) = &negative {
-                let v_uncond = run(negative)?.f_to_kind(Kind::Float)?;
-                v = v_uncond.f_add(&v.f_sub(&v_uncond)?.f_mul_scalar(guidance)?)?;
-            }
-            let back = if i > 0 { Some(timesteps[i - 1]) } else { None };
-            let out = scheduler.step(&v, old_pred.as_ref(), t, back, &latents)?;
-            latents = out.prev_sample;
-            old_pred = Some(out.pred_original_sample);
-        }
-        let latent = latents.f_permute([0, 2, 1, 3, 4])?.f_div_scalar(scale)?.f_to_kind(kind)?;
-        Ok(vae_model.decode(&latent)?.f_to_kind(Kind::Float)?)
-    })
-}
-
-/// The frames of a video tensor `[1, 3, F, H, W]` in [-1, 1].
-pub fn to_frames(video: &Tensor) -> Result<Vec<RgbImage>> {
-    let size = video.size();
-    let (height, width) = (size[3], size[4]);
-    let pixels = video
-        .f_squeeze_dim(0)?
-        .f_permute([1, 2, 3, 0])?
-        .f_add_scalar(1.0)?
-        .f_mul_scalar(127.5)?
-        .f_clamp(0.0, 255.0)?
-        .f_round()?
-        .f_to_kind(Kind::Uint8)?
-        .f_to_device(Device::Cpu)?
-        .f_contiguous()?;
-    let data: Vec<u8> = Vec::<u8>::try_from(pixels.f_flatten(0, -1)?)?;
-    Ok(data
-        .chunks((width * height * 3) as usize)
-        .map(|chunk| RgbImage::from_raw(width as u32, height as u32, chunk.to_vec()).expect("frame-sized chunk"))
-        .collect())
-}
-
-/// Frame rate of the output when the conditioning has none (frame folders): CogVideoX's 8 fps.
-const DEFAULT_FPS: f64 = 8.0;

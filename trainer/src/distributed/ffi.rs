@@ -58,6 +58,7 @@ unsafe extern "C" {
     ) -> *mut c_char;
     fn trainer_c10d_has_nccl() -> c_int;
     fn trainer_c10d_cuda_mem_get_info(device: c_int, free_bytes: *mut u64, total_bytes: *mut u64) -> c_int;
+    fn trainer_c10d_cuda_memory_peaks(device: c_int, allocated: *mut u64, reserved: *mut u64, reset: c_int) -> c_int;
     fn trainer_c10d_group_free(group: *mut RawGroup);
     fn trainer_c10d_allreduce_sum(
         group: *mut RawGroup,
@@ -240,6 +241,16 @@ pub fn cuda_mem_get_info(index: usize) -> Option<(u64, u64)> {
     // SAFETY: valid out-pointers; the shim returns -1 where CUDA is absent.
     let status = unsafe { trainer_c10d_cuda_mem_get_info(index as c_int, &mut free, &mut total) };
     (status == 0).then_some((free, total))
+}
+
+/// Peak bytes `(allocated, reserved)` of libtorch's CUDA caching allocator on device `index`
+/// since the start or the last reset (`reset` resets them after reading); None without CUDA.
+pub fn cuda_memory_peaks(index: usize, reset: bool) -> Option<(u64, u64)> {
+    let (mut allocated, mut reserved) = (0u64, 0u64);
+    // SAFETY: valid out-pointers; the shim catches every exception and returns -1 without CUDA.
+    let status =
+        unsafe { trainer_c10d_cuda_memory_peaks(index as c_int, &mut allocated, &mut reserved, c_int::from(reset)) };
+    (status == 0).then_some((allocated, reserved))
 }
 
 impl Group {

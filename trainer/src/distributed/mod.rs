@@ -22,7 +22,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 use tch::{Device, Tensor};
 
 pub use data_parallel::{FlatState, GradientBuckets, ShardedAdamW};
-pub use ffi::{Backend, cuda_mem_get_info, has_nccl};
+pub use ffi::{Backend, cuda_mem_get_info, cuda_memory_peaks, has_nccl};
 pub use launch::{DEFAULT_MASTER_PORT, Launch, Launcher, first_host};
 
 use crate::error::{Error, Result};

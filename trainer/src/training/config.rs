@@ -26,9 +26,19 @@ pub struct ModelConfig {
     /// Valid: a preset name or an existing folder.
     pub vae: String,
     /// Optional safetensors file with `encoder_hidden_states` `[S, D]`: the empty prompt's text
-    /// embedding. Zeros when unset. Valid: an existing file (its shape is checked at load).
+    /// embedding (`scripts/encode_prompt.py` makes it). Zeros when unset, which a transformer of
+    /// the released models' T5-XXL text shape (226 × 4096) refuses unless `zero_text_embedding`.
+    /// Valid: an existing file (its shape is checked at load).
     #[serde(default)]
     pub text_embedding: Option<PathBuf>,
+    /// Train with zeros as the text embedding even where the transformer takes T5-XXL text (it
+    /// then sees text tokens it never saw in pretraining). Valid: any.
+    #[serde(default)]
+    pub zero_text_embedding: bool,
+    /// Optional diffusers scheduler folder (or its `scheduler_config.json`) whose noise schedule
+    /// training uses; CogVideoX-5B's when unset. Valid: an existing folder or file.
+    #[serde(default)]
+    pub scheduler: Option<PathBuf>,
     /// Optional LoRA file (`pytorch_lora_weights.safetensors`, ours or another diffusers/peft
     /// trainer's) merged into the transformer's weights once they are loaded: training starts
     /// from base + adapter. Valid: an existing file whose adapters fit the transformer (checked
@@ -110,6 +120,10 @@ pub struct LoopConfig {
     /// input and the backward recomputes one block at a time, so activation memory is one
     /// block's instead of all of them, for about one more forward of compute. Same gradients.
     pub gradient_checkpointing: bool,
+    /// Write model files: the run's VAE and LoRA base copies and the checkpoints. `false` is for
+    /// measurement runs (`scripts/gpu_check.sh`, benchmarks): nothing but `config.json` and the
+    /// metrics is written, so a 5B run needs no disk for its 20–70 GB of weights. Valid: any.
+    pub save_checkpoints: bool,
 }
 
 /// Training arithmetic.
@@ -153,6 +167,7 @@ impl Default for LoopConfig {
             latent_cache: None,
             precision: Precision::Auto,
             gradient_checkpointing: false,
+            save_checkpoints: true,
         }
     }
 }
@@ -442,7 +457,33 @@ impl ModelConfig {
         {
             return Err(bad("model.text_embedding", format!("{} is not a file", path.display())));
         }
+        if let Some(path) = &self.scheduler
+            && !path.exists()
+        {
+            return Err(bad("model.scheduler", format!("{} does not exist", path.display())));
+        }
         Ok(())
+    }
+
+    /// Refuses zeros as the text embedding of a transformer that takes T5-XXL text unless
+    /// `zero_text_embedding` says so (see [`crate::sampling::require_text_embedding`]).
+    pub fn check_text_embedding(&self) -> Result<()> {
+        let (transformer, _) = self.configs(false)?;
+        crate::sampling::require_text_embedding(
+            &transformer,
+            self.text_embedding.as_deref(),
+            self.zero_text_embedding,
+            Path::new(&self.transformer),
+        )
+    }
+
+    /// The noise schedule's config: the `scheduler` folder's, else CogVideoX-5B's.
+    pub fn scheduler_config(&self) -> Result<crate::scheduling_ddim::CogVideoXSchedulerConfig> {
+        use crate::diffusers_config::DiffusersConfig;
+        match &self.scheduler {
+            Some(path) => crate::scheduling_ddim::CogVideoXSchedulerConfig::from_json_file(path),
+            None => Ok(crate::scheduling_ddim::CogVideoXSchedulerConfig::cogvideox_5b()),
+        }
     }
 }
 

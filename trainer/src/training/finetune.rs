@@ -9,10 +9,20 @@ use crate::distributed::ProcessGroup;
 use crate::error::{Error, Result};
 
 /// What `trainer finetune` trains.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Default)]
 pub struct FinetuneRequest {
-    /// Checkpoint to start from.
+    /// Checkpoint to start from: a run's checkpoint, a diffusers transformer folder (the released
+    /// CogNVS transformer) or a pipeline folder with `transformer/`.
     pub init: PathBuf,
+    /// A CogVideoX pipeline folder (CogVideoX-5B-I2V's layout) supplying the VAE and the scheduler
+    /// config where `init` has none.
+    pub base_model: Option<PathBuf>,
+    /// The VAE folder, overriding every other place.
+    pub vae: Option<PathBuf>,
+    /// The text embedding file, overriding the config's.
+    pub text_embedding: Option<PathBuf>,
+    /// Zeros as the text embedding also for a transformer trained on T5-XXL text.
+    pub zero_text_embedding: bool,
     /// The test video's sequence folder.
     pub sequence: PathBuf,
     /// Run folder.
@@ -25,6 +35,9 @@ pub struct FinetuneRequest {
     pub config: Option<PathBuf>,
     /// A LoRA file merged into `init`'s transformer before finetuning (a base plus an adapter).
     pub lora: Option<PathBuf>,
+    /// Continue the run in `out` (its pairs and its latest checkpoint) instead of refusing a
+    /// folder that holds one.
+    pub resume: bool,
 }
 
 /// `trainer finetune`: test-time finetuning on one video (DESIGN §1). Its self-supervised pairs
@@ -51,7 +64,11 @@ pub fn finetune_on(
     let FinetuneRequest { sequence: sequence_dir, out: run, trajectories, .. } = request;
     let trajectories = *trajectories;
     let (mut config, _) = finetune_config(request)?;
-    if run.join("config.json").exists() {
+    config.validate("finetune config")?;
+    config.model.check_text_embedding()?;
+    // The run's config is written once its pairs are: a run that has one has its pairs.
+    let resumed = run.join("config.json").exists();
+    if resumed && !request.resume {
         return Err(Error::InvalidArgument {
             name: "out".to_string(),
             reason: format!("{} already holds a run; choose another folder", run.display()),
@@ -62,7 +79,7 @@ pub fn finetune_on(
         pg.barrier("finetune start")?;
     }
     let pairs_dir = run.join("pairs");
-    if rank == 0 {
+    if rank == 0 && !resumed {
         let sequence = datagen::sequence::read_sequence(sequence_dir)?;
         let frames = config.data.frames as u32;
         let pairs_config = datagen::pairs::PairsConfig {
@@ -94,44 +111,65 @@ pub fn finetune_on(
     }
     let batch = config.data.batch_size.min(clips).max(1);
     config.data.batch_size = (batch / world).max(1) * world;
-    pretrain_on(&config, &[pairs_dir], run, false, device, pg, progress)
+    pretrain_on(&config, &[pairs_dir], run, resumed, device, pg, progress)
 }
 
 /// The training config `trainer finetune` runs `request` with, and the name of the file it came
 /// from: the request's TOML or the init run's `config.json`, with the init checkpoint's
-/// transformer (or a LoRA checkpoint's base plus its adapter, or `--lora`'s) and VAE, and the
-/// request's steps. Nothing is written. The data's batch may still shrink to the number of clips
-/// the video gives (see [`finetune_on`]).
+/// transformer (or a LoRA checkpoint's base plus its adapter, or `--lora`'s), its VAE and
+/// scheduler config (the checkpoint's, its run's, or the base model's), the request's text
+/// embedding and steps. Nothing is written. The data's batch may still shrink to the number of
+/// clips the video gives (see [`finetune_on`]).
 pub fn finetune_config(request: &FinetuneRequest) -> Result<(PretrainConfig, String)> {
     let init = &request.init;
+    let run_config = init.join("../../config.json");
     let (mut config, source_name) = match &request.config {
         Some(path) => (PretrainConfig::from_toml_file(path)?, path.display().to_string()),
+        None if run_config.is_file() => {
+            (PretrainConfig::from_json_file(&run_config)?, run_config.display().to_string())
+        }
         None => {
-            let path = init.join("../../config.json");
-            (PretrainConfig::from_json_file(&path)?, path.display().to_string())
-        }
-    };
-    match crate::lora::lora_checkpoint(init)? {
-        // A LoRA checkpoint: its base with its adapter merged is where finetuning starts.
-        Some((base, file)) => {
-            config.model.transformer = base.display().to_string();
-            config.model.transformer_lora = Some(file);
-        }
-        None => config.model.transformer = crate::sampling::transformer_dir(init).display().to_string(),
-    }
-    if let Some(file) = &request.lora {
-        if config.model.transformer_lora.is_some() {
             return Err(Error::InvalidArgument {
-                name: "lora".to_string(),
+                name: "config".to_string(),
                 reason: format!(
-                    "{} is a LoRA checkpoint already; pass its base to combine it with another LoRA file",
-                    init.display()
+                    "{} is not the checkpoint of a trainer run (no {}): pass --config with the training settings                      (configs/finetune_cognvs_lora.toml or configs/finetune_cognvs_full.toml for the released CogNVS                      checkpoint)",
+                    init.display(),
+                    run_config.display()
                 ),
             });
         }
-        config.model.transformer_lora = Some(file.clone());
+    };
+    let source = crate::sampling::ModelSource {
+        checkpoint: init.clone(),
+        base_model: request.base_model.clone(),
+        vae: request.vae.clone(),
+        lora: request.lora.clone(),
+        text_embedding: request.text_embedding.clone(),
+        negative_text_embedding: None,
+        zero_text_embedding: request.zero_text_embedding,
+    };
+    let paths = source.resolve()?;
+    if let [first, second, ..] = &paths.adapters[..] {
+        return Err(Error::InvalidArgument {
+            name: "lora".to_string(),
+            reason: format!(
+                "{} is a LoRA checkpoint already ({}); pass its base to combine it with {}",
+                init.display(),
+                first.display(),
+                second.display()
+            ),
+        });
     }
-    config.model.vae = crate::sampling::find_vae(init, None)?.display().to_string();
+    config.model.transformer = paths.transformer.display().to_string();
+    config.model.transformer_lora = paths.adapters.first().cloned();
+    config.model.vae = paths.vae.display().to_string();
+    if paths.scheduler.is_some() {
+        config.model.scheduler = paths.scheduler;
+    }
+    if let Some(text) = request.text_embedding.clone() {
+        config.model.text_embedding = Some(text);
+    }
+    config.model.zero_text_embedding |= request.zero_text_embedding;
     config.train.steps = request.steps;
     config.train.checkpoint_every = config.train.checkpoint_every.min(request.steps.max(1));
     Ok((config, source_name))

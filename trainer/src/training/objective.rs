@@ -11,7 +11,7 @@ use crate::cogvideox_transformer_3d::{self as transformer, BlockTape, CogVideoXT
 use crate::data::Batch;
 use crate::error::Result;
 use crate::lora::{LoraConfig, LoraFile};
-use crate::scheduling_ddim::{CogVideoXSchedulerConfig, NoiseSchedule};
+use crate::scheduling_ddim::NoiseSchedule;
 use crate::weights;
 
 /// The trained transformer, the frozen VAE, the noise schedule and the text input.
@@ -34,6 +34,8 @@ pub struct CogNvsModel {
     pub lora: Option<LoraConfig>,
     /// Element type of both models' weights and of their inputs.
     pub(super) kind: Kind,
+    /// Seconds spent in VAE encodes since [`Self::take_encode_seconds`] last read them.
+    encode_seconds: std::cell::Cell<f64>,
 }
 
 impl CogNvsModel {
@@ -74,8 +76,19 @@ impl CogNvsModel {
         }
         vae_vs.freeze();
         let text = crate::sampling::load_text_embedding(config.text_embedding.as_deref(), &transformer_config, device)?;
-        let schedule = NoiseSchedule::new(&CogVideoXSchedulerConfig::cogvideox_5b())?;
-        Ok(Self { vs, transformer, vae_vs, vae, schedule, text, lora_vs, lora: lora.cloned(), kind: Kind::Float })
+        let schedule = NoiseSchedule::new(&config.scheduler_config()?)?;
+        Ok(Self {
+            vs,
+            transformer,
+            vae_vs,
+            vae,
+            schedule,
+            text,
+            lora_vs,
+            lora: lora.cloned(),
+            kind: Kind::Float,
+            encode_seconds: std::cell::Cell::new(0.0),
+        })
     }
 
     /// Casts both models' weights to `kind` (fp32 as loaded; bf16 for mixed precision, after the
@@ -102,20 +115,44 @@ impl CogNvsModel {
     /// Scaled fp32 latents `[B, F', C, h, w]` of a video batch `[B, 3, F, H, W]` (a posterior
     /// sample).
     pub fn encode(&self, video: &Tensor) -> Result<Tensor> {
-        let latent = tch::no_grad(|| -> Result<Tensor> {
-            Ok(self.vae.encode_posterior(&video.f_to_kind(self.kind)?)?.sample()?.f_to_kind(Kind::Float)?)
+        let latent = self.timed_encode(|| {
+            tch::no_grad(|| -> Result<Tensor> {
+                Ok(self.vae.encode_posterior(&video.f_to_kind(self.kind)?)?.sample()?.f_to_kind(Kind::Float)?)
+            })
         })?;
         self.scale_latent(&latent)
+    }
+
+    /// Seconds of VAE encoding since the last call (synchronised with the device on CUDA, so
+    /// they are the encode's own), and restarts the count.
+    pub fn take_encode_seconds(&self) -> f64 {
+        self.encode_seconds.replace(0.0)
+    }
+
+    fn timed_encode<T>(&self, encode: impl FnOnce() -> Result<T>) -> Result<T> {
+        let synchronize = || {
+            if let Device::Cuda(index) = self.text.device() {
+                tch::Cuda::synchronize(index as i64);
+            }
+        };
+        synchronize();
+        let started = std::time::Instant::now();
+        let out = encode();
+        synchronize();
+        self.encode_seconds.set(self.encode_seconds.get() + started.elapsed().as_secs_f64());
+        out
     }
 
     /// A VAE latent `[B, C, F', h, w]` scaled and laid out for the transformer `[B, F', C, h, w]`.
     /// [`Self::encode`] with the posterior's noise drawn by `pick` (for the global batch).
     fn encode_with(&self, video: &Tensor, pick: &Picker) -> Result<Tensor> {
-        let latent = tch::no_grad(|| -> Result<Tensor> {
-            let posterior = self.vae.encode_posterior(&video.f_to_kind(self.kind)?)?;
-            let std = posterior.logvar.f_mul_scalar(0.5)?.f_exp()?;
-            let eps = pick.randn(&posterior.mean.size(), posterior.mean.kind())?;
-            Ok(posterior.mean.f_add(&std.f_mul(&eps)?)?.f_to_kind(Kind::Float)?)
+        let latent = self.timed_encode(|| {
+            tch::no_grad(|| -> Result<Tensor> {
+                let posterior = self.vae.encode_posterior(&video.f_to_kind(self.kind)?)?;
+                let std = posterior.logvar.f_mul_scalar(0.5)?.f_exp()?;
+                let eps = pick.randn(&posterior.mean.size(), posterior.mean.kind())?;
+                Ok(posterior.mean.f_add(&std.f_mul(&eps)?)?.f_to_kind(Kind::Float)?)
+            })
         })?;
         self.scale_latent(&latent)
     }

@@ -30,6 +30,15 @@ pub struct StepMetrics {
     pub grad_norm: f64,
     /// Wall seconds of the step.
     pub seconds: f64,
+    /// Of those, seconds in VAE encodes (the condition and the target; none from a latent cache).
+    #[serde(default)]
+    pub encode_seconds: f64,
+    /// On CUDA: the caching allocator's peak bytes allocated during the step.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cuda_peak_allocated: Option<u64>,
+    /// On CUDA: the caching allocator's peak bytes reserved during the step.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cuda_peak_reserved: Option<u64>,
 }
 
 /// What a pretraining run did.
@@ -75,6 +84,7 @@ pub fn pretrain_on(
     let lead = rank == 0;
     // A bad config or bad shard folders fail before the run folder is touched.
     config.validate("training config")?;
+    config.model.check_text_embedding()?;
     let data = rank_data_config(config, rank, world)?;
     crate::data::describe(shards, &data)?;
     let run_config = run.join("config.json");
@@ -110,7 +120,7 @@ pub fn pretrain_on(
         let trainable: Vec<tch::Tensor> = model.trainable().trainable_variables();
         tch::no_grad(|| pg.broadcast_from_zero(&trainable, "initial weights"))?;
     }
-    if lead {
+    if lead && config.train.save_checkpoints {
         write_run_models(run, config, &model)?;
     }
     let mut optimizer = StepOptimizer::new(&model, config, pg)?;
@@ -229,12 +239,19 @@ pub fn pretrain_on(
         let grad_norm = optimizer.step(lr, config.optim.max_grad_norm, pg)?;
         state.step += 1;
         state.data_position = loader.position();
+        let peaks = match device {
+            Device::Cuda(index) => crate::distributed::cuda_memory_peaks(index, true),
+            _ => None,
+        };
         let metrics = StepMetrics {
             step: state.step,
             loss: loss / accumulation as f64,
             lr,
             grad_norm,
             seconds: started.elapsed().as_secs_f64(),
+            encode_seconds: model.take_encode_seconds(),
+            cuda_peak_allocated: peaks.map(|p| p.0),
+            cuda_peak_reserved: peaks.map(|p| p.1),
         };
         if let Some(file) = metrics_file.as_mut() {
             writeln!(file, "{}", serde_json::to_string(&metrics).expect("metrics serialise"))
@@ -281,7 +298,9 @@ pub fn pretrain_on(
                 pg.barrier("validation sample on rank 0")?;
             }
         }
-        if state.step.is_multiple_of(config.train.checkpoint_every) || state.step == config.train.steps {
+        let checkpoint_due =
+            state.step.is_multiple_of(config.train.checkpoint_every) || state.step == config.train.steps;
+        if config.train.save_checkpoints && checkpoint_due {
             last_checkpoint = Some(save_checkpoint(run, &model, &optimizer, &state, config.train.keep_last, pg)?);
         }
     }
@@ -430,7 +449,16 @@ mod tests {
                 let next = f32::from_bits(loss.to_bits() + 1);
                 let midpoint = (f64::from(loss) + f64::from(next)) / 2.0;
                 loss = f32::from_bits(loss.to_bits() + 7919);
-                StepMetrics { step, loss: midpoint, lr: 2e-5, grad_norm: midpoint * 3.0, seconds: 0.1 }
+                StepMetrics {
+                    step,
+                    loss: midpoint,
+                    lr: 2e-5,
+                    grad_norm: midpoint * 3.0,
+                    seconds: 0.1,
+                    encode_seconds: 0.0,
+                    cuda_peak_allocated: None,
+                    cuda_peak_reserved: None,
+                }
             })
             .collect();
         let lines: String = written.iter().map(|m| serde_json::to_string(m).unwrap() + "\n").collect();

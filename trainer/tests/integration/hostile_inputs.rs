@@ -224,11 +224,11 @@ fn sample(ckpt: &Path, cond: &Path, out: &Path) -> Output {
 }
 
 #[test]
-fn sample_resizes_an_off_size_conditioning_like_the_loader_and_says_so() {
+fn sample_resizes_an_off_size_conditioning_to_the_model_and_back_and_says_so() {
     let dir = tempfile::tempdir().unwrap();
     let ckpt = tiny_checkpoint(dir.path());
-    // 96 x 64: the tiny model's learned positional table needs 80 x 64 (finetune's loader
-    // cover-crops such a video's pairs; sampling now does the same).
+    // 96 x 64: the tiny model's learned positional table needs 80 x 64. As the public demo, the
+    // frames are stretched to it with an area average and the result resized back.
     let cond = frames(&dir.path().join("cond"), 9, (96, 64), &[]);
     let out = dir.path().join("out.mp4");
     let output = sample(&ckpt, &cond, &out);
@@ -236,7 +236,26 @@ fn sample_resizes_an_off_size_conditioning_like_the_loader_and_says_so() {
     assert!(output.status.success(), "{text}");
     assert!(text.contains("resized") && text.contains("96x64") && text.contains("80x64"), "{text}");
     let video = datagen::video::decode_video(&out).unwrap();
-    assert_eq!((video.frames.len(), video.frames[0].dimensions()), (9, (80, 64)));
+    assert_eq!((video.frames.len(), video.frames[0].dimensions()), (9, (96, 64)));
+    // The training loader's cover-crop, kept at the model's size, on request.
+    let cropped = dir.path().join("cropped");
+    let output = run(&[
+        &"sample",
+        &"--ckpt",
+        &ckpt,
+        &"--cond",
+        &cond,
+        &"--out",
+        &cropped,
+        &"--steps",
+        &"1",
+        &"--resize",
+        &"crop",
+        &"--keep-model-size",
+    ]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    assert_eq!(std::fs::read_dir(&cropped).unwrap().count(), 9);
+    assert_eq!(image::image_dimensions(cropped.join("00000.png")).unwrap(), (80, 64));
 }
 
 #[test]
@@ -247,7 +266,11 @@ fn sample_refuses_mixed_sizes_and_bad_frame_counts_before_model_work() {
     let mixed = frames(&dir.path().join("mixed"), 9, (80, 64), &[(4, (96, 64))]);
     fails_with(&sample(&ckpt, &mixed, &out), &["00004.png", "96x64", "00000.png", "80x64"]);
     let short = frames(&dir.path().join("short"), 8, (80, 64), &[]);
-    fails_with(&sample(&ckpt, &short, &out), &[&short.display().to_string(), "8 frames", "4k + 1"]);
+    let output = run(&[&"sample", &"--ckpt", &ckpt, &"--cond", &short, &"--out", &out, &"--frames", &"8"]);
+    fails_with(&output, &["frames", "8 is not 1 + 4k"]);
+    let empty = dir.path().join("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    fails_with(&sample(&ckpt, &empty, &out), &[&empty.display().to_string(), "frames"]);
     // A truncated text embedding and an integer one are named errors.
     let text = dir.path().join("text.safetensors");
     Tensor::write_safetensors(&[("encoder_hidden_states", &Tensor::zeros([8, 16], (Kind::Int64, Device::Cpu)))], &text)

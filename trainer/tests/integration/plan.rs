@@ -1,6 +1,8 @@
 //! The memory plan (`trainer plan`): parameter counts equal the built models', LoRA, ZeRO-2 and
 //! checkpointing shrink what they should, the 5B presets plan to fit next to the published
-//! anchors, and a plan over the free memory or a bad `--world-size` is refused with one message.
+//! anchors, the test-time finetuning presets fit the GPUs they are for, sampling the 5B model
+//! fits a 24 GB GPU, and a plan over the free memory or a bad `--world-size` is refused with one
+//! message.
 
 use std::path::Path;
 use std::process::Command;
@@ -143,4 +145,55 @@ fn plan_cli_prints_the_rows_and_rejects_bad_arguments() {
     let missing = Path::new("/nonexistent/plan.toml");
     let out = Command::new(bin).args(["plan", "--config"]).arg(missing).output().unwrap();
     assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("/nonexistent/plan.toml"));
+}
+
+#[test]
+fn test_time_finetuning_presets_fit_where_they_are_meant_to_run() {
+    /// An H200's 141 GB.
+    const H200: u64 = 141_000_000_000;
+    for (name, world, capacity) in [
+        ("finetune_5b_lora_1gpu.toml", 1, ONE_GPU_BYTES),
+        ("finetune_5b_full_1gpu.toml", 1, H200),
+        ("finetune_5b_full.toml", 8, ONE_GPU_BYTES),
+    ] {
+        let config = preset(name);
+        // The paper's test-time finetuning: 200 steps, lr 2e-5, AdamW β = (0.9, 0.95).
+        let o = &config.optim;
+        assert_eq!((config.train.steps, o.lr, o.beta1, o.beta2), (200, 2e-5, 0.9, 0.95), "{name}");
+        let plan = plan_of(&config, world, Device::Cuda(0));
+        assert!(plan.total <= capacity, "{name} on {world} rank(s) plans {} B > {capacity}:\n{plan}", plan.total);
+    }
+}
+
+#[test]
+fn sampling_the_5b_model_in_bf16_fits_a_24_gb_gpu_with_tiles() {
+    let config = preset("finetune_5b_lora_1gpu.toml");
+    let (transformer, vae) = config.model.configs(false).unwrap();
+    let tiles = trainer::autoencoder_kl_cogvideox::TilingConfig::for_config(&vae);
+    assert!(tiles.lands_on_latent_pixels(vae.spatial_compression_ratio()));
+    let plan = |tiling, guided| {
+        trainer::plan::sampling_plan(
+            &transformer,
+            &vae,
+            (49, 480, 720),
+            Kind::BFloat16,
+            Device::Cuda(0),
+            tiling,
+            guided,
+        )
+        .unwrap()
+    };
+    let (tiled, whole, guided) = (plan(Some(&tiles), false), plan(None, false), plan(Some(&tiles), true));
+    assert!(tiled.total < 24_000_000_000, "{tiled}");
+    assert!(tiled.vae_decode_peak < whole.vae_decode_peak, "tiles lower the decode peak");
+    assert_eq!(guided.denoise_peak, 2 * tiled.denoise_peak, "guidance is a batch of two");
+    assert_eq!(tiled.persistent[0].bytes, 2 * count_of(&transformer), "bf16 weights");
+}
+
+fn count_of(config: &CogVideoXTransformer3DModelConfig) -> u64 {
+    trainer::cogvideox_transformer_3d::variable_shapes(config)
+        .unwrap()
+        .values()
+        .map(|s| s.iter().map(|&d| d as u64).product::<u64>())
+        .sum()
 }

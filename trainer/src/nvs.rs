@@ -1,0 +1,453 @@
+//! `trainer nvs`: the whole novel-view job on one video in one command: test-time finetuning on
+//! the video's own pairs, a render of the video from each camera path, and a sample of every
+//! render with one load of the finetuned model.
+//!
+//! Phases, each recorded in `OUT/nvs.json` when it ends, so that the same command run again after
+//! a kill continues from the last finished one (finetuning itself from its last checkpoint):
+//! 1. `finetune` (skipped with 0 steps): `OUT/finetune/` is a `trainer finetune` run;
+//! 2. `render`: `OUT/renders/<name>/` is `datagen render`'s output for trajectory `<name>` (the
+//!    file's stem), hole-filled from the stacked static background when the video is longer
+//!    than the frames sampled;
+//! 3. `sample`: `OUT/<name>.mp4`, `OUT/<name>/` (PNG frames) and `OUT/<name>_sheet.png`
+//!    (source | render | result rows) per trajectory.
+//!
+//! `nvs.json` keeps every setting, the seeds, the inputs' digests and the outputs' digests. A
+//! folder whose `nvs.json` records other settings or other inputs is refused.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use image::RgbImage;
+use serde::{Deserialize, Serialize};
+use tch::Device;
+
+use crate::error::{Error, Result};
+use crate::sampling::{CogNvsPipeline, Framing, LoadOptions, ModelSource};
+use crate::training::{FinetuneRequest, StepMetrics};
+
+/// Everything `trainer nvs` is asked to do.
+#[derive(Debug, Clone)]
+pub struct NvsRequest {
+    /// The checkpoint to finetune (and sample) and where its other models come from; `lora`,
+    /// `text_embedding` and `zero_text_embedding` apply to both phases.
+    pub model: ModelSource,
+    /// The video's sequence folder (cog-nvs, MegaSAM npz or generic layout).
+    pub sequence: PathBuf,
+    /// Camera paths (`.npy`, `.json` or `trajs/*.txt`), one output each, named by file stem.
+    pub trajectories: Vec<PathBuf>,
+    /// Output folder.
+    pub out: PathBuf,
+    /// Finetuning steps (0: sample the checkpoint as it is).
+    pub steps: u64,
+    /// Trajectories sampled per clip for the finetuning pairs.
+    pub finetune_trajectories: u32,
+    /// Training TOML for finetuning (needed for a checkpoint that is not a trainer run's).
+    pub config: Option<PathBuf>,
+    /// Denoising steps per sample.
+    pub sample_steps: usize,
+    /// Classifier-free guidance scale.
+    pub guidance: f64,
+    /// Seed of every sampling draw (each trajectory samples with it, as the demo does).
+    pub seed: u64,
+    /// Device, arithmetic and VAE tiling of sampling.
+    pub load: LoadOptions,
+    /// Frames, sizes and frame rate of sampling.
+    pub framing: Framing,
+    /// Fill render holes from the stacked static background: None decides by length (on when
+    /// the video has more frames than are sampled).
+    pub stack_background: Option<bool>,
+}
+
+/// The settings `nvs.json` records and a re-run must repeat.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct Settings {
+    init: String,
+    base_model: Option<String>,
+    vae: Option<String>,
+    lora: Option<String>,
+    text_embedding: Option<String>,
+    zero_text_embedding: bool,
+    sequence: String,
+    trajectories: Vec<String>,
+    steps: u64,
+    finetune_trajectories: u32,
+    config: Option<String>,
+    sample_steps: usize,
+    guidance: f64,
+    seed: u64,
+    precision: String,
+    vae_tiling: bool,
+    frames: usize,
+    resize: String,
+    size: Option<(u32, u32)>,
+    restore_size: bool,
+    fps: f64,
+    stack_background: Option<bool>,
+}
+
+/// One trajectory's outputs.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Output {
+    /// Its name (the trajectory file's stem).
+    pub name: String,
+    /// The render folder.
+    pub render: String,
+    /// Render holes filled from the stacked background.
+    pub stacked_background: bool,
+    /// The video, the PNG frame folder and the contact sheet.
+    pub video: Option<String>,
+    /// The PNG frames' folder.
+    pub frames: Option<String>,
+    /// The contact sheet.
+    pub sheet: Option<String>,
+    /// blake3 of each output file (video, sheet, every frame), by path relative to OUT.
+    pub digests: std::collections::BTreeMap<String, String>,
+    /// Seconds of sampling.
+    pub sample_seconds: Option<f64>,
+}
+
+/// `OUT/nvs.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Record {
+    /// What was asked (see the module docs).
+    settings: serde_json::Value,
+    /// blake3 of the inputs that are not models: the sequence folder, each trajectory file and
+    /// the text embedding.
+    pub inputs: std::collections::BTreeMap<String, String>,
+    /// The checkpoint sampled (the finetuned one, or the init checkpoint with 0 steps).
+    pub checkpoint: Option<String>,
+    /// Seconds of finetuning.
+    pub finetune_seconds: Option<f64>,
+    /// Per trajectory, in the order given.
+    pub outputs: Vec<Output>,
+    /// Whether every phase has finished.
+    pub complete: bool,
+}
+
+/// What a phase reports while it runs.
+#[derive(Debug)]
+pub enum Progress<'a> {
+    /// A phase starts (`finetune` with its steps, `render`/`sample` with the trajectory count).
+    Phase(&'static str, u64),
+    /// A phase was finished by an earlier run.
+    Skipped(&'static str),
+    /// A finetuning step ended.
+    Step(&'a StepMetrics),
+    /// A trajectory of the `render` or `sample` phase ended.
+    Trajectory(&'a str),
+    /// A denoising step ended (step, of steps).
+    Denoise(usize, usize),
+}
+
+const RECORD: &str = "nvs.json";
+
+/// Runs (or continues) the job; `pg` makes the finetuning phase one rank of a multi-process run
+/// (the other phases run on rank 0 alone; other ranks return after finetuning).
+pub fn run(
+    request: &NvsRequest,
+    device: Device,
+    pg: Option<&crate::distributed::ProcessGroup>,
+    progress: &mut dyn FnMut(Progress),
+) -> Result<Option<Record>> {
+    let names = trajectory_names(&request.trajectories)?;
+    let rank = pg.map_or(0, |pg| pg.rank);
+    let settings = serde_json::to_value(settings(request)).expect("settings serialise");
+    let record_path = request.out.join(RECORD);
+    let mut record = match read_record(&record_path)? {
+        Some(record) if record.settings != settings => {
+            return Err(Error::InvalidArgument {
+                name: "out".to_string(),
+                reason: format!(
+                    "{} holds a job with other settings ({}); use the same arguments to continue it or another folder",
+                    request.out.display(),
+                    record_path.display()
+                ),
+            });
+        }
+        Some(record) => record,
+        None => Record {
+            settings,
+            inputs: Default::default(),
+            checkpoint: None,
+            finetune_seconds: None,
+            outputs: Vec::new(),
+            complete: false,
+        },
+    };
+    // Inputs are checked, and their digests taken, before any work.
+    let sequence = datagen::sequence::read_sequence(&request.sequence)?;
+    let inputs = input_digests(request)?;
+    if !record.inputs.is_empty() && record.inputs != inputs {
+        return Err(Error::InvalidArgument {
+            name: "sequence".to_string(),
+            reason: format!(
+                "the inputs changed since {} was written (the video, a trajectory or the text embedding): start a \
+                 new output folder",
+                record_path.display()
+            ),
+        });
+    }
+    for path in &request.trajectories {
+        datagen::trajectory::read_trajectory_file(path, sequence.len(), &sequence.cameras, &sequence.depth[0])?;
+    }
+    record.inputs = inputs;
+    std::fs::create_dir_all(&request.out).map_err(|e| Error::Io { path: request.out.clone(), error: e })?;
+    if rank == 0 {
+        write_record(&record_path, &record)?;
+    }
+
+    // 1. Finetuning.
+    let mut model = request.model.clone();
+    if request.steps > 0 && record.checkpoint.is_none() {
+        progress(Progress::Phase("finetune", request.steps));
+        let started = Instant::now();
+        let finetune = FinetuneRequest {
+            init: request.model.checkpoint.clone(),
+            base_model: request.model.base_model.clone(),
+            vae: request.model.vae.clone(),
+            text_embedding: request.model.text_embedding.clone(),
+            zero_text_embedding: request.model.zero_text_embedding,
+            sequence: request.sequence.clone(),
+            out: request.out.join("finetune"),
+            steps: request.steps,
+            trajectories: request.finetune_trajectories,
+            config: request.config.clone(),
+            lora: request.model.lora.clone(),
+            resume: true,
+        };
+        let summary = crate::training::finetune_on(&finetune, device, pg, |m| progress(Progress::Step(m)))?;
+        if rank != 0 {
+            return Ok(None);
+        }
+        let checkpoint = summary.last_checkpoint.ok_or_else(|| Error::InvalidArgument {
+            name: "steps".to_string(),
+            reason: "finetuning wrote no checkpoint".to_string(),
+        })?;
+        record.checkpoint = Some(checkpoint.display().to_string());
+        record.finetune_seconds = Some(started.elapsed().as_secs_f64());
+        write_record(&record_path, &record)?;
+    } else if request.steps > 0 {
+        progress(Progress::Skipped("finetune"));
+        if rank != 0 {
+            return Ok(None);
+        }
+    } else {
+        record.checkpoint = Some(request.model.checkpoint.display().to_string());
+    }
+    if request.steps > 0 {
+        // The finetuned checkpoint brings its run's VAE, text embedding and (for LoRA) base; the
+        // adapter given at the start is merged into it already.
+        model.checkpoint = PathBuf::from(record.checkpoint.as_ref().expect("set above"));
+        model.lora = None;
+    }
+
+    // 2. Renders.
+    let stack = request.stack_background.unwrap_or(sequence.len() > request.framing.frames);
+    let pairs_config = datagen::pairs::PairsConfig::default();
+    let to_render: Vec<usize> =
+        (0..names.len()).filter(|&i| !record.outputs.iter().any(|o| o.name == names[i])).collect();
+    if to_render.is_empty() {
+        progress(Progress::Skipped("render"));
+    } else {
+        progress(Progress::Phase("render", to_render.len() as u64));
+    }
+    for &i in &to_render {
+        let folder = request.out.join("renders").join(&names[i]);
+        datagen::pairs::render_sequence(&sequence, &request.trajectories[i], &folder, &pairs_config, stack)?;
+        record.outputs.push(Output {
+            name: names[i].clone(),
+            render: relative(&folder, &request.out),
+            stacked_background: stack,
+            video: None,
+            frames: None,
+            sheet: None,
+            digests: Default::default(),
+            sample_seconds: None,
+        });
+        write_record(&record_path, &record)?;
+        progress(Progress::Trajectory(&names[i]));
+    }
+
+    // 3. Samples, with one load of the model.
+    let pending: Vec<usize> = (0..record.outputs.len()).filter(|&i| record.outputs[i].video.is_none()).collect();
+    if pending.is_empty() {
+        progress(Progress::Skipped("sample"));
+    } else {
+        progress(Progress::Phase("sample", pending.len() as u64));
+        let paths = model.resolve()?;
+        crate::plan::check_sampling_fits(&crate::sampling::sampling_plan(&paths, request.load, &request.framing)?)?;
+        let pipeline = CogNvsPipeline::load(&paths, request.load)?;
+        for i in pending {
+            let name = record.outputs[i].name.clone();
+            let render = request.out.join(&record.outputs[i].render);
+            let condition = crate::sampling::prepare_condition(&render, &pipeline, &request.framing)?;
+            let video =
+                crate::video_processor::frames_to_video(&condition.frames, pipeline.kind(), request.load.device)?;
+            let started = Instant::now();
+            let sampled =
+                pipeline.generate(&video, request.sample_steps, request.guidance, request.seed, &mut |s, n| {
+                    progress(Progress::Denoise(s, n))
+                })?;
+            let seconds = started.elapsed().as_secs_f64();
+            let frames = crate::sampling::finish_frames(&sampled, &condition, &request.framing)?;
+            let output = write_outputs(&request.out, &name, &frames, &sequence.frames, &render, request.framing.fps)?;
+            record.outputs[i] = Output { sample_seconds: Some(seconds), ..output.with_render(&record.outputs[i]) };
+            write_record(&record_path, &record)?;
+            progress(Progress::Trajectory(&name));
+        }
+    }
+    record.complete = true;
+    write_record(&record_path, &record)?;
+    Ok(Some(record))
+}
+
+impl Output {
+    fn with_render(self, rendered: &Output) -> Output {
+        Output { render: rendered.render.clone(), stacked_background: rendered.stacked_background, ..self }
+    }
+}
+
+/// Writes `OUT/<name>.mp4`, `OUT/<name>/%05d.png` and the contact sheet, with their digests.
+fn write_outputs(
+    out: &Path,
+    name: &str,
+    frames: &[RgbImage],
+    source: &[RgbImage],
+    render: &Path,
+    fps: f64,
+) -> Result<Output> {
+    let video = out.join(format!("{name}.mp4"));
+    let folder = out.join(name);
+    crate::sampling::write_frames(&folder, frames, fps)?;
+    crate::sampling::write_frames(&video, frames, fps)?;
+    let rendered = crate::sampling::read_condition_named(render)?.frames;
+    let sheet = out.join(format!("{name}_sheet.png"));
+    contact_sheet(source, &rendered, frames).save(&sheet).map_err(|e| Error::InvalidInput {
+        path: sheet.clone(),
+        what: "contact sheet".to_string(),
+        reason: e.to_string(),
+    })?;
+    let mut digests = std::collections::BTreeMap::new();
+    let mut files = vec![video.clone(), sheet.clone()];
+    files.extend((0..frames.len()).map(|i| folder.join(format!("{i:05}.png"))));
+    for file in files {
+        digests.insert(relative(&file, out), digest(&file)?);
+    }
+    Ok(Output {
+        name: name.to_string(),
+        render: String::new(),
+        stacked_background: false,
+        video: Some(relative(&video, out)),
+        frames: Some(relative(&folder, out)),
+        sheet: Some(relative(&sheet, out)),
+        digests,
+        sample_seconds: None,
+    })
+}
+
+/// Rows of source | render | result at evenly spaced frames, each tile at the result's size.
+fn contact_sheet(source: &[RgbImage], render: &[RgbImage], result: &[RgbImage]) -> RgbImage {
+    /// Rows of the sheet (first, last and evenly between).
+    const ROWS: usize = 4;
+    let count = result.len().min(source.len()).min(render.len());
+    let (w, h) = result[0].dimensions();
+    let fit = |image: &RgbImage| {
+        if image.dimensions() == (w, h) { image.clone() } else { crate::video_processor::resize_linear(image, w, h) }
+    };
+    let rows: Vec<Vec<RgbImage>> = (0..ROWS.min(count))
+        .map(|k| k * (count - 1) / (ROWS.min(count) - 1).max(1))
+        .map(|i| vec![fit(&source[i]), fit(&render[i]), result[i].clone()])
+        .collect();
+    datagen::contact_sheet::contact_sheet(&rows)
+}
+
+/// Trajectory names (file stems), which must be distinct.
+fn trajectory_names(paths: &[PathBuf]) -> Result<Vec<String>> {
+    if paths.is_empty() {
+        return Err(Error::InvalidArgument {
+            name: "trajectory".to_string(),
+            reason: "give at least one --trajectory FILE".to_string(),
+        });
+    }
+    let names: Vec<String> =
+        paths.iter().map(|p| p.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default()).collect();
+    for (i, name) in names.iter().enumerate() {
+        if name.is_empty() || names[..i].contains(name) || name == "renders" || name == "finetune" {
+            return Err(Error::InvalidArgument {
+                name: "trajectory".to_string(),
+                reason: format!(
+                    "{}: the output is named after the file's stem `{name}`, which is empty, reserved or taken by \
+                     another --trajectory",
+                    paths[i].display()
+                ),
+            });
+        }
+    }
+    Ok(names)
+}
+
+fn settings(r: &NvsRequest) -> Settings {
+    let show = |p: &Option<PathBuf>| p.as_ref().map(|p| p.display().to_string());
+    Settings {
+        init: r.model.checkpoint.display().to_string(),
+        base_model: show(&r.model.base_model),
+        vae: show(&r.model.vae),
+        lora: show(&r.model.lora),
+        text_embedding: show(&r.model.text_embedding),
+        zero_text_embedding: r.model.zero_text_embedding,
+        sequence: r.sequence.display().to_string(),
+        trajectories: r.trajectories.iter().map(|p| p.display().to_string()).collect(),
+        steps: r.steps,
+        finetune_trajectories: r.finetune_trajectories,
+        config: show(&r.config),
+        sample_steps: r.sample_steps,
+        guidance: r.guidance,
+        seed: r.seed,
+        precision: format!("{:?}", r.load.precision),
+        vae_tiling: r.load.vae_tiling,
+        frames: r.framing.frames,
+        resize: format!("{:?}", r.framing.resize),
+        size: r.framing.size,
+        restore_size: r.framing.restore_size,
+        fps: r.framing.fps,
+        stack_background: r.stack_background,
+    }
+}
+
+fn input_digests(request: &NvsRequest) -> Result<std::collections::BTreeMap<String, String>> {
+    let mut digests = std::collections::BTreeMap::new();
+    digests.insert("sequence".to_string(), datagen::corpus::build::hash_tree(&request.sequence)?);
+    for path in request.trajectories.iter().chain(&request.model.text_embedding) {
+        digests.insert(path.display().to_string(), digest(path)?);
+    }
+    Ok(digests)
+}
+
+fn digest(path: &Path) -> Result<String> {
+    let bytes = std::fs::read(path).map_err(|e| Error::Io { path: path.to_path_buf(), error: e })?;
+    Ok(blake3::hash(&bytes).to_hex().to_string())
+}
+
+fn relative(path: &Path, root: &Path) -> String {
+    path.strip_prefix(root).unwrap_or(path).display().to_string()
+}
+
+fn read_record(path: &Path) -> Result<Option<Record>> {
+    match std::fs::read_to_string(path) {
+        Ok(text) => serde_json::from_str(&text).map(Some).map_err(|e| Error::InvalidConfig {
+            source_name: path.display().to_string(),
+            field: "(json)".to_string(),
+            reason: e.to_string(),
+        }),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+        Err(e) => Err(Error::Io { path: path.to_path_buf(), error: e }),
+    }
+}
+
+/// Writes the record atomically (a temporary file renamed over it).
+fn write_record(path: &Path, record: &Record) -> Result<()> {
+    let text = serde_json::to_vec_pretty(record).expect("record serialises");
+    let temporary = path.with_extension("json.tmp");
+    std::fs::write(&temporary, text).map_err(|e| Error::Io { path: temporary.clone(), error: e })?;
+    std::fs::rename(&temporary, path).map_err(|e| Error::Io { path: path.to_path_buf(), error: e })
+}

@@ -1,0 +1,153 @@
+//! The text input: `scripts/encode_prompt.py` writes what diffusers' CogVideoX prompt encoder
+//! computes (on a tiny T5 and a tokenizer trained at test time), and a transformer of the
+//! released models' T5-XXL text shape refuses to sample or train on zeros unless asked.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+use trainer::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoXConfig};
+use trainer::cogvideox_transformer_3d::{self as transformer, CogVideoXTransformer3DModelConfig};
+use trainer::tch::{Device, Kind, Tensor};
+use trainer::weights;
+
+use super::parity::{assert_success, python, read_tensors, repo_root, run_python};
+
+fn encode_prompt(model: &Path, prompt: &str, dtype: &str, out: &Path) {
+    let output = Command::new(python())
+        .arg(repo_root().join("scripts/encode_prompt.py"))
+        .arg("--model")
+        .arg(model)
+        .args(["--prompt", prompt, "--dtype", dtype, "--device", "cpu", "--out"])
+        .arg(out)
+        .output()
+        .unwrap();
+    assert_success(&output);
+}
+
+#[test]
+fn encode_prompt_equals_the_cogvideox_prompt_encoder() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path();
+    run_python("goldens_text_embedding.py", &[model.as_os_str()]);
+    let prompts: Vec<String> =
+        serde_json::from_str(&std::fs::read_to_string(model.join("prompts.json")).unwrap()).unwrap();
+    let reference = read_tensors(&model.join("reference.safetensors"));
+    // The empty prompt (CogNVS's), a short one, and one truncated at 226 tokens.
+    for (i, prompt) in prompts.iter().enumerate() {
+        let out = dir.path().join(format!("prompt_{i}.safetensors"));
+        encode_prompt(model, prompt, "fp32", &out);
+        let ours = &read_tensors(&out)["encoder_hidden_states"];
+        let theirs = &reference[&format!("prompt_{i}")];
+        assert_eq!(ours.size(), [226, 32]);
+        assert!(ours.equal(theirs), "prompt {i}: {:?}", (ours - theirs).abs().max());
+        if i == 0 {
+            // Not zeros: the end-of-sequence token and padding run through T5.
+            assert!(ours.abs().sum(Kind::Double).double_value(&[]) > 1.0);
+            // The file is what the trainer reads for a transformer of this text shape.
+            let config = CogVideoXTransformer3DModelConfig {
+                max_text_seq_length: 226,
+                text_embed_dim: 32,
+                ..CogVideoXTransformer3DModelConfig::tiny()
+            };
+            let loaded = trainer::sampling::load_text_embedding(Some(&out), &config, Device::Cpu).unwrap();
+            assert!(loaded.squeeze_dim(0).equal(theirs));
+        }
+    }
+    // bf16, as the public pipeline encodes on the GPU: within bf16 rounding of the f32 result.
+    let bf16 = dir.path().join("bf16.safetensors");
+    encode_prompt(model, "", "bf16", &bf16);
+    let ours = read_tensors(&bf16)["encoder_hidden_states"].to_kind(Kind::Float);
+    let (abs, rel) = super::parity::errors(&ours, &reference["prompt_0"]);
+    assert!(rel < 0.05, "bf16 encoding: max abs {abs}, rel {rel}");
+}
+
+/// A transformer folder of the released text shape (226 × 4096) but tiny otherwise, with a tiny
+/// VAE beside it (`DIR/transformer`, `DIR/vae`).
+fn t5_xxl_shaped_checkpoint(dir: &Path) -> PathBuf {
+    let ckpt = dir.join("ckpt");
+    let config = CogVideoXTransformer3DModelConfig {
+        max_text_seq_length: 226,
+        text_embed_dim: 4096,
+        ..CogVideoXTransformer3DModelConfig::tiny()
+    };
+    let (vs, _model) = transformer::build(&config, Device::Cpu, Kind::Float).unwrap();
+    let max = weights::DEFAULT_MAX_SHARD_BYTES;
+    weights::save(&vs, &config, transformer::CLASS_NAME, &ckpt.join("transformer"), max).unwrap();
+    let vae_config = AutoencoderKLCogVideoXConfig::tiny();
+    let (vae_vs, _vae) = vae::build(&vae_config, Device::Cpu, Kind::Float).unwrap();
+    weights::save(&vae_vs, &vae_config, vae::CLASS_NAME, &ckpt.join("vae"), max).unwrap();
+    ckpt
+}
+
+fn trainer(args: &[&dyn AsRef<std::ffi::OsStr>]) -> Output {
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_trainer"));
+    for a in args {
+        cmd.arg(a);
+    }
+    cmd.output().unwrap()
+}
+
+fn refused_naming_the_fix(output: &Output) {
+    let text = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success(), "zeros were accepted: {text}");
+    for needle in ["T5-XXL", "226 × 4096", "--text-embedding", "scripts/encode_prompt.py", "--zero-text-embedding"] {
+        assert!(text.contains(needle), "`{needle}` not in:\n{text}");
+    }
+}
+
+#[test]
+fn a_t5_xxl_shaped_transformer_refuses_zero_text_unless_asked() {
+    let dir = tempfile::tempdir().unwrap();
+    let ckpt = t5_xxl_shaped_checkpoint(dir.path());
+    let cond = dir.path().join("cond");
+    std::fs::create_dir_all(&cond).unwrap();
+    for i in 0..9 {
+        image::RgbImage::from_fn(80, 64, |x, y| image::Rgb([x as u8 * 3, y as u8 * 4, i * 20]))
+            .save(cond.join(format!("{i:05}.png")))
+            .unwrap();
+    }
+    let out = dir.path().join("out");
+    let sample = |extra: &[&dyn AsRef<std::ffi::OsStr>]| {
+        let mut args: Vec<&dyn AsRef<std::ffi::OsStr>> =
+            vec![&"sample", &"--ckpt", &ckpt, &"--cond", &cond, &"--out", &out, &"--steps", &"1", &"--frames", &"9"];
+        args.extend_from_slice(extra);
+        trainer(&args)
+    };
+    refused_naming_the_fix(&sample(&[]));
+    assert!(!out.exists(), "nothing is written");
+    assert_success(&sample(&[&"--zero-text-embedding"]));
+    // With an embedding of the right shape it samples (and a wrong shape is a named error).
+    let text = dir.path().join("text.safetensors");
+    Tensor::write_safetensors(
+        &[("encoder_hidden_states", &Tensor::randn([226, 4096], (Kind::Float, Device::Cpu)))],
+        &text,
+    )
+    .unwrap();
+    assert_success(&sample(&[&"--text-embedding", &text]));
+
+    // Training refuses too, before anything is written, and accepts the explicit switch.
+    let config = dir.path().join("train.toml");
+    let write_config = |extra: &str| {
+        std::fs::write(
+            &config,
+            format!(
+                "[model]\ntransformer = \"{}\"\nvae = \"{}\"\n{extra}\n[data]\nframes = 9\nheight = 64\nwidth = 80\n\
+                 batch_size = 1\nseed = 0\n[loop]\nsteps = 1\n",
+                ckpt.join("transformer").display(),
+                ckpt.join("vae").display()
+            ),
+        )
+        .unwrap()
+    };
+    write_config("");
+    let shards = dir.path().join("no_shards_needed_before_the_check");
+    std::fs::create_dir_all(&shards).unwrap();
+    let run = dir.path().join("run");
+    let pretrain = trainer(&[&"pretrain", &"--config", &config, &"--shards", &shards, &"--out", &run]);
+    refused_naming_the_fix(&pretrain);
+    assert!(!run.exists(), "nothing is written");
+    write_config("zero_text_embedding = true");
+    let pretrain = trainer(&[&"pretrain", &"--config", &config, &"--shards", &shards, &"--out", &run]);
+    let text = String::from_utf8_lossy(&pretrain.stderr);
+    assert!(!text.contains("T5-XXL"), "the switch lets the run past the check: {text}");
+}

@@ -3,6 +3,10 @@
 
 Usage: goldens_sampling.py OUT_DIR [--device cpu|cuda] [--dtype fp32|bf16] [--cases a,b,...]
 
+`--cases cognvs_5b` (never by default) samples the public demo's job at full size with random
+weights (the CogNVS transformer and the 5B VAE, 49 x 480 x 720, 50 steps): the GPU check's
+reference, with its timings and peak memory in case.json.
+
 For each case, builds tiny random diffusers models (a CogVideoX transformer with 32 input
 channels, a CogVideoX VAE, the CogVideoX-5B scheduler config), random text embeddings and a
 conditioning clip, and samples the clip the way the public CogNVS pipeline does, written here from
@@ -35,6 +39,7 @@ Nothing here is committed: the tests run this script into a temporary folder.
 
 import argparse
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -71,17 +76,26 @@ COGNVS = dict(
 )
 ROTARY_ONLY = dict(COGNVS, num_attention_heads=3, num_layers=1, use_learned_positional_embeddings=False)
 
-# name: (transformer config, frames, height, width, steps, seed, guidance, negative prompt, tiling)
+# The released CogNVS transformer and the CogVideoX-5B VAE at full size (random weights), for the
+# GPU check only: built on the device, about 11 GB of weights in bf16.
+COGNVS_5B = dict(num_attention_heads=48, attention_head_dim=64, in_channels=32, out_channels=16, num_layers=42,
+                 use_rotary_positional_embeddings=True, use_learned_positional_embeddings=True)
+VAE_5B = dict(scaling_factor=0.7)
+
+# name: (transformer config, VAE config, frames, height, width, steps, seed, guidance, negative
+# prompt, tiling)
 CASES = {
     # The released model's structure at its own size, real guidance, VAE tiles (the demo's).
-    "cognvs": (COGNVS, 9, 96, 80, 4, 7, 6.0, True, True),
+    "cognvs": (COGNVS, VAE, 9, 96, 80, 4, 7, 6.0, True, True),
     # The empty prompt on both sides (what CogNVS samples with): guidance returns the one branch.
-    "same_prompt": (COGNVS, 9, 96, 80, 3, 11, 6.0, False, True),
+    "same_prompt": (COGNVS, VAE, 9, 96, 80, 3, 11, 6.0, False, True),
     # Rotary positions only, a grid of another aspect (cropped rotary table), 5 frames, no tiles.
-    "rotary_only": (ROTARY_ONLY, 5, 48, 96, 6, 3, 4.5, True, False),
+    "rotary_only": (ROTARY_ONLY, VAE, 5, 48, 96, 6, 3, 4.5, True, False),
     # More frames than the positional table's 9 (its sin-cos fallback), guidance off.
-    "long": (COGNVS, 17, 96, 80, 2, 5, 1.0, False, True),
+    "long": (COGNVS, VAE, 17, 96, 80, 2, 5, 1.0, False, True),
 }
+# Only when named: the demo's job at full size (49 x 480 x 720, 50 steps, real guidance).
+FULL_SIZE = {"cognvs_5b": (COGNVS_5B, VAE_5B, 49, 480, 720, 50, 42, 6.0, True, True)}
 
 
 def crop_region(grid_h, grid_w, base_h, base_w):
@@ -95,7 +109,15 @@ def crop_region(grid_h, grid_w, base_h, base_w):
     return (top, left), (top + size_h, left + size_w)
 
 
-def sample(transformer, vae, scheduler, frames_u8, text, negative, steps, guidance, seed, device, dtype):
+def synchronize(device):
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def sample(transformer, vae, scheduler, frames_u8, text, negative, steps, guidance, seed, device, dtype, timings):
+    """The sampled frames; `timings` gets the seconds of the encode, the denoising and the decode."""
+    synchronize(device)
+    clock = time.perf_counter()
     generator = torch.Generator(device=device).manual_seed(seed)
     video = torch.from_numpy(frames_u8).permute(0, 3, 1, 2).unsqueeze(0).float().div(127.5).sub(1.0).to(device)
     video = VideoProcessor(vae_scale_factor=8).preprocess_video(video, height=video.shape[-2], width=video.shape[-1])
@@ -104,6 +126,8 @@ def sample(transformer, vae, scheduler, frames_u8, text, negative, steps, guidan
     posterior = vae.encode(video).latent_dist
     condition = posterior.sample(generator).to(dtype).permute(0, 2, 1, 3, 4)
     condition = scale * condition
+    synchronize(device)
+    timings["encode"], clock = time.perf_counter() - clock, time.perf_counter()
     _, frames, _, h, w = condition.shape
     latents = randn_tensor((1, frames, transformer.config.out_channels, h, w), generator=generator,
                            device=device, dtype=dtype)
@@ -132,7 +156,11 @@ def sample(transformer, vae, scheduler, frames_u8, text, negative, steps, guidan
             latents, previous_x0 = scheduler.step(v, previous_x0, t, back, latents, generator=generator,
                                                   return_dict=False)
             latents = latents.to(dtype)
+        synchronize(device)
+        timings["denoise"], clock = time.perf_counter() - clock, time.perf_counter()
         decoded = vae.decode(1 / scale * latents.permute(0, 2, 1, 3, 4)).sample
+        synchronize(device)
+        timings["decode"] = time.perf_counter() - clock
     frames = VideoProcessor(vae_scale_factor=8).postprocess_video(decoded, output_type="pil")[0]
     return [np.asarray(f) for f in frames]
 
@@ -156,11 +184,15 @@ def conditioning(seed, frames, height, width):
 
 
 def write_case(out, name, device, dtype):
-    config, frames, height, width, steps, seed, guidance, with_negative, tiling = CASES[name]
+    config, vae_config, frames, height, width, steps, seed, guidance, with_negative, tiling = {**CASES, **FULL_SIZE}[name]
     folder = out / name
     torch.manual_seed(1000 + seed)
-    transformer = CogVideoXTransformer3DModel(**config).eval()
-    vae = AutoencoderKLCogVideoX(**VAE).eval()
+    # Tiny models are drawn on the CPU (the same weights on every device); full-size ones on the
+    # device, in its dtype, as a GPU check can afford.
+    build = torch.device(device) if name in FULL_SIZE else torch.device("cpu")
+    with build:
+        transformer = CogVideoXTransformer3DModel(**config).to(dtype if name in FULL_SIZE else torch.float32).eval()
+        vae = AutoencoderKLCogVideoX(**vae_config).to(dtype if name in FULL_SIZE else torch.float32).eval()
     transformer.save_pretrained(folder / "transformer")
     vae.save_pretrained(folder / "vae")
     scheduler = CogVideoXDPMScheduler(**SCHEDULER_5B)
@@ -175,17 +207,24 @@ def write_case(out, name, device, dtype):
     (folder / "cond").mkdir(parents=True, exist_ok=True)
     for i, frame in enumerate(clip):
         Image.fromarray(frame).save(folder / "cond" / f"{i:05d}.png")
-    transformer.to(device, dtype)
-    vae.to(device, dtype)
+    if (transformer.dtype, transformer.device) != (dtype, torch.device(device)):
+        transformer.to(device, dtype)
+        vae.to(device, dtype)
     if tiling:
         vae.enable_tiling()
+    if torch.device(device).type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    timings = {}
     result = sample(transformer, vae, scheduler, clip, text[None].to(device, dtype), negative[None].to(device, dtype),
-                    steps, guidance, seed, device, dtype)
+                    steps, guidance, seed, device, dtype, timings)
     (folder / "expected").mkdir(exist_ok=True)
     for i, frame in enumerate(result):
         Image.fromarray(frame).save(folder / "expected" / f"{i:05d}.png")
     meta = dict(steps=steps, seed=seed, guidance=guidance, tiling=tiling, negative=with_negative,
-                dtype=str(dtype).removeprefix("torch."), device=device, frames=frames)
+                dtype=str(dtype).removeprefix("torch."), device=device, frames=frames, seconds=timings)
+    if torch.device(device).type == "cuda":
+        meta["peak_allocated_gib"] = torch.cuda.max_memory_allocated(device) / (1 << 30)
+        meta["peak_reserved_gib"] = torch.cuda.max_memory_reserved(device) / (1 << 30)
     (folder / "case.json").write_text(json.dumps(meta, indent=1))
 
 

@@ -1,21 +1,44 @@
 #!/usr/bin/env bash
-# GPU check of issue 14 item 5 (and issue 13's NCCL at world size 1), in two parts.
-#   scripts/gpu_check.sh build   (here, with Rust) = compile + bundle:
-#     compile: torch==2.11.0 from PyPI into .gpu-check/site-packages (git-ignored), with the headers
-#       of the nvidia wheels it pins under site-packages/nvidia (build.rs then compiles the shim's NCCL
-#       half), torch-sys's wrapper patched for its headers (scripts/gpu_check_patch_torch_sys.py), and
-#       trainer + datagen built against it in a copy of the workspace (CARGO_TARGET_DIR=target/gpu-check,
-#       release).
-#     bundle: .gpu-check/bundle.tar.xz (stripped binaries, FFmpeg libraries or stubs of them from
-#       scripts/gpu_check_stub_libs.py, the diffusers wheel, these scripts) to carry (<= 60 MiB).
-#   scripts/gpu_check.sh run [--tiny] [--steps N] [--bundle FILE] [--site-packages DIR]
-#     (there, no Rust, no registry; PYTHON= the Python 3.12 with torch 2.11.0+cu130): unpacks the
-#       bundle, runs `torchrun --nproc-per-node 1 --no-python trainer comm-check` (NCCL), then a few
-#       bf16 training steps of the 5B transformer at 49x480x720 (random weights, random text
-#       embedding, gradient checkpointing), LoRA and full, with this trainer and with diffusers, and
-#       prints step time and peak device memory next to `trainer plan`'s prediction. --site-packages:
-#       the torch 2.11 libraries to run against [default: $PYTHON's torch]. --tiny: the tiny presets
-#       at 9x64x80 on the CPU (checks the path here, e.g. --site-packages .gpu-check/site-packages).
+# The GPU check: the trainer's 5B figures (test-time finetuning steps with LoRA and full weights,
+# sampling, NCCL) beside diffusers' on the same shapes and beside `trainer plan`'s prediction, in
+# one short run on a GPU machine that has Python with torch 2.11.0+cu130 but no Rust and no
+# package registry.
+#
+#   scripts/gpu_check.sh build      here: compile + bundle
+#     compile: torch==2.11.0 from PyPI into .gpu-check/site-packages (git-ignored) with the headers
+#       of the nvidia wheels it pins (build.rs then compiles the shim's NCCL half), torch-sys's
+#       wrapper patched for its headers (scripts/gpu_check_patch_torch_sys.py), trainer + datagen
+#       built against it in a copy of the workspace (CARGO_TARGET_DIR=target/gpu-check, release);
+#     bundle: .gpu-check/bundle.tar.xz (stripped binaries, the FFmpeg and zstd libraries the runs
+#       load plus stubs of the rest from scripts/gpu_check_stub_libs.py, the diffusers wheel, these
+#       scripts and configs), at most 60 MiB.
+#   scripts/gpu_check.sh run [--tiny] [--out DIR] [--deadline SECONDS] [--bundle FILE] [--site-packages DIR]
+#     there: the stages below, each under its own timeout and all within the deadline (default
+#     540 s), each appending one JSON line to OUT/results.jsonl the moment it ends (a run cut short
+#     still returns what finished); OUT/env.txt first, OUT/summary.txt last. A stage that fails or
+#     times out is recorded and the next one runs; the exit status is 0 when every stage that ran
+#     passed. PYTHON= the Python with torch (default python3). --tiny: the same stages on tiny
+#     models on the CPU (9 x 64 x 80 clips), the rehearsal.
+#   scripts/gpu_check.sh rehearse   here, in CI: bundles the dev build (target/debug, built by the
+#     tests) with its stubs exactly as `build` does and runs `run --tiny` from it against the venv's
+#     torch, failing if any stage fails (a library the runs need that the bundle only stubs aborts).
+#
+# The one call on the GPU machine (the device tool; bundle ~25 MiB, the working tree travels too):
+#   run(command="bash scripts/gpu_check.sh run --bundle .gpu-check/bundle.tar.xz --out $OUT",
+#       carry=[".gpu-check/bundle.tar.xz"], timeout_s=600)
+# then give the machine back. Results: $OUT/results.jsonl, env.txt, summary.txt, logs/.
+#
+# Stages, in order of value (GPU time limits in brackets):
+#   data          a 49x480x720 synthetic clip and its training pair (datagen synth + pairs) [60 s]
+#   lora_ours     5B LoRA test-time-finetune steps, bf16, checkpointing: step, VAE encode and
+#                 transformer time (medians of 5 after a warm-up), allocator peaks, plan [120 s]
+#   lora_diffusers  the same shapes with diffusers + peft (model built on the GPU) [90 s]
+#   full_ours / full_diffusers  the same with all weights trained [150 s / 120 s]
+#   sampling      50 DPM steps with guidance against another embedding and the VAE decode at
+#                 49x480x720, diffusers (the public procedure) then ours on the same random
+#                 weights and seed; timings, peaks, plan and the frames' difference [300 s]
+#   nccl          torchrun --nproc-per-node 1 trainer comm-check (NCCL at world size 1) [60 s]
+#   parity        tiny models, sampled by both on the device in bf16: frame differences [90 s]
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 gc="$root/.gpu-check"
@@ -31,6 +54,8 @@ NVIDIA_HEADER_WHEELS=(nvidia-cuda-runtime==13.0.96 nvidia-cuda-nvcc==13.0.88 nvi
     nvidia-cusolver==12.0.4.66)
 # Library folders libtorch_cuda.so's RPATH names ($ORIGIN/../../nvidia/X/lib).
 NVIDIA_LIB_DIRS=(cu13 nccl cudnn cusparselt nvshmem)
+# What travels with one call, less room for the working tree.
+BUNDLE_LIMIT_BYTES=$((60 * 1024 * 1024))
 
 # Builds .gpu-check/site-packages/nvidia/ the way torch 2.11's wheel dependencies lay it out: the
 # headers of the pinned versions above (build.rs finds nccl.h there and compiles the NCCL half), and
@@ -39,7 +64,7 @@ NVIDIA_LIB_DIRS=(cu13 nccl cudnn cusparselt nvshmem)
 nvidia_layout() {
     local py="$1" nv="$gc/site-packages/nvidia" venv_nv
     venv_nv="$("$py" -c 'import nvidia, os; print(os.path.dirname(nvidia.__path__[0]))')/nvidia"
-    [[ -L "$nv" ]] && rm "$nv"  # an older layout linked the venv's nvidia/ whole
+    [[ -L "$nv" ]] && rm "$nv"
     [[ "$(cat "$nv/.headers" 2>/dev/null)" == "${NVIDIA_HEADER_WHEELS[*]}" ]] && return
     mkdir -p "$gc/wheels/nvidia"
     "$py" -m pip download --no-deps -q -d "$gc/wheels/nvidia" "${NVIDIA_HEADER_WHEELS[@]}"
@@ -80,120 +105,380 @@ compile() {
         cargo build --release -p trainer -p datagen --bins)
 }
 
-# Bundle size limit: what travels with one call to the GPU machine, less room for the working tree.
-BUNDLE_LIMIT_BYTES=$((60 * 1024 * 1024))
-
-bundle() {
-    local bundle="$gc/bundle" archive="$gc/bundle.tar.xz"
+# bundle BINARIES_DIR TORCH_LIB OUT_DIR: the folder `run` unpacks (binaries, libraries, scripts,
+# configs, the diffusers wheel when one was downloaded).
+bundle_dir() {
+    local binaries="$1" torch_lib="$2" bundle="$3"
     rm -rf "$bundle" && mkdir -p "$bundle/bin" "$bundle/lib" "$bundle/scripts" "$bundle/configs"
     for bin in trainer datagen; do
-        strip -o "$bundle/bin/$bin" "$root/target/gpu-check/release/$bin"
+        strip -o "$bundle/bin/$bin" "$binaries/$bin"
     done
-    # FFmpeg's full closure is ~230 MB: carry the libraries encoding and decoding an mp4 needs and
-    # stubs of the rest (see the script's docstring).
-    python3 "$root/scripts/gpu_check_stub_libs.py" "$bundle/lib" "$gc/site-packages/torch/lib" \
-        "$bundle/bin/trainer" "$bundle/bin/datagen" | tail -1
-    cp "$root"/scripts/gpu_check.sh "$root"/scripts/gpu_check_diffusers.py "$bundle/scripts/"
-    cp "$root"/configs/finetune_5b_lora_1gpu.toml "$root"/configs/pretrain_tiny.toml "$bundle/configs/"
-    cp "$gc"/wheels/diffusers-*.whl "$bundle/"
+    # FFmpeg's full closure is ~230 MB: carry the libraries an mp4 round trip and the shards load,
+    # and stubs of the rest (see the script's docstring).
+    python3 "$root/scripts/gpu_check_stub_libs.py" "$bundle/lib" "$torch_lib" "$bundle/bin/trainer" \
+        "$bundle/bin/datagen" | tail -1
+    cp "$root"/scripts/{gpu_check.sh,gpu_check_diffusers.py,goldens_sampling.py} "$bundle/scripts/"
+    cp "$root"/configs/{finetune_5b_lora_1gpu.toml,finetune_5b_full_1gpu.toml} "$bundle/configs/"
+    if compgen -G "$gc/wheels/diffusers-*.whl" >/dev/null; then cp "$gc"/wheels/diffusers-*.whl "$bundle/"; fi
+}
+
+bundle() {
+    bundle_dir "$root/target/gpu-check/release" "$gc/site-packages/torch/lib" "$gc/bundle"
+    local archive="$gc/bundle.tar.xz"
     tar -C "$gc" -cf - bundle | xz -T0 -6 >"$archive"
     local size; size="$(stat -c %s "$archive")"
-    echo "bundle: $(du -sh "$bundle" | cut -f1) unpacked, $archive $((size / 1048576)) MiB"
+    echo "bundle: $(du -sh "$gc/bundle" | cut -f1) unpacked, $archive $((size / 1048576)) MiB"
     (( size <= BUNDLE_LIMIT_BYTES )) || { echo "bundle over $((BUNDLE_LIMIT_BYTES / 1048576)) MiB" >&2; exit 1; }
 }
 
+rehearse() {
+    local py="$root/.venv/bin/python" site out="$root/target/gpu-check-rehearsal"
+    site="$("$py" -c 'import os, torch; print(os.path.dirname(os.path.dirname(torch.__file__)))')"
+    [[ -x "$root/target/debug/trainer" && -x "$root/target/debug/datagen" ]] \
+        || (cd "$root" && cargo build --workspace --bins --quiet)
+    bundle_dir "$root/target/debug" "$site/torch/lib" "$out/bundle"
+    rm -rf "$out/results"
+    PYTHON="$py" bash "$out/bundle/scripts/gpu_check.sh" run --tiny --site-packages "$site" --out "$out/results" \
+        --deadline "${GPU_CHECK_REHEARSAL_DEADLINE:-600}"
+}
+
+# ------------------------------------------------------------------------------------------------
+# run: the stages on the GPU machine (or, with --tiny, here)
+# ------------------------------------------------------------------------------------------------
+
+# Appends one stage's line to results.jsonl: name, status, seconds and the stage's own fields.
+record() {
+    "$PY" - "$OUT/results.jsonl" "$1" "$2" "$3" "$4" <<'PY'
+import json, sys
+path, name, status, seconds, fields = sys.argv[1:6]
+try:
+    extra = json.load(open(fields))
+except (OSError, ValueError):
+    extra = {}
+with open(path, "a") as f:
+    f.write(json.dumps({"stage": name, "status": status, "seconds": round(float(seconds), 1), **extra}) + "\n")
+PY
+}
+
+# stage NAME LIMIT: runs `gpu_check.sh _stage NAME` under min(LIMIT, what the deadline leaves),
+# its output in logs/NAME.log, its fields in NAME.json, and records it.
+stage() {
+    local name="$1" limit="$2"
+    local left=$((DEADLINE_AT - $(date +%s) - 5))
+    if ((left < 15)); then
+        record "$name" skipped 0 /dev/null
+        echo "stage $name: skipped (deadline)"
+        return 0
+    fi
+    ((limit > left)) && limit=$left
+    local start status=ok
+    start=$(date +%s%N)
+    echo '{}' >"$WORK/$name.json"
+    timeout --kill-after=15 "$limit" bash "$SELF" _stage "$name" >"$OUT/logs/$name.log" 2>&1 || {
+        local rc=$?
+        if ((rc == 124 || rc == 137)); then status=timeout; else status=failed; fi
+    }
+    record "$name" "$status" "$((($(date +%s%N) - start) / 1000000))e-3" "$WORK/$name.json"
+    echo "stage $name: $status ($(tail -n 1 "$OUT/results.jsonl" | cut -c1-220))"
+    [[ $status == ok ]] || FAILED=1
+}
+
+# Merges KEY=VALUE fields (JSON values or plain strings) into the running stage's JSON.
+fields() {
+    "$PY" - "$WORK/$STAGE.json" "$@" <<'PY'
+import json, sys
+path, pairs = sys.argv[1], sys.argv[2:]
+data = json.load(open(path))
+for pair in pairs:
+    key, value = pair.split("=", 1)
+    try:
+        data[key] = json.loads(value)
+    except ValueError:
+        data[key] = value
+json.dump(data, open(path, "w"))
+PY
+}
+
+# The predicted peak of `trainer plan ARGS...`, in GiB.
+plan_gib() {
+    "$BIN/trainer" plan "$@" | "$PY" -c '
+import re, sys
+m = re.search(r"total \(predicted peak\)\s+([\d.]+) (GiB|MiB)", sys.stdin.read())
+print(round(float(m[1]) / (1024 if m[2] == "MiB" else 1), 3))'
+}
+
+# A training config for the measurement: PRESET's settings at the check's size, nothing saved.
+training_config() {
+    local preset="$1" mode="$2" out="$3"
+    "$PY" - "$preset" "$mode" "$out" "$TINY" "$FRAMES" "$HEIGHT" "$WIDTH" "$TRAIN_STEPS" <<'PY'
+import sys, tomllib
+preset, mode, out, tiny, frames, height, width, steps = sys.argv[1:9]
+config = tomllib.load(open(preset, "rb"))
+config["model"].update(zero_text_embedding=True)
+config["data"].update(frames=int(frames), height=int(height), width=int(width), batch_size=1)
+config["loop"].update(steps=int(steps), checkpoint_every=1_000_000, validate_every=0, save_checkpoints=False)
+if tiny == "1":
+    config["model"].update(transformer="tiny", vae="tiny")
+    config["loop"]["precision"] = "fp32"
+    if "lora" in config:
+        config["lora"].update(rank=4, alpha=2)  # the preset's alpha/rank of 1/2 on 32-wide layers
+if mode == "full":
+    config.pop("lora", None)
+def value(v):
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return '"' + v + '"'
+    if isinstance(v, list):
+        return "[" + ", ".join(value(x) for x in v) + "]"
+    return repr(v)
+with open(out, "w") as f:
+    for table, entries in config.items():
+        f.write(f"[{table}]\n" + "".join(f"{k} = {value(v)}\n" for k, v in entries.items()) + "\n")
+PY
+}
+
+stage_env() {
+    {
+        echo "date: $(date -u +%FT%TZ)   deadline: ${DEADLINE}s   tiny: $TINY"
+        uname -a
+        nproc
+        free -g || true
+        df -h /tmp "$WORK" || true
+        nvidia-smi || echo "no nvidia-smi"
+        nvidia-smi --query-gpu=name,driver_version,memory.total,clocks.max.sm,power.limit --format=csv || true
+        PYTHONPATH="$PYPATH" "$PY" -c '
+import torch
+print("torch", torch.__version__, "cuda", torch.version.cuda, "cudnn", torch.backends.cudnn.version())
+print("nccl", torch.cuda.nccl.version() if torch.cuda.is_available() else None)
+print("gpu", torch.cuda.get_device_name(0) if torch.cuda.is_available() else None)
+import diffusers, transformers; print("diffusers", diffusers.__version__, "transformers", transformers.__version__)' || true
+        echo "libraries the trainer loads:"
+        LD_LIBRARY_PATH="$LIBPATH" ldd "$HERE/bin/trainer"
+        echo "bundle:"
+        ls -la "$HERE" "$HERE/lib" | head -80
+    } >"$OUT/env.txt" 2>&1
+    fields "gpu=$(nvidia-smi --query-gpu=name --format=csv,noheader 2>/dev/null | head -1 || echo none)"
+}
+
+stage_data() {
+    "$BIN/datagen" synth --width "$WIDTH" --height "$HEIGHT" --frames "$FRAMES" --out "$WORK/seq"
+    printf '[clip]\nlength = %s\nstride = %s\n' "$FRAMES" "$FRAMES" >"$WORK/clips.toml"
+    "$BIN/datagen" pairs "$WORK/seq" --out "$WORK/pairs" --trajectories 1 --config "$WORK/clips.toml"
+    fields "frames=$FRAMES" "height=$HEIGHT" "width=$WIDTH"
+}
+
+# Our training steps: plan, run, medians of the steps after the first.
+train_ours() {
+    local mode="$1" preset="$2" config="$WORK/$1.toml"
+    training_config "$preset" "$mode" "$config"
+    fields "plan_gib=$(plan_gib --config "$config" --world-size 1 --device "$DEVICE")"
+    "$BIN/trainer" pretrain --config "$config" --shards "$WORK/pairs" --out "$WORK/run-$mode" --device "$DEVICE"
+    "$PY" - "$WORK/run-$mode/metrics.jsonl" "$WORK/$STAGE.json" <<'PY'
+import json, statistics, sys
+rows = [json.loads(line) for line in open(sys.argv[1])]
+later = rows[1:] or rows
+gib = lambda b: None if b is None else b / (1 << 30)
+peak = lambda key: max((r.get(key) or 0 for r in rows), default=0) or None
+data = json.load(open(sys.argv[2]))
+data.update(steps=len(rows), warmup_step_s=rows[0]["seconds"],
+            median_step_s=statistics.median(r["seconds"] for r in later),
+            median_encode_s=statistics.median(r["encode_seconds"] for r in later),
+            median_transformer_step_s=statistics.median(r["seconds"] - r["encode_seconds"] for r in later),
+            peak_allocated_gib=gib(peak("cuda_peak_allocated")), peak_reserved_gib=gib(peak("cuda_peak_reserved")))
+json.dump(data, open(sys.argv[2], "w"))
+PY
+}
+
+train_diffusers() {
+    local mode="$1" line
+    line="$(PYTHONPATH="$PYPATH" "$PY" "$HERE/scripts/gpu_check_diffusers.py" --mode "$mode" --steps "$TRAIN_STEPS" \
+        --device "$DEVICE" $( ((TINY)) && echo --tiny) | tail -n 1)"
+    echo "$line"
+    "$PY" -c 'import json, sys; d = json.load(open(sys.argv[1])); d.update(json.loads(sys.argv[2])); json.dump(d, open(sys.argv[1], "w"))' \
+        "$WORK/$STAGE.json" "$line"
+}
+
+stage_lora_ours() { train_ours lora "$HERE/configs/finetune_5b_lora_1gpu.toml"; }
+stage_lora_diffusers() { train_diffusers lora; }
+stage_full_ours() { train_ours full "$HERE/configs/finetune_5b_full_1gpu.toml"; }
+stage_full_diffusers() { train_diffusers full; }
+
+# Compares two folders of PNG frames: mean and max difference, share beyond 1 and 4 levels.
+compare_frames() {
+    "$PY" - "$1" "$2" <<'PY'
+import json, sys
+from pathlib import Path
+import numpy as np
+from PIL import Image
+read = lambda d: np.stack([np.asarray(Image.open(p), dtype=np.int16) for p in sorted(Path(d).glob("*.png"))])
+a, b = read(sys.argv[1]), read(sys.argv[2])
+if a.shape != b.shape:
+    print(json.dumps({"shapes": [list(a.shape), list(b.shape)]}))
+    sys.exit(1)
+d = np.abs(a - b)
+print(json.dumps({"mean_levels": float(d.mean()), "max_levels": int(d.max()),
+                  "beyond_1": float((d > 1).mean()), "beyond_4": float((d > 4).mean())}))
+PY
+}
+
+# Samples the golden case CASE (goldens_sampling.py's folder) with ours: flags as the case says.
+sample_ours() {
+    local folder="$1" out="$2" meta
+    meta="$(cat "$folder/case.json")"
+    local steps seed guidance extra=()
+    steps="$("$PY" -c 'import json,sys; print(json.loads(sys.argv[1])["steps"])' "$meta")"
+    seed="$("$PY" -c 'import json,sys; print(json.loads(sys.argv[1])["seed"])' "$meta")"
+    guidance="$("$PY" -c 'import json,sys; print(json.loads(sys.argv[1])["guidance"])' "$meta")"
+    [[ -f "$folder/negative.safetensors" ]] && extra+=(--negative-text-embedding "$folder/negative.safetensors")
+    grep -q '"tiling": false' "$folder/case.json" && extra+=(--no-vae-tiling)
+    local frames size
+    frames="$(ls "$folder/cond" | wc -l)"
+    size="$("$PY" -c 'import sys; from PIL import Image; w, h = Image.open(sys.argv[1]).size; print(f"{w}x{h}")' "$folder/cond/00000.png")"
+    "$BIN/trainer" sample --ckpt "$folder/transformer" --base-model "$folder" \
+        --text-embedding "$folder/text.safetensors" --cond "$folder/cond" --out "$out" --steps "$steps" \
+        --seed "$seed" --guidance "$guidance" --dtype "$DTYPE" --device "$DEVICE" --frames "$frames" \
+        --size "$size" "${extra[@]}"
+}
+
+stage_sampling() {
+    local case=cognvs_5b
+    ((TINY)) && case=cognvs
+    PYTHONPATH="$PYPATH" "$PY" "$HERE/scripts/goldens_sampling.py" "$WORK/sampling" --device "$DEVICE" \
+        --dtype "$DTYPE" --cases "$case"
+    local folder="$WORK/sampling/$case"
+    fields "diffusers=$(cat "$folder/case.json")"
+    # Both embeddings differ: real classifier-free guidance, a batch of two.
+    local config="$WORK/sampling.toml"
+    training_config "$HERE/configs/finetune_5b_lora_1gpu.toml" full "$config"
+    sed -i "s/^frames = .*/frames = $(ls "$folder/cond" | wc -l)/" "$config"
+    if ((TINY)); then
+        sed -i -e "s|^transformer = .*|transformer = \"$folder/transformer\"|" -e "s|^vae = .*|vae = \"$folder/vae\"|" \
+            -e "s/^height = .*/height = 96/" "$config"
+    fi
+    fields "plan_gib=$(plan_gib --config "$config" --sampling --guided --device "$DEVICE")"
+    sample_ours "$folder" "$WORK/sampling/ours" | tee "$WORK/sampling/ours.log"
+    "$PY" - "$WORK/sampling/ours.log" "$WORK/$STAGE.json" <<'PY'
+import json, re, sys
+text = open(sys.argv[1]).read()
+data = json.load(open(sys.argv[2]))
+m = re.search(r"seconds: encode ([\d.]+), denoise ([\d.]+), decode ([\d.]+)", text)
+ours = dict(seconds=dict(encode=float(m[1]), denoise=float(m[2]), decode=float(m[3])))
+m = re.search(r"peak allocated ([\d.]+) GiB, peak reserved ([\d.]+) GiB", text)
+if m:
+    ours.update(peak_allocated_gib=float(m[1]), peak_reserved_gib=float(m[2]))
+data["ours"] = ours
+json.dump(data, open(sys.argv[2], "w"))
+PY
+    fields "frames_vs_diffusers=$(compare_frames "$WORK/sampling/ours" "$folder/expected")"
+}
+
+stage_nccl() {
+    "$PY" -m torch.distributed.run --standalone --nproc-per-node 1 --no-python "$BIN/trainer" comm-check \
+        --device "$DEVICE" --mib 256 --iterations 10 | tee "$WORK/comm.log"
+    fields "comm_check=$(grep -m1 'MiB over' "$WORK/comm.log" | "$PY" -c 'import json,sys; print(json.dumps(sys.stdin.read().strip()))')"
+}
+
+stage_parity() {
+    # All four cases on the GPU; on the CPU the tests cover them, the rehearsal runs the two quickest.
+    local cases=cognvs,same_prompt,rotary_only,long
+    ((TINY)) && cases=same_prompt,rotary_only
+    PYTHONPATH="$PYPATH" "$PY" "$HERE/scripts/goldens_sampling.py" "$WORK/parity" --device "$DEVICE" --dtype "$DTYPE" \
+        --cases "$cases"
+    local folder result all=()
+    for folder in "$WORK"/parity/*/; do
+        folder="${folder%/}"
+        sample_ours "$folder" "$folder/ours"
+        result="$(compare_frames "$folder/ours" "$folder/expected")"
+        all+=("$(basename "$folder")=$result")
+    done
+    fields "${all[@]}"
+}
+
+summary() {
+    "$PY" - "$OUT/results.jsonl" <<'PY' | tee "$OUT/summary.txt"
+import json, sys
+rows = [json.loads(line) for line in open(sys.argv[1])]
+print(f"{'stage':<16} {'status':<8} {'seconds':>8}  figures")
+for r in rows:
+    figures = {k: v for k, v in r.items() if k not in ("stage", "status", "seconds")}
+    text = ", ".join(f"{k}={round(v, 3) if isinstance(v, float) else v}" for k, v in figures.items())
+    print(f"{r['stage']:<16} {r['status']:<8} {r['seconds']:>8}  {text[:400]}")
+PY
+}
+
 run() {
-    local tiny=0 steps=3 archive="" site=""
+    local tiny=0 archive="" site="" out="" deadline=540
     while [[ $# -gt 0 ]]; do
         case "$1" in
             --tiny) tiny=1 ;;
-            --steps) steps="$2"; shift ;;
             --bundle) archive="$2"; shift ;;
             --site-packages) site="$2"; shift ;;
+            --out) out="$2"; shift ;;
+            --deadline) deadline="$2"; shift ;;
             *) echo "unknown option $1" >&2; exit 2 ;;
         esac
         shift
     done
-    local py="${PYTHON:-python3}"
-    local work; work="$(mktemp -d)"; trap 'rm -rf "$work"' RETURN
+    export PY="${PYTHON:-python3}" TINY="$tiny" DEADLINE="$deadline"
+    export DEADLINE_AT=$(($(date +%s) + deadline)) SELF
+    SELF="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)/$(basename "${BASH_SOURCE[0]}")"
+    export OUT="${out:-$(mktemp -d)}"
+    mkdir -p "$OUT/logs"
+    : >"$OUT/results.jsonl"
+    export WORK; WORK="$(mktemp -d)"
     # The bundle: the archive given, else this script's own folder when it runs from an unpacked
     # bundle, else the repo's .gpu-check/bundle.tar.xz.
     local here; here="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
     [[ -z "$archive" && ! -x "$here/bin/trainer" ]] && archive="$gc/bundle.tar.xz"
     if [[ -n "$archive" ]]; then
-        python3 -c "import sys, tarfile; tarfile.open(sys.argv[1]).extractall(sys.argv[2])" "$archive" "$work"
-        here="$work/bundle"
+        "$PY" -c "import sys, tarfile; tarfile.open(sys.argv[1]).extractall(sys.argv[2])" "$archive" "$WORK"
+        here="$WORK/bundle"
     fi
-    # The torch 2.11 libraries: the given site-packages, else the Python's own torch.
+    export HERE="$here"
+    # The torch libraries: the given site-packages', else the Python's own.
     local torch_lib
     if [[ -n "$site" ]]; then torch_lib="$(cd "$site/torch/lib" && pwd)"
-    else torch_lib="$("$py" -c 'import torch, os; print(os.path.join(os.path.dirname(torch.__file__), "lib"))')"; fi
+    else torch_lib="$("$PY" -c 'import torch, os; print(os.path.join(os.path.dirname(torch.__file__), "lib"))')"; fi
     # Only the bundle's binaries see its libraries (the stubs must not shadow anything of Python's).
-    local bin="$work/bin"; mkdir -p "$bin"
+    export BIN="$WORK/bin" LIBPATH="$torch_lib:$here/lib"; mkdir -p "$BIN"
     for name in trainer datagen; do
-        printf '#!/bin/sh\nLD_LIBRARY_PATH="%s:%s" exec "%s" "$@"\n' "$torch_lib" "$here/lib" "$here/bin/$name" >"$bin/$name"
-        chmod +x "$bin/$name"
+        printf '#!/bin/sh\nLD_LIBRARY_PATH="%s" exec "%s" "$@"\n' "$LIBPATH" "$here/bin/$name" >"$BIN/$name"
+        chmod +x "$BIN/$name"
     done
-    echo "binaries: $here/bin; libraries as the loader resolves them:"
-    LD_LIBRARY_PATH="$torch_lib:$here/lib" ldd "$here/bin/trainer" \
-        | grep -E 'libtorch_(cpu|cuda)|libc10\.|libnccl|libcudart|libavcodec|libx265|not found' | sed 's/ (0x.*//'
-    # The pure-python diffusers wheel, unpacked (no pip, no registry).
-    local wheel; wheel="$(ls "$here"/diffusers-*.whl | head -1)"
-    python3 -c "import zipfile, sys; zipfile.ZipFile(sys.argv[1]).extractall(sys.argv[2])" "$wheel" "$work/py"
-    local device=cuda frames=49 height=480 width=720 transformer=cognvs-5b vae=cogvideox-5b
-    if (( tiny )); then device=cpu frames=9 height=64 width=80 transformer=tiny vae=tiny; fi
-    "$bin/datagen" synth --width "$width" --height "$height" --frames "$frames" --out "$work/seq" >/dev/null
-    printf '[clip]\nlength = %s\nstride = %s\n' "$frames" "$frames" >"$work/clips.toml"
-    "$bin/datagen" pairs "$work/seq" --out "$work/pairs" --trajectories 1 --config "$work/clips.toml" >/dev/null
-    local preset="$here/configs/finetune_5b_lora_1gpu.toml"
-    # The distributed path at world size 1 under a launcher (comm-check creates the process group
-    # even then): NCCL on the GPU, Gloo on the CPU. --standalone picks a free port for the store.
-    echo "comm-check, torchrun --nproc-per-node 1, --device $device:"
-    "$py" -m torch.distributed.run --standalone --nproc-per-node 1 --no-python "$bin/trainer" comm-check \
-        --device "$device" --mib 256 || echo "comm-check failed" >&2
-    printf '%-10s %-6s %12s %14s %14s\n' impl mode "step (s)" "peak (GB)" "plan"
-    for mode in lora full; do
-        sed -e "s|^transformer = .*|transformer = \"$transformer\"|" -e "s|^vae = .*|vae = \"$vae\"|" \
-            -e "s|^frames = .*|frames = $frames|" -e "s|^height = .*|height = $height|" -e "s|^width = .*|width = $width|" \
-            -e "s|^steps = .*|steps = $steps|" -e "s|^checkpoint_every = .*|checkpoint_every = 1000000|" "$preset" >"$work/$mode.toml"
-        # The tiny model's 32-wide projections take rank 4 (alpha 2: the preset's alpha/rank of 1/2),
-        # as gpu_check_diffusers.py --tiny does.
-        (( tiny )) && sed -i -e 's|^precision = .*|precision = "fp32"|' -e 's|^rank = .*|rank = 4|' \
-            -e 's|^alpha = .*|alpha = 2|' "$work/$mode.toml"
-        [[ "$mode" == full ]] && sed -i '/^\[lora\]/,$d' "$work/$mode.toml"
-        local plan; plan="$("$bin/trainer" plan --config "$work/$mode.toml" --device "$device" --world-size 1 \
-            | sed -n 's/.*total (predicted peak) *//p')"
-        local poll=""
-        if [[ "$device" == cuda ]]; then
-            nvidia-smi --query-gpu=memory.used --format=csv,noheader,nounits -lms 200 >"$work/$mode.smi" & poll=$!
-        fi
-        local timer=(/usr/bin/time -f '%M' -o "$work/$mode.rss"); [[ -x /usr/bin/time ]] || timer=()
-        "${timer[@]}" "$bin/trainer" pretrain --config "$work/$mode.toml" \
-            --shards "$work/pairs" --out "$work/run-$mode" --device "$device" >"$work/$mode.log" 2>&1 \
-            || { grep -A1 '^Error' "$work/$mode.log" || tail -n 20 "$work/$mode.log"; echo "trainer $mode failed" >&2; }
-        [[ -n "$poll" ]] && kill "$poll"
-        local peak
-        if [[ "$device" == cuda ]]; then peak="$(sort -n "$work/$mode.smi" | tail -1 | awk '{printf "%.1f", $1 * 1048576 / 1e9}')"
-        else peak="$(tail -1 "$work/$mode.rss" 2>/dev/null | awk '{printf "%.2f", $1 * 1024 / 1e9}')"; fi
-        local step; step="$(python3 -c "
-import json, statistics, sys
-s = [json.loads(l)['seconds'] for l in open(sys.argv[1])]
-print(f'{statistics.median(s[1:] or s):.2f}')" "$work/run-$mode/metrics.jsonl" 2>/dev/null || echo n/a)"
-        printf '%-10s %-6s %12s %14s %14s\n' trainer "$mode" "$step" "$peak" "$plan"
-        PYTHONPATH="$work/py" "$py" "$here/scripts/gpu_check_diffusers.py" --mode "$mode" --steps "$steps" \
-            --device "$device" $( (( tiny )) && echo --tiny ) | "$py" -c "
-import json, sys
-r = json.loads(sys.stdin.read().strip().splitlines()[-1])
-peak = r['peak_reserved_gb']
-print(f\"{'diffusers':<10} {r['mode']:<6} {r['median_step_s']:>12.2f} {('n/a' if peak is None else f'{peak:.2f}'):>14} {'':>14}\")"
-    done
-    echo "(peak: trainer nvidia-smi memory.used incl. the CUDA context, diffusers torch's max reserved; on the CPU both peak RSS)"
+    # The pure-Python diffusers wheel, unpacked (no pip, no registry), else the Python's own.
+    export PYPATH="${PYTHONPATH:-}"
+    local wheel
+    wheel="$(ls "$here"/diffusers-*.whl 2>/dev/null | head -1 || true)"
+    if [[ -n "$wheel" ]]; then
+        "$PY" -c "import zipfile, sys; zipfile.ZipFile(sys.argv[1]).extractall(sys.argv[2])" "$wheel" "$WORK/py"
+        PYPATH="$WORK/py${PYPATH:+:$PYPATH}"
+    fi
+    if ((tiny)); then
+        export DEVICE=cpu DTYPE=fp32 FRAMES=9 HEIGHT=64 WIDTH=80 TRAIN_STEPS=3
+    else
+        export DEVICE=cuda DTYPE=bf16 FRAMES=49 HEIGHT=480 WIDTH=720 TRAIN_STEPS=6
+    fi
+    FAILED=0
+    stage env 30
+    stage data 60
+    stage lora_ours 120
+    stage lora_diffusers 90
+    stage full_ours 150
+    stage full_diffusers 120
+    stage sampling 300
+    stage nccl 60
+    stage parity 90
+    summary
+    rm -rf "$WORK"
+    return "$FAILED"
 }
 
 case "$cmd" in
     build) compile; bundle ;;
-    compile | bundle) "$cmd" ;;
+    compile | bundle | rehearse) "$cmd" ;;
     run) run "$@" ;;
-    *) echo "usage: scripts/gpu_check.sh build | compile | bundle | run [--tiny] [--steps N] [--bundle FILE] [--site-packages DIR]" >&2
+    _stage) STAGE="$1"; export STAGE; "stage_$1" ;;
+    *) echo "usage: scripts/gpu_check.sh build | compile | bundle | rehearse | run [--tiny] [--out DIR] [--deadline S] [--bundle FILE] [--site-packages DIR]" >&2
        exit 2 ;;
 esac

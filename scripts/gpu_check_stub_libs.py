@@ -1,4 +1,4 @@
-"""Collects the shared libraries the gpu_check bundle must carry (issue 14 item 5), within 64 MiB.
+"""Collects the shared libraries the gpu_check bundle must carry, within 64 MiB.
 
 Usage: gpu_check_stub_libs.py OUT_LIB_DIR LIBTORCH_LIB BINARY...
 
@@ -27,6 +27,8 @@ REAL = {
     "libx264.so.164",
     # Its demuxer's probe, run on every input, dereferences what gme_identify_header returns.
     "libgme.so.0",
+    # Parquet's zstd codec (Debian's libzstd: see .cargo/config.toml): every shard write and read.
+    "libzstd.so.1",
 }
 # Stub functions that may be called and return 0 (nothing, NULL, "not recognized"): ffmpeg-next's
 # init() registers the capture devices (never opened); looking an encoder up by name runs every

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The full test suite, exactly as CI runs it: formatting, lints (warnings are errors), and every
 # test of every crate (unit, integration, end-to-end, numerical parity against diffusers), then a
-# one-node Slurm cluster started and stopped by scripts/test_slurm.sh (needs root, as setup does).
+# one-node Slurm cluster started and stopped by scripts/test_slurm.sh (needs root, as setup does),
+# then the GPU check's rehearsal on the CPU.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
@@ -18,3 +19,7 @@ RUSTC_WORKSPACE_WRAPPER="$clippy_driver" CLIPPY_ARGS="-D__CLIPPY_HACKERY__warnin
     cargo test --workspace --locked
 echo "==> one-node Slurm: corpus build array and a 2-task srun of trainer pretrain"
 bash scripts/test_slurm.sh
+# The GPU check as the GPU machine runs it (bundle, library stubs, stage deadlines), on tiny models
+# on the CPU: a library the runs need that the bundle only stubs, or a broken stage, fails here.
+echo "==> GPU check rehearsal: scripts/gpu_check.sh run --tiny from a bundle of the dev build"
+bash scripts/gpu_check.sh rehearse

@@ -591,11 +591,19 @@ fn run_comm_check(args: CommCheckArgs) -> anyhow::Result<()> {
     let elements = (args.mib * 1024 * 1024 / 4) as i64;
     let big = Tensor::ones([elements], options);
     pg.all_reduce_sum(&big, "warm-up")?;
+    // NCCL's wait orders the device's stream, not the host: time what the device did.
+    let synchronize = || {
+        if let tch::Device::Cuda(index) = device {
+            tch::Cuda::synchronize(index as i64);
+        }
+    };
     let mut times = Vec::new();
     for _ in 0..args.iterations {
         pg.barrier("bandwidth")?;
+        synchronize();
         let started = std::time::Instant::now();
         pg.all_reduce_sum(&big, "bandwidth")?;
+        synchronize();
         times.push(started.elapsed().as_secs_f64());
     }
     times.sort_by(f64::total_cmp);

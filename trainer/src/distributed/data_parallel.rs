@@ -102,32 +102,38 @@ fn flatten_gradients(params: &[(String, Tensor)], bucket: &Bucket, padded: i64) 
 pub struct GradientBuckets {
     params: Vec<(String, Tensor)>,
     buckets: Vec<Bucket>,
+    noop: bool,
 }
 
 impl GradientBuckets {
-    /// Buckets of about `bucket_mib` MiB over `params` (the optimizer's, in its order).
-    pub fn new(params: Vec<(String, Tensor)>, bucket_mib: f64) -> Self {
+    /// Buckets of about `bucket_mib` MiB over `params` (the optimizer's, in its order); with
+    /// `noop`, the all-reduces are skipped (`[distributed] noop_collectives`).
+    pub fn new(params: Vec<(String, Tensor)>, bucket_mib: f64, noop: bool) -> Self {
         let buckets = make_buckets(&params, bucket_mib * MIB);
-        Self { params, buckets }
+        Self { params, buckets, noop }
     }
 
     /// Replaces every gradient by its mean over ranks.
     pub fn average(&self, pg: &ProcessGroup) -> Result<()> {
         tch::no_grad(|| -> Result<()> {
             let total = self.buckets.len();
-            let mut pending: std::collections::VecDeque<(usize, Tensor, Pending)> = Default::default();
+            let mut pending: std::collections::VecDeque<(usize, Tensor, Option<Pending>)> = Default::default();
             for (b, bucket) in self.buckets.iter().enumerate() {
                 if pending.len() == IN_FLIGHT {
                     let (done, flat, work) = pending.pop_front().expect("non-empty");
-                    pg.wait(work)?;
+                    work.map(|work| pg.wait(work)).transpose()?;
                     self.scatter_back(done, &flat, pg.world_size)?;
                 }
                 let flat = flatten_gradients(&self.params, bucket, bucket.len)?;
-                let work = pg.all_reduce_sum_start(&flat, &format!("gradient bucket {}/{total}", b + 1))?;
+                let work = if self.noop {
+                    None
+                } else {
+                    Some(pg.all_reduce_sum_start(&flat, &format!("gradient bucket {}/{total}", b + 1))?)
+                };
                 pending.push_back((b, flat, work));
             }
             for (done, flat, work) in pending {
-                pg.wait(work)?;
+                work.map(|work| pg.wait(work)).transpose()?;
                 self.scatter_back(done, &flat, pg.world_size)?;
             }
             Ok(())
@@ -176,11 +182,20 @@ pub struct ShardedAdamW {
     exp_avg_sq: Tensor,
     grad: Tensor,
     step: u64,
+    /// `[distributed] noop_collectives`: each step's reduce-scatters and all-gathers are local.
+    noop: bool,
 }
 
 impl ShardedAdamW {
-    /// Shards over `pg` the state for `params` (fp32 at this point: the masters start as their values).
-    pub fn new(params: Vec<(String, Tensor)>, config: OptimConfig, bucket_mib: f64, pg: &ProcessGroup) -> Result<Self> {
+    /// Shards over `pg` the state for `params` (fp32 at this point: the masters start as their
+    /// values); with `noop`, each step's collectives become local copies of this rank's slices.
+    pub fn new(
+        params: Vec<(String, Tensor)>,
+        config: OptimConfig,
+        bucket_mib: f64,
+        noop: bool,
+        pg: &ProcessGroup,
+    ) -> Result<Self> {
         let buckets = make_buckets(&params, bucket_mib * MIB);
         let (rank, world) = (pg.rank, pg.world_size);
         let mut local_offsets = Vec::with_capacity(buckets.len());
@@ -205,6 +220,7 @@ impl ShardedAdamW {
             exp_avg_sq: zeros()?,
             grad: zeros()?,
             step: 0,
+            noop,
         };
         this.master = this.owned_from_parameters()?;
         Ok(this)
@@ -257,7 +273,7 @@ impl ShardedAdamW {
         tch::no_grad(|| -> Result<f64> {
             let total = self.buckets.len();
             let world = self.world as f64;
-            let mut pending: std::collections::VecDeque<(usize, Tensor, Tensor, Pending)> = Default::default();
+            let mut pending: std::collections::VecDeque<(usize, Tensor, Tensor, Option<Pending>)> = Default::default();
             let finish = |this: &Self, b: usize, out: &Tensor| -> Result<()> {
                 let shard = this.buckets[b].shard(this.world);
                 let mean = out.f_div_scalar(world)?.f_to_kind(Kind::Float)?;
@@ -267,17 +283,22 @@ impl ShardedAdamW {
             for (b, bucket) in self.buckets.iter().enumerate() {
                 if pending.len() == IN_FLIGHT {
                     let (done, _input, out, work) = pending.pop_front().expect("non-empty");
-                    pg.wait(work)?;
+                    work.map(|work| pg.wait(work)).transpose()?;
                     finish(self, done, &out)?;
                 }
                 let shard = bucket.shard(self.world);
                 let input = flatten_gradients(&self.params, bucket, shard * self.world as i64)?;
                 let out = Tensor::f_zeros([shard], (input.kind(), input.device()))?;
-                let work = pg.reduce_scatter_sum_start(&out, &input, &format!("gradient bucket {}/{total}", b + 1))?;
+                let work = if self.noop {
+                    out.shallow_clone().f_copy_(&input.f_narrow(0, self.rank as i64 * shard, shard)?)?;
+                    None
+                } else {
+                    Some(pg.reduce_scatter_sum_start(&out, &input, &format!("gradient bucket {}/{total}", b + 1))?)
+                };
                 pending.push_back((b, input, out, work));
             }
             for (done, _input, out, work) in pending {
-                pg.wait(work)?;
+                work.map(|work| pg.wait(work)).transpose()?;
                 finish(self, done, &out)?;
             }
             let local = self.grad.f_square()?.f_sum(Kind::Double)?.double_value(&[]);
@@ -319,22 +340,30 @@ impl ShardedAdamW {
             }
             Ok(())
         };
-        let mut pending: std::collections::VecDeque<(usize, Tensor, Tensor, Pending)> = Default::default();
+        let mut pending: std::collections::VecDeque<(usize, Tensor, Tensor, Option<Pending>)> = Default::default();
         for (b, bucket) in self.buckets.iter().enumerate() {
             if pending.len() == IN_FLIGHT {
                 let (done, _input, output, work) = pending.pop_front().expect("non-empty");
-                pg.wait(work)?;
+                work.map(|work| pg.wait(work)).transpose()?;
                 copy_back(done, &output)?;
             }
             let shard = bucket.shard(self.world);
             let kind = self.params[bucket.members[0]].1.kind();
             let input = self.master.f_narrow(0, self.local_offsets[b], shard)?.f_to_kind(kind)?;
-            let output = Tensor::f_empty([shard * self.world as i64], (kind, input.device()))?;
-            let work = pg.all_gather_start(&output, &input, &format!("weights bucket {}/{total}", b + 1))?;
+            let (output, work) = if self.noop {
+                // The other ranks' slots stay zero: finite weights, so the run goes on.
+                let output = Tensor::f_zeros([shard * self.world as i64], (kind, input.device()))?;
+                output.f_narrow(0, self.rank as i64 * shard, shard)?.f_copy_(&input)?;
+                (output, None)
+            } else {
+                let output = Tensor::f_empty([shard * self.world as i64], (kind, input.device()))?;
+                let work = pg.all_gather_start(&output, &input, &format!("weights bucket {}/{total}", b + 1))?;
+                (output, Some(work))
+            };
             pending.push_back((b, input, output, work));
         }
         for (done, _input, output, work) in pending {
-            pg.wait(work)?;
+            work.map(|work| pg.wait(work)).transpose()?;
             copy_back(done, &output)?;
         }
         Ok(())

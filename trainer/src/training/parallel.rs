@@ -27,11 +27,14 @@ impl StepOptimizer {
                 trainable_parameters(model.trainable()),
                 config.optim.clone(),
                 d.bucket_mib,
+                d.noop_collectives,
                 pg,
             )?),
             _ => Self::Replicated {
                 adamw: AdamW::new(model.trainable(), config.optim.clone()),
-                buckets: pg.map(|_| GradientBuckets::new(trainable_parameters(model.trainable()), d.bucket_mib)),
+                buckets: pg.map(|_| {
+                    GradientBuckets::new(trainable_parameters(model.trainable()), d.bucket_mib, d.noop_collectives)
+                }),
             },
         })
     }

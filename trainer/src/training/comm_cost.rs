@@ -12,7 +12,7 @@ use serde::Serialize;
 use tch::{Device, Kind, Tensor};
 
 use super::parallel::StepOptimizer;
-use super::{CogNvsModel, Draws, PretrainConfig, learning_rate};
+use super::{Backward, CogNvsModel, Draws, PretrainConfig, learning_rate};
 use crate::data::{Batch, DataPosition};
 use crate::distributed::ProcessGroup;
 use crate::error::{Error, Result};
@@ -172,16 +172,21 @@ fn train_step(
     pg: &ProcessGroup,
 ) -> Result<()> {
     tch::manual_seed(config.train.seed as i64 ^ step as i64);
-    optimizer.zero_grad();
+    optimizer.zero_grad()?;
     let accumulation = config.optim.grad_accumulation;
     let mut loss = 0.0;
-    for _ in 0..accumulation {
+    for micro_batch in 1..=accumulation {
+        let mut exchange = |stage| optimizer.backward_stage_done(stage, Some(pg));
+        let backward = Backward {
+            checkpointing: config.train.gradient_checkpointing,
+            on_stage: (micro_batch == accumulation).then_some(&mut exchange as _),
+        };
         loss += model.loss_backward(
             batch,
             (config.train.condition_noise_log_mean, config.train.condition_noise_log_std),
             None,
             accumulation as f64,
-            config.train.gradient_checkpointing,
+            backward,
             draws,
         )?;
     }

@@ -10,7 +10,8 @@
 #       scripts/gpu_check_stub_libs.py, the diffusers wheel, these scripts) to carry (<= 60 MiB).
 #   scripts/gpu_check.sh run [--tiny] [--steps N] [--bundle FILE] [--site-packages DIR]
 #     (there, no Rust, no registry; PYTHON= the Python 3.12 with torch 2.11.0+cu130): unpacks the
-#       bundle, runs `torchrun --nproc-per-node 1 --no-python trainer comm-check` (NCCL), then a few
+#       bundle, runs `torchrun --nproc-per-node 1 --no-python trainer comm-check` (NCCL) and
+#       `trainer comm-cost` (the overlapped exchange at world size 1: streams and events), then a few
 #       bf16 training steps of the 5B transformer at 49x480x720 (random weights, random text
 #       embedding, gradient checkpointing), LoRA and full, with this trainer and with diffusers, and
 #       prints step time and peak device memory next to `trainer plan`'s prediction. --site-packages:
@@ -94,7 +95,8 @@ bundle() {
     python3 "$root/scripts/gpu_check_stub_libs.py" "$bundle/lib" "$gc/site-packages/torch/lib" \
         "$bundle/bin/trainer" "$bundle/bin/datagen" | tail -1
     cp "$root"/scripts/gpu_check.sh "$root"/scripts/gpu_check_diffusers.py "$bundle/scripts/"
-    cp "$root"/configs/finetune_5b_lora_1gpu.toml "$root"/configs/pretrain_tiny.toml "$bundle/configs/"
+    cp "$root"/configs/finetune_5b_lora_1gpu.toml "$root"/configs/pretrain_tiny.toml \
+        "$root"/configs/comm_cost_tiny.toml "$bundle/configs/"
     cp "$gc"/wheels/diffusers-*.whl "$bundle/"
     tar -C "$gc" -cf - bundle | xz -T0 -6 >"$archive"
     local size; size="$(stat -c %s "$archive")"
@@ -151,6 +153,11 @@ run() {
     echo "comm-check, torchrun --nproc-per-node 1, --device $device:"
     "$py" -m torch.distributed.run --standalone --nproc-per-node 1 --no-python "$bin/trainer" comm-check \
         --device "$device" --mib 256 || echo "comm-check failed" >&2
+    # The overlapped exchange (bucket reductions during the backward, the ZeRO-2 gathers) on the
+    # same process group: step times with real and no-op collectives, one JSON line.
+    echo "comm-cost, torchrun --nproc-per-node 1, --device $device:"
+    "$py" -m torch.distributed.run --standalone --nproc-per-node 1 --no-python "$bin/trainer" comm-cost \
+        --config "$here/configs/comm_cost_tiny.toml" --device "$device" || echo "comm-cost failed" >&2
     printf '%-10s %-6s %12s %14s %14s\n' impl mode "step (s)" "peak (GB)" "plan"
     for mode in lora full; do
         sed -e "s|^transformer = .*|transformer = \"$transformer\"|" -e "s|^vae = .*|vae = \"$vae\"|" \

@@ -2,9 +2,12 @@
 # Multi-process training on this CPU (issue 13's benchmark): step time of the mid-size config
 # (scripts/bench_train.sh's: 8 blocks, 12 heads x 64, tiny VAE, 9 frames at 64x80) at global
 # batch 2 on 1 rank (2 threads) and on 2 ranks x 1 thread (Gloo, ZeRO-0 and ZeRO-2) — the same
-# arithmetic, so the difference is the cost of synchronization — with each rank's peak RSS, then
+# arithmetic, so the difference is the cost of synchronization — with each rank's peak RSS; the
+# exposed communication at 2 ranks (`trainer comm-cost`: ZeRO-0 and ZeRO-2 each with the real
+# collectives and with local no-ops, interleaved in rounds of COST_STEPS steps per variant); then
 # the all-reduce bandwidth between 2 local processes (`trainer comm-check`).
-# Usage: scripts/bench_distributed.sh [STEPS (8)]   (PROFILE=release for a release build)
+# Usage: scripts/bench_distributed.sh [STEPS (8)]   (PROFILE=release for a release build;
+#        COST_ROUNDS (3) and COST_STEPS (3) size the comm-cost part)
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
@@ -48,5 +51,17 @@ a, b, c = losses("single"), losses("zero0"), losses("zero2")
 print("max relative loss difference: 2 ranks vs 1 %.2e, ZeRO-2 vs ZeRO-0 %.2e" % (
     max(abs(x - y) / abs(y) for x, y in zip(b, a)), max(abs(x - y) / abs(y) for x, y in zip(c, b))))
 PY
-.venv/bin/torchrun --nproc-per-node 2 --master-port $((port + 1)) --no-python "$trainer" comm-check --mib 64 --iterations 9 2>/dev/null \
+OMP_NUM_THREADS=1 .venv/bin/torchrun --nproc-per-node 2 --master-port $((port + 1)) --no-python "$trainer" comm-cost \
+    --config "$work/zero0.toml" --rounds "${COST_ROUNDS:-3}" --steps "${COST_STEPS:-3}" 2>"$work/cost.log" \
+    | tail -1 >"$work/cost.json" || { cat "$work/cost.log"; exit 1; }
+python3 - "$work/cost.json" <<'PY'
+import json, sys
+r = json.load(open(sys.argv[1]))
+step = {(v["zero_stage"], v["collectives"]): v["median_step_seconds"] for v in r["variants"]}
+parts = [f"ZeRO-{z} {100 * r['exposed_fraction'][f'zero{z}']:.1f} % (real {step[(z, 'real')]:.3f} s, no-op {step[(z, 'noop')]:.3f} s)"
+         for z in (0, 2)]
+print(f"exposed communication, 2 ranks x batch 1 ({r['backend']}, {r['rounds']} rounds x {r['steps']} steps, "
+      f"medians): {', '.join(parts)}; ZeRO-2 / ZeRO-0 step {r['zero2_over_zero0']:.3f}")
+PY
+.venv/bin/torchrun --nproc-per-node 2 --master-port $((port + 2)) --no-python "$trainer" comm-check --mib 64 --iterations 9 2>/dev/null \
     | grep '^all-reduce [0-9]'

@@ -37,7 +37,8 @@
 #   sampling      50 DPM steps with guidance against another embedding and the VAE decode at
 #                 49x480x720, diffusers (the public procedure) then ours on the same random
 #                 weights and seed; timings, peaks, plan and the frames' difference [300 s]
-#   nccl          torchrun --nproc-per-node 1 trainer comm-check (NCCL at world size 1) [60 s]
+#   nccl          torchrun --nproc-per-node 1 trainer comm-check (NCCL at world size 1) and
+#                 trainer comm-cost (the overlapped exchange: streams, events, no-op baseline) [60 s]
 #   parity        tiny models, sampled by both on the device in bf16: frame differences [90 s]
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -118,7 +119,7 @@ bundle_dir() {
     python3 "$root/scripts/gpu_check_stub_libs.py" "$bundle/lib" "$torch_lib" "$bundle/bin/trainer" \
         "$bundle/bin/datagen" | tail -1
     cp "$root"/scripts/{gpu_check.sh,gpu_check_diffusers.py,goldens_sampling.py} "$bundle/scripts/"
-    cp "$root"/configs/{finetune_5b_lora_1gpu.toml,finetune_5b_full_1gpu.toml} "$bundle/configs/"
+    cp "$root"/configs/{finetune_5b_lora_1gpu.toml,finetune_5b_full_1gpu.toml,comm_cost_tiny.toml} "$bundle/configs/"
     if compgen -G "$gc/wheels/diffusers-*.whl" >/dev/null; then cp "$gc"/wheels/diffusers-*.whl "$bundle/"; fi
 }
 
@@ -377,6 +378,11 @@ stage_nccl() {
     "$PY" -m torch.distributed.run --standalone --nproc-per-node 1 --no-python "$BIN/trainer" comm-check \
         --device "$DEVICE" --mib 256 --iterations 10 | tee "$WORK/comm.log"
     fields "comm_check=$(grep -m1 'MiB over' "$WORK/comm.log" | "$PY" -c 'import json,sys; print(json.dumps(sys.stdin.read().strip()))')"
+    # The overlapped exchange on the same process group (bucket reductions during the backward on
+    # the communication stream, ZeRO-2's gathers): step times with real and no-op collectives.
+    "$PY" -m torch.distributed.run --standalone --nproc-per-node 1 --no-python "$BIN/trainer" comm-cost \
+        --config "$HERE/configs/comm_cost_tiny.toml" --device "$DEVICE" | tee "$WORK/cost.log"
+    fields "comm_cost=$(grep '^{' "$WORK/cost.log" | tail -n 1)"
 }
 
 stage_parity() {

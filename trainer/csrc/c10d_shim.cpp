@@ -1,8 +1,9 @@
 // The C ABI between `trainer::distributed` (Rust) and PyTorch's c10d: a TCPStore (with an optional
 // key prefix), a ProcessGroupGloo, and the collectives the trainer uses, on the `at::Tensor*`
-// handles tch passes around. Every entry point catches C++ exceptions and returns them as a
-// malloc'd message (NULL on success) that Rust frees with `trainer_c10d_free_string`. The logic
-// (which collective, when, what a failure means) lives in Rust; this file only translates calls.
+// handles tch passes around, and one autograd setter tch lacks (a parameter's gradient tensor).
+// Every entry point catches C++ exceptions and returns them as a malloc'd message (NULL on
+// success) that Rust frees with `trainer_c10d_free_string`. The logic (which collective, when,
+// what a failure means) lives in Rust; this file only translates calls.
 #include <chrono>
 #include <cstdint>
 #include <cstdlib>
@@ -173,6 +174,25 @@ char* trainer_c10d_work_wait(trainer_c10d_work* work, int64_t timeout_ms) {
   return guarded([&] { finish(work->work, timeout_ms); });
 }
 
+// Orders the calling thread's current device stream after the collective without blocking the
+// host (NCCL: the stream waits on the collective's end event); a no-op for CPU work.
+char* trainer_c10d_work_synchronize(trainer_c10d_work* work) {
+  return guarded([&] { work->work->synchronize(); });
+}
+
 void trainer_c10d_work_free(trainer_c10d_work* work) { delete work; }
+
+// Makes `grad` (same shape, dtype and device as `param`) the gradient the autograd engine
+// accumulates `param`'s into: with one already defined it adds in place, so a view into a flat
+// buffer receives the backward's gradients where they are reduced. Not a collective, but the
+// trainer's only other reach past tch's API, so it lives here beside the c10d calls.
+char* trainer_c10d_set_grad(at::Tensor* param, at::Tensor* grad) {
+  return guarded([&] {
+    TORCH_CHECK(param->sizes() == grad->sizes() && param->dtype() == grad->dtype() &&
+                    param->device() == grad->device(),
+                "a gradient must match its parameter's shape, dtype and device");
+    param->mutable_grad() = *grad;
+  });
+}
 
 }  // extern "C"

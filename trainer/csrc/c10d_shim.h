@@ -78,5 +78,7 @@ char* trainer_c10d_all_gather(trainer_c10d_group* group, at::Tensor* output, at:
                               int64_t timeout_ms, trainer_c10d_work** work);
 char* trainer_c10d_barrier(trainer_c10d_group* group, int64_t timeout_ms);
 char* trainer_c10d_work_wait(trainer_c10d_work* work, int64_t timeout_ms);
+char* trainer_c10d_work_synchronize(trainer_c10d_work* work);
+char* trainer_c10d_set_grad(at::Tensor* param, at::Tensor* grad);
 void trainer_c10d_work_free(trainer_c10d_work* work);
 }

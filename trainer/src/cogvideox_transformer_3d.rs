@@ -434,6 +434,10 @@ struct Embedded {
     dims: [i64; 4],
 }
 
+/// The modules after the blocks (see [`CogVideoXTransformer3DModel`]'s `head`): their gradients
+/// are final once the loss has been back-propagated to the last block's output.
+const HEAD_MODULES: [&str; 3] = ["norm_final", "norm_out", "proj_out"];
+
 /// Reseeds tch's generator for block `i` when dropout is active.
 fn reseed(seeds: Option<&[i64]>, i: usize) {
     if let Some(seeds) = seeds {
@@ -448,12 +452,14 @@ fn reseed_after_blocks(seeds: Option<&[i64]>) {
     }
 }
 
-/// What a checkpointed forward keeps for its backward: each block's `(video, text)` input
-/// without autograd state, the leaves the head and the blocks were built on, and the embedding
-/// outputs whose graphs lead to the patch and time embeddings.
+/// What [`CogVideoXTransformer3DModel::forward_taped`] keeps for its backward, which runs block
+/// by block: each block's `(video, text)` input as a leaf of its own (the blocks' graphs, or,
+/// with checkpointing, nothing: the blocks are recomputed), the leaves the head and the blocks
+/// were built on, and the embedding outputs whose graphs lead to the patch and time embeddings.
 pub struct BlockTape<'m> {
     model: &'m CogVideoXTransformer3DModel,
-    inputs: Vec<(Tensor, Tensor)>,
+    /// Per block: its input leaves, and its outputs when their graphs are kept.
+    blocks: Vec<TapedBlock>,
     last: Tensor,
     emb_leaf: Tensor,
     embedded_emb: Tensor,
@@ -464,12 +470,23 @@ pub struct BlockTape<'m> {
     train: bool,
 }
 
+/// One block on a [`BlockTape`].
+struct TapedBlock {
+    video: Tensor,
+    text: Tensor,
+    /// The block's `(video, text)` outputs with their graphs (None: recompute the block).
+    outputs: Option<(Tensor, Tensor)>,
+}
+
 impl BlockTape<'_> {
     /// Back-propagates through the blocks and the embeddings, once the output of
-    /// [`CogVideoXTransformer3DModel::forward_checkpointed`] has had its loss back-propagated
-    /// (which leaves the gradient on the last block's output). Parameter gradients accumulate,
-    /// as with a plain `backward`.
-    pub fn backward(self) -> Result<()> {
+    /// [`CogVideoXTransformer3DModel::forward_taped`] has had its loss back-propagated (which
+    /// leaves the gradient on the last block's output and finishes the head's). Parameter
+    /// gradients accumulate, as with a plain `backward`. `on_stage(k)` is called as soon as the
+    /// gradients of stage k's parameters are final (see
+    /// [`CogVideoXTransformer3DModel::backward_stage_of`]): stage 0 (the head) first, then one
+    /// stage per block from the last block to the first, then the embeddings.
+    pub fn backward(self, on_stage: &mut dyn FnMut(usize) -> Result<()>) -> Result<()> {
         let mut grad_video = self.last.grad();
         if !grad_video.defined() {
             return Err(Error::InvalidArgument {
@@ -477,14 +494,24 @@ impl BlockTape<'_> {
                 reason: "the output's loss must be back-propagated before the blocks".to_string(),
             });
         }
+        on_stage(0)?;
         // diffusers drops the text stream after the last block: its gradient there is zero.
         let mut grad_text: Option<Tensor> = None;
         let rotary = self.rotary.as_ref();
-        for (i, (block, (video, text))) in self.model.transformer_blocks.iter().zip(&self.inputs).enumerate().rev() {
-            reseed(self.seeds.as_deref(), i);
-            let video = video.detach().set_requires_grad(true);
-            let text = text.detach().set_requires_grad(true);
-            let (out_video, out_text) = block.forward(&video, &text, &self.emb_leaf, rotary, self.train)?;
+        let count = self.blocks.len();
+        let recomputed = self.blocks.iter().any(|b| b.outputs.is_none());
+        for (i, (block, taped)) in self.model.transformer_blocks.iter().zip(self.blocks).enumerate().rev() {
+            let TapedBlock { video, text, outputs } = taped;
+            let (video, text, (out_video, out_text)) = match outputs {
+                Some(outputs) => (video, text, outputs),
+                None => {
+                    reseed(self.seeds.as_deref(), i);
+                    let video = video.detach().set_requires_grad(true);
+                    let text = text.detach().set_requires_grad(true);
+                    let outputs = block.forward(&video, &text, &self.emb_leaf, rotary, self.train)?;
+                    (video, text, outputs)
+                }
+            };
             let mut surrogate = out_video.f_mul(&grad_video)?.f_sum(Kind::Float)?;
             if let Some(g) = &grad_text {
                 surrogate = surrogate.f_add(&out_text.f_mul(g)?.f_sum(Kind::Float)?)?;
@@ -492,8 +519,11 @@ impl BlockTape<'_> {
             surrogate.f_backward()?;
             grad_video = video.grad();
             grad_text = Some(text.grad());
+            on_stage(count - i)?;
         }
-        reseed_after_blocks(self.seeds.as_deref());
+        if recomputed {
+            reseed_after_blocks(self.seeds.as_deref());
+        }
         let mut surrogate = self.embedded_video.f_mul(&grad_video)?.f_sum(Kind::Float)?;
         if let Some(g) = &grad_text {
             surrogate = surrogate.f_add(&self.embedded_text.f_mul(g)?.f_sum(Kind::Float)?)?;
@@ -506,7 +536,7 @@ impl BlockTape<'_> {
         if surrogate.requires_grad() {
             surrogate.f_backward()?;
         }
-        Ok(())
+        on_stage(count + 1)
     }
 }
 
@@ -587,40 +617,56 @@ impl CogVideoXTransformer3DModel {
         self.head(&hidden_states, &embedded.emb, embedded.dims)
     }
 
-    /// [`forward`](Self::forward) with activation checkpointing per block: the blocks run without
-    /// autograd and only each block's input is kept; the returned output's graph starts at the
-    /// last block's output. After back-propagating a loss of that output, call
-    /// [`BlockTape::backward`], which recomputes one block at a time (last first) and carries the
-    /// gradient down to the embeddings, so every parameter receives the gradient the plain
-    /// forward would give it. Dropout replays identically: with dropout on, every block (in both
+    /// [`forward`](Self::forward) for training block by block: every block starts from leaves of
+    /// its own and the returned output's graph starts at the last block's output. After
+    /// back-propagating a loss of that output, call [`BlockTape::backward`], which carries the
+    /// gradient down one block at a time (last first) to the embeddings, so every parameter
+    /// receives the gradient the plain forward would give it, and reports each finished stage as
+    /// it goes (where a data-parallel run starts reducing those gradients).
+    ///
+    /// With `checkpointing` the blocks run without autograd and only each block's input is
+    /// kept; the tape's backward recomputes each block: the same gradients for a fraction of the
+    /// activation memory. Dropout replays identically: with dropout on, every block (in both
     /// forwards) reseeds tch's generator from a seed drawn before the blocks, and the generator
     /// continues after the tape's backward as it would after the plain forward, provided nothing
     /// draws from it between this call and [`BlockTape::backward`].
-    pub fn forward_checkpointed(&self, input: &TransformerInput, train: bool) -> Result<(Tensor, BlockTape<'_>)> {
+    pub fn forward_taped(
+        &self,
+        input: &TransformerInput,
+        train: bool,
+        checkpointing: bool,
+    ) -> Result<(Tensor, BlockTape<'_>)> {
         let embedded = self.embed(input, train)?;
         let seeds = self.block_seeds(train)?;
         // The blocks see a leaf copy of the embedding whose gradient accumulates over the
-        // recomputations; the graph to the time embedding is walked once, at the end.
+        // blocks; the graph to the time embedding is walked once, at the end.
         let emb_leaf = embedded.emb.detach().set_requires_grad(true);
         let rotary = embedded.rotary.as_ref();
-        let mut inputs = Vec::with_capacity(self.transformer_blocks.len());
+        let mut blocks = Vec::with_capacity(self.transformer_blocks.len());
         let (mut hidden_states, mut encoder_hidden_states) =
             (embedded.hidden_states.detach(), embedded.encoder_hidden_states.detach());
-        tch::no_grad(|| -> Result<()> {
-            for (i, block) in self.transformer_blocks.iter().enumerate() {
-                reseed(seeds.as_deref(), i);
-                let (h, e) = block.forward(&hidden_states, &encoder_hidden_states, &emb_leaf, rotary, train)?;
-                inputs.push((hidden_states.shallow_clone(), encoder_hidden_states.shallow_clone()));
-                (hidden_states, encoder_hidden_states) = (h, e);
-            }
-            Ok(())
-        })?;
+        for (i, block) in self.transformer_blocks.iter().enumerate() {
+            reseed(seeds.as_deref(), i);
+            let (video, text, outputs, next) = if checkpointing {
+                let next =
+                    tch::no_grad(|| block.forward(&hidden_states, &encoder_hidden_states, &emb_leaf, rotary, train))?;
+                (hidden_states, encoder_hidden_states, None, next)
+            } else {
+                let video = hidden_states.detach().set_requires_grad(true);
+                let text = encoder_hidden_states.detach().set_requires_grad(true);
+                let (h, e) = block.forward(&video, &text, &emb_leaf, rotary, train)?;
+                let outputs = (h.shallow_clone(), e.shallow_clone());
+                (video, text, Some(outputs), (h, e))
+            };
+            blocks.push(TapedBlock { video, text, outputs });
+            (hidden_states, encoder_hidden_states) = next;
+        }
         reseed_after_blocks(seeds.as_deref());
-        let last = hidden_states.set_requires_grad(true);
+        let last = hidden_states.detach().set_requires_grad(true);
         let out = self.head(&last, &emb_leaf, embedded.dims)?;
         let tape = BlockTape {
             model: self,
-            inputs,
+            blocks,
             last,
             emb_leaf,
             embedded_emb: embedded.emb,
@@ -631,6 +677,32 @@ impl CogVideoXTransformer3DModel {
             train,
         };
         Ok((out, tape))
+    }
+
+    /// Stages of [`BlockTape::backward`]: the head, one per block, the embeddings.
+    pub fn backward_stages(&self) -> usize {
+        self.transformer_blocks.len() + 2
+    }
+
+    /// The stage of [`BlockTape::backward`] after which the gradient of variable `name` (its
+    /// path in the checkpoint, `transformer_blocks.3.attn1.to_q.weight`; LoRA adapters' paths
+    /// extend their layer's) is final: 0 for the head (`norm_final`, `norm_out`, `proj_out`),
+    /// `L − i` for block i of L, `L + 1` for everything else (the patch, time and ofs embeddings).
+    pub fn backward_stage_of(&self, name: &str) -> usize {
+        let count = self.transformer_blocks.len();
+        let module = name.split('.').next().unwrap_or_default();
+        if HEAD_MODULES.contains(&module) {
+            return 0;
+        }
+        let block = name
+            .strip_prefix("transformer_blocks.")
+            .and_then(|rest| rest.split('.').next())
+            .and_then(|index| index.parse::<usize>().ok())
+            .filter(|&i| i < count);
+        match block {
+            Some(i) => count - i,
+            None => count + 1,
+        }
     }
 
     /// The timestep embedding, the patch-embedded joint sequence split into text and video
@@ -675,7 +747,7 @@ impl CogVideoXTransformer3DModel {
     }
 
     /// With dropout active, one seed per block drawn from tch's generator (see
-    /// [`forward_checkpointed`](Self::forward_checkpointed)), and one to continue from after the
+    /// [`forward_taped`](Self::forward_taped)), and one to continue from after the
     /// blocks; `None` otherwise, leaving the generator's stream untouched.
     fn block_seeds(&self, train: bool) -> Result<Option<Vec<i64>>> {
         if !(train && self.config.dropout > 0.0) {
@@ -858,13 +930,26 @@ mod tests {
         )
     }
 
-    /// Every parameter's gradient of `Σ out · weights` after a plain or a checkpointed backward.
+    /// How [`gradients`] back-propagates.
+    #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+    enum Backward {
+        /// `forward` and one `backward`.
+        Plain,
+        /// `forward_taped` without checkpointing: the blocks' graphs kept.
+        Taped,
+        /// `forward_taped` with checkpointing: the blocks recomputed.
+        Checkpointed,
+    }
+
+    /// Every parameter's gradient of `Σ out · weights` after a backward of `mode`. A taped
+    /// backward must report every stage once, in order, and the gradients of a stage's
+    /// parameters must not change after it is reported.
     fn gradients(
         vs: &nn::VarStore,
         model: &CogVideoXTransformer3DModel,
         input: &TransformerInput,
         weights: &Tensor,
-        checkpointed: bool,
+        mode: Backward,
         seed: i64,
     ) -> (f64, f64, BTreeMap<String, Option<Tensor>>) {
         for (_, v) in vs.variables() {
@@ -874,33 +959,53 @@ mod tests {
             }
         }
         tch::manual_seed(seed);
-        let loss = if checkpointed {
-            let (out, tape) = model.forward_checkpointed(input, true).unwrap();
-            let loss = out.f_mul(weights).unwrap().sum(Kind::Float);
-            loss.backward();
-            tape.backward().unwrap();
-            loss
-        } else {
+        let final_gradient = |v: &Tensor| {
+            let g = v.grad();
+            g.defined().then(|| g.copy())
+        };
+        let loss = if mode == Backward::Plain {
             let loss = model.forward(input, true).unwrap().f_mul(weights).unwrap().sum(Kind::Float);
             loss.backward();
+            loss
+        } else {
+            let (out, tape) = model.forward_taped(input, true, mode == Backward::Checkpointed).unwrap();
+            let loss = out.f_mul(weights).unwrap().sum(Kind::Float);
+            loss.backward();
+            let mut stages = Vec::new();
+            let mut reported = Vec::new();
+            tape.backward(&mut |stage| {
+                stages.push(stage);
+                for (name, v) in vs.variables() {
+                    if model.backward_stage_of(&name) == stage {
+                        reported.push((name, final_gradient(&v)));
+                    }
+                }
+                Ok(())
+            })
+            .unwrap();
+            assert_eq!(stages, (0..model.backward_stages()).collect::<Vec<_>>(), "{mode:?}");
+            assert_eq!(reported.len(), vs.variables().len(), "{mode:?}: every variable has a stage");
+            let variables = vs.variables();
+            for (name, at_stage) in reported {
+                let now = final_gradient(&variables[&name]);
+                let same = match (&at_stage, &now) {
+                    (Some(a), Some(b)) => a.equal(b),
+                    (a, b) => a.is_none() && b.is_none(),
+                };
+                assert!(same, "{mode:?}: {name}'s gradient changed after its stage was reported");
+            }
             loss
         };
         // The generator continues as after the plain forward.
         let next = Tensor::randn([1], (Kind::Float, Device::Cpu)).double_value(&[0]);
-        let grads = vs
-            .variables()
-            .into_iter()
-            .map(|(name, v)| {
-                let g = v.grad();
-                (name, g.defined().then(|| g.copy()))
-            })
-            .collect();
+        let grads = vs.variables().into_iter().map(|(name, v)| (name, final_gradient(&v))).collect();
         (loss.double_value(&[]), next, grads)
     }
 
-    /// Checkpointed gradients equal the plain backward's (fp32, relative 1e-5 of each
-    /// gradient's largest entry: only the summation order differs), with dropout on too, whose
-    /// masks must replay identically in the recomputed blocks.
+    /// Taped gradients, with the blocks' graphs kept and with checkpointing, equal the plain
+    /// backward's (fp32, relative 1e-5 of each gradient's largest entry: only the summation
+    /// order differs), with dropout on too, whose masks must replay identically in the
+    /// recomputed blocks; and every stage is reported once its gradients are final.
     #[test]
     fn checkpointed_backward_gives_the_plain_gradients() {
         // tch's generator is one per process and other tests draw from it on other threads; the
@@ -939,27 +1044,48 @@ mod tests {
                 ofs: None,
                 image_rotary_emb: None,
             };
-            let (plain_loss, plain_next, plain) = gradients(&vs, &model, &input, &weights, false, 5);
-            let (checkpointed_loss, checkpointed_next, checkpointed) =
-                gradients(&vs, &model, &input, &weights, true, 5);
-            assert_eq!(plain_loss, checkpointed_loss, "dropout {dropout}: the forwards differ");
-            assert_eq!(plain_next, checkpointed_next, "dropout {dropout}: the generator continues elsewhere");
-            assert_eq!(plain.len(), checkpointed.len());
-            let mut with_gradient = 0;
-            for (name, g) in &plain {
-                let (g, h) = match (g, &checkpointed[name]) {
-                    (Some(g), Some(h)) => (g, h),
-                    (None, None) => continue,
-                    _ => panic!("dropout {dropout}: {name} has a gradient in one backward only"),
-                };
-                with_gradient += 1;
-                let scale = g.abs().max().double_value(&[]).max(1e-12);
-                let diff = (g - h).abs().max().double_value(&[]);
-                assert!(diff <= 1e-5 * scale, "dropout {dropout}: {name}: gradients differ by {diff} (scale {scale})");
+            let (plain_loss, plain_next, plain) = gradients(&vs, &model, &input, &weights, Backward::Plain, 5);
+            for mode in [Backward::Taped, Backward::Checkpointed] {
+                let (taped_loss, taped_next, taped) = gradients(&vs, &model, &input, &weights, mode, 5);
+                assert_eq!(plain_loss, taped_loss, "{mode:?}, dropout {dropout}: the forwards differ");
+                assert_eq!(plain_next, taped_next, "{mode:?}, dropout {dropout}: the generator continues elsewhere");
+                assert_eq!(plain.len(), taped.len());
+                let mut with_gradient = 0;
+                for (name, g) in &plain {
+                    let (g, h) = match (g, &taped[name]) {
+                        (Some(g), Some(h)) => (g, h),
+                        (None, None) => continue,
+                        _ => panic!("{mode:?}, dropout {dropout}: {name} has a gradient in one backward only"),
+                    };
+                    with_gradient += 1;
+                    let scale = g.abs().max().double_value(&[]).max(1e-12);
+                    let diff = (g - h).abs().max().double_value(&[]);
+                    assert!(
+                        diff <= 1e-5 * scale,
+                        "{mode:?}, dropout {dropout}: {name}: gradients differ by {diff} (scale {scale})"
+                    );
+                }
+                let trainable = vs.trainable_variables().len();
+                assert_eq!(
+                    with_gradient, trainable,
+                    "{mode:?}, dropout {dropout}: every trainable variable has a gradient"
+                );
             }
-            let trainable = vs.trainable_variables().len();
-            assert_eq!(with_gradient, trainable, "dropout {dropout}: every trainable variable has a gradient");
         }
+    }
+
+    /// The stages name the head, each block (last first) and the embeddings.
+    #[test]
+    fn backward_stages_follow_the_modules() {
+        let c = CogVideoXTransformer3DModelConfig { num_layers: 3, ..CogVideoXTransformer3DModelConfig::tiny() };
+        let (_vs, model) = build(&c, Device::Cpu, Kind::Float).unwrap();
+        assert_eq!(model.backward_stages(), 5);
+        assert_eq!(model.backward_stage_of("proj_out.weight"), 0);
+        assert_eq!(model.backward_stage_of("norm_out.linear.bias"), 0);
+        assert_eq!(model.backward_stage_of("transformer_blocks.2.attn1.to_q.weight"), 1);
+        assert_eq!(model.backward_stage_of("transformer_blocks.0.ff.net.2.lora_B.weight"), 3);
+        assert_eq!(model.backward_stage_of("time_embedding.linear_1.weight"), 4);
+        assert_eq!(model.backward_stage_of("patch_embed.proj.weight"), 4);
     }
 
     #[test]

@@ -59,6 +59,29 @@ enum Command {
     /// collective the trainer uses, verified against values computed locally, then all-reduce
     /// bandwidth. Prints one line per check on rank 0; exits non-zero on any mismatch.
     CommCheck(CommCheckArgs),
+    /// How much of a data-parallel training step the gradient and weight exchange costs: the
+    /// config's model trains on random clips, ZeRO-0 and ZeRO-2 each with real collectives and
+    /// with local no-ops, interleaved in rounds; prints one JSON line (rank 0) with each
+    /// variant's median step time and the exposed share of each stage. Run it under the launcher
+    /// (torchrun, srun, RANK/WORLD_SIZE), at any world size, 1 included.
+    CommCost(CommCostArgs),
+}
+
+#[derive(Debug, Args)]
+struct CommCostArgs {
+    /// Training TOML (as for `pretrain --config`; its [distributed] zero_stage and
+    /// noop_collectives are overridden per variant).
+    #[arg(long)]
+    config: PathBuf,
+    /// Timed steps per variant and round (after one warm-up step).
+    #[arg(long, default_value_t = 3, value_parser = clap::value_parser!(u64).range(1..))]
+    steps: u64,
+    /// Rounds over the four variants.
+    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u64).range(1..))]
+    rounds: u64,
+    /// Compute device: cpu (Gloo) or cuda (NCCL, the GPU chosen by LOCAL_RANK).
+    #[arg(long, default_value = "cpu")]
+    device: String,
 }
 
 #[derive(Debug, Args)]
@@ -497,6 +520,7 @@ fn main() -> anyhow::Result<()> {
         Command::Nvs(args) => run_nvs(args),
         Command::Plan(args) => run_plan(args),
         Command::CommCheck(args) => run_comm_check(args),
+        Command::CommCost(args) => run_comm_cost(args),
         Command::MergeLora(args) => {
             let merged = trainer::lora::merge_lora(&args.base, &args.lora, &args.out)?;
             println!("merged {merged} adapted layers into {}", args.out.display());
@@ -620,6 +644,23 @@ fn run_comm_check(args: CommCheckArgs) -> anyhow::Result<()> {
         args.mib as f64 / median,
         bus
     ));
+    Ok(())
+}
+
+fn run_comm_cost(args: CommCostArgs) -> anyhow::Result<()> {
+    let config = trainer::training::PretrainConfig::from_toml_file(&args.config)?;
+    // A launcher's world size of 1 still gets a process group: the exchange on one GPU.
+    let launch = trainer::distributed::Launch::from_env_any_size()?;
+    let device = forward::parse_device(&args.device)?;
+    let (device, pg) = join_launched(launch, device, config.distributed.timeout_seconds)?;
+    let Some(pg) = pg else {
+        anyhow::bail!("no launcher variables (torchrun, srun, RANK/WORLD_SIZE): run it under a launcher");
+    };
+    let cost = trainer::training::comm_cost(&config, device, &pg, args.steps as usize, args.rounds as usize)
+        .with_context(|| format!("comm-cost with {}", args.config.display()))?;
+    if pg.rank == 0 {
+        println!("{}", serde_json::to_string(&cost)?);
+    }
     Ok(())
 }
 

@@ -34,8 +34,9 @@ const FP32_BYTES: u64 = 4;
 const FF_MULT: u64 = 4;
 /// AdamW moments per trainable parameter (`exp_avg`, `exp_avg_sq`).
 const ADAM_MOMENTS: u64 = 2;
-/// fp32 temporaries of one parameter alive at once in `AdamW::step` (its fp32 gradient, the
-/// denominator and the update quotient); the largest trainable tensor sets the step's peak.
+/// fp32 temporaries of one bucket alive at once in `AdamW::step` (its fp32 gradient, the
+/// denominator and the update quotient); the largest bucket (about `[distributed] bucket_mib`
+/// of whole parameters, or the largest parameter alone) sets the step's peak.
 const OPTIMIZER_TEMPORARIES: u64 = 3;
 /// fp32 video tensors of a batch on the device during the VAE encode (`objective.rs`: target,
 /// condition, its noise draw and the noisy condition), each `[B, 3, F, H, W]`.
@@ -398,7 +399,8 @@ pub fn plan(config: &PretrainConfig, options: &PlanOptions) -> Result<MemoryPlan
     let vae_decode_peak =
         (encoder_live_frames(decode_frames) + DECODER_EXTRA_TENSORS * decode_frames) * frame_plane + video_bytes;
     let validation = config.train.validate_every > 0;
-    let optimizer_step_peak = OPTIMIZER_TEMPORARIES * largest_trainable * FP32_BYTES;
+    let bucket_elements = ((config.distributed.bucket_mib * (1u64 << 20) as f64) as u64 / working).min(trainable);
+    let optimizer_step_peak = OPTIMIZER_TEMPORARIES * largest_trainable.max(bucket_elements) * FP32_BYTES;
     let persistent_total: u64 = persistent.iter().map(|r| r.bytes).sum();
     let step_peak = persistent_total
         + activations.used().max(vae_encode_peak).max(optimizer_step_peak).max(if validation {

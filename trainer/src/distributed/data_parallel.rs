@@ -1,411 +1,304 @@
-//! Data parallelism over a [`ProcessGroup`]: gradients flattened into buckets of about
-//! `[distributed] bucket_mib` and reduced one collective per bucket, once per optimizer step
-//! (after all micro-batches of gradient accumulation); and ZeRO-2, where each rank keeps only its
-//! share of the reduced gradients, AdamW moments and fp32 master weights.
+//! Data parallelism over a [`ProcessGroup`]: the flat layout the optimizer works in, the
+//! gradient exchange that overlaps the backward, and the optimizer state of checkpoints written
+//! at any world size.
 //!
-//! The flat parameter space: the trainable parameters in name order (the optimizer's order),
-//! each flattened, end to end. Buckets are consecutive runs of whole parameters. Under ZeRO-2 a
-//! bucket of `len` elements is padded to `N·s` (s = ⌈len/N⌉) and rank r owns its elements
-//! `[r·s, (r+1)·s)`: reduce-scatter hands each rank exactly that slice, AdamW runs on it, and an
-//! all-gather returns the updated weights to everyone. Optimizer checkpoints are written per rank
-//! (`optimizer-rank-R-of-N.safetensors`) with the flat ranges they hold, so a run resumes at any
-//! world size and with either stage: [`FlatState`] reads any range from either layout.
+//! The flat layout ([`FlatLayout`]): the trainable parameters in the order the backward
+//! finishes their gradients (the model's backward stages: for the transformer its head, its
+//! blocks from the last to the first, then the embeddings; name order within a stage), end to
+//! end in buckets of about `[distributed] bucket_mib` of whole parameters, each padded to a
+//! multiple of the world size N. Every bucket is one tensor for the parameters and one for their
+//! gradients, and each parameter (and its `.grad`) is a view into them, so the backward
+//! accumulates straight into the buffers the collectives and the optimizer read: no gradient is
+//! flattened or copied back. Under ZeRO-2 rank r owns elements `[r·s, (r+1)·s)` of a bucket
+//! padded to N·s: it keeps the reduced gradient, AdamW moments and fp32 master weights of that
+//! slice only, and the updated weights are all-gathered into every rank's bucket in place.
 //!
-//! Overlap: tch has no backward hooks, so reductions cannot start while backward still runs; they
-//! start bucket after bucket as soon as backward ends, up to [`IN_FLIGHT`] at a time, so flattening
-//! and copying overlap with communication.
+//! The exchange ([`GradientExchange`]): the backward reports each finished stage; every bucket
+//! whose gradients are then final starts its reduction at once (NCCL on its own stream, ordered
+//! after the backward's kernels by an event; Gloo on its worker threads) while the backward goes
+//! on. The optimizer waits for each bucket's reduction only when it comes to that bucket. Stage 0
+//! all-reduces a bucket in place; ZeRO-2 reduce-scatters it in place on NCCL (half the bytes
+//! each rank receives), and all-reduces it in place on Gloo, whose reduce-scatter is itself an
+//! all-reduce of a full copy of the input.
+//!
+//! Checkpoints: the moments (and masters) are saved by flat ranges of the name-ordered parameter
+//! space, whatever the layout: one `optimizer.safetensors` with per-parameter tensors (stage 0,
+//! rank 0) or one `optimizer-rank-R-of-N.safetensors` per rank with the ranges it holds (ZeRO-2);
+//! [`FlatState`] reads any range from either, so a run resumes at any world size and stage.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use tch::{Kind, Tensor};
 
-use super::{Pending, ProcessGroup};
+use super::{Backend, Pending, ProcessGroup};
 use crate::error::{Error, Result};
-use crate::training::OptimConfig;
 
-/// Buckets reduced at the same time: two keep the link busy while the next is flattened.
-const IN_FLIGHT: usize = 2;
 /// File-name pattern of one rank's optimizer shard.
-const SHARD_PREFIX: &str = "optimizer-rank-";
+pub const SHARD_PREFIX: &str = "optimizer-rank-";
+/// One MiB.
+const MIB: f64 = 1024.0 * 1024.0;
 
 /// A run of whole parameters reduced in one collective.
 #[derive(Debug, Clone)]
 struct Bucket {
-    /// First element in the flat parameter space.
-    start: i64,
-    /// Elements (before padding).
-    len: i64,
-    /// Parameter indices, in order.
+    /// Parameter indices (name order) in the bucket's order.
     members: Vec<usize>,
+    /// Elements before padding.
+    len: i64,
+    /// Elements after padding: a multiple of the world size.
+    padded: i64,
+    /// The backward stage after which every member's gradient is final.
+    ready_after: usize,
+    /// Where this rank's optimizer state for the bucket starts (the local space: whole buckets
+    /// end to end when replicated, this rank's slices end to end under ZeRO-2).
+    local: i64,
 }
 
-impl Bucket {
-    /// Elements per rank under ZeRO-2 (the padded length is `world · shard`).
-    fn shard(&self, world: usize) -> i64 {
-        (self.len + world as i64 - 1) / world as i64
-    }
-}
-
-fn make_buckets(params: &[(String, Tensor)], bucket_bytes: f64) -> Vec<Bucket> {
-    let mut buckets: Vec<Bucket> = Vec::new();
-    let mut start = 0i64;
-    let mut bytes = 0.0;
-    for (i, (_, p)) in params.iter().enumerate() {
-        let numel = p.numel() as i64;
-        let size = numel as f64 * p.kind().elt_size_in_bytes() as f64;
-        match buckets.last_mut() {
-            Some(last) if bytes + size <= bucket_bytes || last.members.is_empty() => {
-                last.members.push(i);
-                last.len += numel;
-                bytes += size;
-            }
-            _ => {
-                buckets.push(Bucket { start, len: numel, members: vec![i] });
-                bytes = size;
-            }
-        }
-        start += numel;
-    }
-    buckets
-}
-
-/// The flat (name-ordered) offsets of `params`.
-fn offsets(params: &[(String, Tensor)]) -> Vec<i64> {
-    let mut offset = 0;
-    params
-        .iter()
-        .map(|(_, p)| {
-            let here = offset;
-            offset += p.numel() as i64;
-            here
-        })
-        .collect()
-}
-
-/// The bucket's gradients end to end (zeros where a parameter has none yet), padded to `padded`.
-fn flatten_gradients(params: &[(String, Tensor)], bucket: &Bucket, padded: i64) -> Result<Tensor> {
-    let mut parts = Vec::with_capacity(bucket.members.len() + 1);
-    for &i in &bucket.members {
-        let (_, p) = &params[i];
-        let grad = p.grad();
-        parts.push(if grad.defined() { grad.f_reshape([-1])? } else { p.f_zeros_like()?.f_reshape([-1])? });
-    }
-    if padded > bucket.len {
-        let first = &params[bucket.members[0]].1;
-        parts.push(Tensor::f_zeros([padded - bucket.len], (first.kind(), first.device()))?);
-    }
-    Ok(Tensor::f_cat(&parts, 0)?)
-}
-
-/// DDP's gradient averaging (ZeRO stage 0): every rank ends with the mean gradient.
-pub struct GradientBuckets {
-    params: Vec<(String, Tensor)>,
+/// Where the trainable parameters live in the flat buckets, and what this rank owns of them.
+#[derive(Debug, Clone)]
+pub struct FlatLayout {
     buckets: Vec<Bucket>,
-}
-
-impl GradientBuckets {
-    /// Buckets of about `bucket_mib` MiB over `params` (the optimizer's, in its order).
-    pub fn new(params: Vec<(String, Tensor)>, bucket_mib: f64) -> Self {
-        let buckets = make_buckets(&params, bucket_mib * MIB);
-        Self { params, buckets }
-    }
-
-    /// Replaces every gradient by its mean over ranks.
-    pub fn average(&self, pg: &ProcessGroup) -> Result<()> {
-        tch::no_grad(|| -> Result<()> {
-            let total = self.buckets.len();
-            let mut pending: std::collections::VecDeque<(usize, Tensor, Pending)> = Default::default();
-            for (b, bucket) in self.buckets.iter().enumerate() {
-                if pending.len() == IN_FLIGHT {
-                    let (done, flat, work) = pending.pop_front().expect("non-empty");
-                    pg.wait(work)?;
-                    self.scatter_back(done, &flat, pg.world_size)?;
-                }
-                let flat = flatten_gradients(&self.params, bucket, bucket.len)?;
-                let work = pg.all_reduce_sum_start(&flat, &format!("gradient bucket {}/{total}", b + 1))?;
-                pending.push_back((b, flat, work));
-            }
-            for (done, flat, work) in pending {
-                pg.wait(work)?;
-                self.scatter_back(done, &flat, pg.world_size)?;
-            }
-            Ok(())
-        })
-    }
-
-    fn scatter_back(&self, bucket: usize, flat: &Tensor, world: usize) -> Result<()> {
-        let flat = flat.f_div_scalar(world as f64)?;
-        let mut offset = 0;
-        for &i in &self.buckets[bucket].members {
-            let (name, p) = &self.params[i];
-            let numel = p.numel() as i64;
-            let mut grad = p.grad();
-            if !grad.defined() {
-                return Err(Error::InvalidArgument {
-                    name: "distributed".to_string(),
-                    reason: format!(
-                        "parameter `{name}` received no gradient: every trainable parameter must take part in the loss"
-                    ),
-                });
-            }
-            grad.f_copy_(&flat.f_narrow(0, offset, numel)?.f_view_as(&grad)?)?;
-            offset += numel;
-        }
-        Ok(())
-    }
-}
-
-/// One MiB.
-const MIB: f64 = 1024.0 * 1024.0;
-
-/// ZeRO-2 AdamW: this rank's slices of the reduced gradient, the moments and the fp32 master
-/// weights; same arithmetic as [`crate::training::AdamW`], element for element.
-pub struct ShardedAdamW {
-    config: OptimConfig,
-    params: Vec<(String, Tensor)>,
-    buckets: Vec<Bucket>,
+    /// Per parameter (name order): its bucket and its offset in it.
+    places: Vec<(usize, i64)>,
+    /// Per parameter: its offset in the name-ordered flat space (checkpoint ranges).
+    name_offsets: Vec<i64>,
+    /// Per parameter: elements.
+    numels: Vec<i64>,
     rank: usize,
     world: usize,
-    /// Where bucket b's owned slice starts in the local vectors.
-    local_offsets: Vec<i64>,
-    /// Each parameter's start in the flat parameter space.
-    offsets: Vec<i64>,
-    master: Tensor,
-    exp_avg: Tensor,
-    exp_avg_sq: Tensor,
-    grad: Tensor,
-    step: u64,
+    sharded: bool,
+    local_len: i64,
 }
 
-impl ShardedAdamW {
-    /// Shards over `pg` the state for `params` (fp32 at this point: the masters start as their values).
-    pub fn new(params: Vec<(String, Tensor)>, config: OptimConfig, bucket_mib: f64, pg: &ProcessGroup) -> Result<Self> {
-        let buckets = make_buckets(&params, bucket_mib * MIB);
-        let (rank, world) = (pg.rank, pg.world_size);
-        let mut local_offsets = Vec::with_capacity(buckets.len());
+impl FlatLayout {
+    /// Buckets of about `bucket_mib` MiB over `params` (name-ordered, as the optimizer keeps
+    /// them), in the order of `stage_of(name)`: the backward stage after which the parameter's
+    /// gradient is final. `sharded`: ZeRO-2 over `world` ranks (else every rank owns all).
+    pub fn new(
+        params: &[(String, Tensor)],
+        stage_of: impl Fn(&str) -> usize,
+        bucket_mib: f64,
+        rank: usize,
+        world: usize,
+        sharded: bool,
+    ) -> Self {
+        assert!(rank < world, "rank {rank} of {world}");
+        let numels: Vec<i64> = params.iter().map(|(_, p)| p.numel() as i64).collect();
+        let mut name_offsets = Vec::with_capacity(params.len());
+        let mut offset = 0;
+        for &numel in &numels {
+            name_offsets.push(offset);
+            offset += numel;
+        }
+        let stages: Vec<usize> = params.iter().map(|(name, _)| stage_of(name)).collect();
+        let mut order: Vec<usize> = (0..params.len()).collect();
+        // Stable: name order within a stage.
+        order.sort_by_key(|&i| stages[i]);
+        let bucket_bytes = bucket_mib * MIB;
+        let mut buckets: Vec<Bucket> = Vec::new();
+        let mut bytes = 0.0;
+        for i in order {
+            let size = numels[i] as f64 * params[i].1.kind().elt_size_in_bytes() as f64;
+            match buckets.last_mut() {
+                Some(last) if bytes + size <= bucket_bytes => {
+                    last.members.push(i);
+                    last.len += numels[i];
+                    last.ready_after = last.ready_after.max(stages[i]);
+                    bytes += size;
+                }
+                _ => {
+                    buckets.push(Bucket {
+                        members: vec![i],
+                        len: numels[i],
+                        padded: 0,
+                        ready_after: stages[i],
+                        local: 0,
+                    });
+                    bytes = size;
+                }
+            }
+        }
+        let mut places = vec![(0, 0); params.len()];
         let mut local = 0;
-        for bucket in &buckets {
-            local_offsets.push(local);
-            local += bucket.shard(world);
-        }
-        let device = params.first().map_or(tch::Device::Cpu, |(_, p)| p.device());
-        let zeros = || Tensor::f_zeros([local], (Kind::Float, device));
-        let flat_offsets = offsets(&params);
-        let mut this = Self {
-            config,
-            params,
-            buckets,
-            rank,
-            world,
-            local_offsets,
-            offsets: flat_offsets,
-            master: zeros()?,
-            exp_avg: zeros()?,
-            exp_avg_sq: zeros()?,
-            grad: zeros()?,
-            step: 0,
-        };
-        this.master = this.owned_from_parameters()?;
-        Ok(this)
-    }
-
-    /// `(flat start, length, local offset)` of every owned range (padding left out).
-    fn owned_ranges(&self) -> Vec<(i64, i64, i64)> {
-        self.buckets
-            .iter()
-            .zip(&self.local_offsets)
-            .filter_map(|(bucket, &local)| {
-                let shard = bucket.shard(self.world);
-                let first = self.rank as i64 * shard;
-                let len = shard.min(bucket.len - first);
-                (len > 0).then_some((bucket.start + first, len, local))
-            })
-            .collect()
-    }
-
-    /// This rank's slices of the current parameter values, as fp32.
-    fn owned_from_parameters(&self) -> Result<Tensor> {
-        let offsets = &self.offsets;
-        let out = self.master.f_zeros_like()?;
-        for (start, len, local) in self.owned_ranges() {
-            for (i, (_, p)) in self.params.iter().enumerate() {
-                let (p_start, p_len) = (offsets[i], p.numel() as i64);
-                let (a, b) = (start.max(p_start), (start + len).min(p_start + p_len));
-                if a < b {
-                    let values = p.f_reshape([-1])?.f_narrow(0, a - p_start, b - a)?.f_to_kind(Kind::Float)?;
-                    out.f_narrow(0, local + a - start, b - a)?.f_copy_(&values)?;
-                }
-            }
-        }
-        Ok(out)
-    }
-
-    /// Zeroes the parameters' gradients (the full-size buffers backward accumulates into).
-    pub fn zero_grad(&self) {
-        for (_, p) in &self.params {
-            let mut grad = p.grad();
-            if grad.defined() {
-                let _ = grad.zero_();
-            }
-        }
-    }
-
-    /// Reduce-scatters the gradients, clips on the global norm, updates this rank's slices and
-    /// all-gathers the new weights. Returns the global gradient norm before clipping.
-    pub fn step(&mut self, pg: &ProcessGroup, lr: f64) -> Result<f64> {
-        tch::no_grad(|| -> Result<f64> {
-            let total = self.buckets.len();
-            let world = self.world as f64;
-            let mut pending: std::collections::VecDeque<(usize, Tensor, Tensor, Pending)> = Default::default();
-            let finish = |this: &Self, b: usize, out: &Tensor| -> Result<()> {
-                let shard = this.buckets[b].shard(this.world);
-                let mean = out.f_div_scalar(world)?.f_to_kind(Kind::Float)?;
-                this.grad.f_narrow(0, this.local_offsets[b], shard)?.f_copy_(&mean)?;
-                Ok(())
-            };
-            for (b, bucket) in self.buckets.iter().enumerate() {
-                if pending.len() == IN_FLIGHT {
-                    let (done, _input, out, work) = pending.pop_front().expect("non-empty");
-                    pg.wait(work)?;
-                    finish(self, done, &out)?;
-                }
-                let shard = bucket.shard(self.world);
-                let input = flatten_gradients(&self.params, bucket, shard * self.world as i64)?;
-                let out = Tensor::f_zeros([shard], (input.kind(), input.device()))?;
-                let work = pg.reduce_scatter_sum_start(&out, &input, &format!("gradient bucket {}/{total}", b + 1))?;
-                pending.push_back((b, input, out, work));
-            }
-            for (done, _input, out, work) in pending {
-                pg.wait(work)?;
-                finish(self, done, &out)?;
-            }
-            let local = self.grad.f_square()?.f_sum(Kind::Double)?.double_value(&[]);
-            let norm = pg.sum_f64(local, "gradient norm")?.sqrt();
-            let max_norm = self.config.max_grad_norm;
-            if max_norm > 0.0 {
-                // The same coefficient as `AdamW::clip_grad_norm`.
-                let coef = (max_norm / (norm + 1e-6)).min(1.0);
-                if coef < 1.0 {
-                    let _ = self.grad.f_mul_scalar_(coef)?;
-                }
-            }
-            self.step += 1;
-            crate::training::adamw_update(
-                &mut self.master,
-                &self.grad,
-                &mut self.exp_avg,
-                &mut self.exp_avg_sq,
-                lr,
-                &self.config,
-                self.step,
-            )?;
-            self.gather_parameters(pg)?;
-            Ok(norm)
-        })
-    }
-
-    /// Every rank's updated slices into every rank's parameters (up to [`IN_FLIGHT`] buckets
-    /// gathering at once).
-    fn gather_parameters(&self, pg: &ProcessGroup) -> Result<()> {
-        let total = self.buckets.len();
-        let offsets = &self.offsets;
-        let copy_back = |b: usize, output: &Tensor| -> Result<()> {
-            let bucket = &self.buckets[b];
+        for (b, bucket) in buckets.iter_mut().enumerate() {
+            let mut at = 0;
             for &i in &bucket.members {
-                let (_, p) = &self.params[i];
-                let values = output.f_narrow(0, offsets[i] - bucket.start, p.numel() as i64)?;
-                p.shallow_clone().f_copy_(&values.f_view_as(p)?)?;
+                places[i] = (b, at);
+                at += numels[i];
             }
-            Ok(())
-        };
-        let mut pending: std::collections::VecDeque<(usize, Tensor, Tensor, Pending)> = Default::default();
-        for (b, bucket) in self.buckets.iter().enumerate() {
-            if pending.len() == IN_FLIGHT {
-                let (done, _input, output, work) = pending.pop_front().expect("non-empty");
-                pg.wait(work)?;
-                copy_back(done, &output)?;
-            }
-            let shard = bucket.shard(self.world);
-            let kind = self.params[bucket.members[0]].1.kind();
-            let input = self.master.f_narrow(0, self.local_offsets[b], shard)?.f_to_kind(kind)?;
-            let output = Tensor::f_empty([shard * self.world as i64], (kind, input.device()))?;
-            let work = pg.all_gather_start(&output, &input, &format!("weights bucket {}/{total}", b + 1))?;
-            pending.push_back((b, input, output, work));
+            bucket.padded = (bucket.len + world as i64 - 1) / world as i64 * world as i64;
+            bucket.local = local;
+            local += if sharded { bucket.padded / world as i64 } else { bucket.padded };
         }
-        for (done, _input, output, work) in pending {
-            pg.wait(work)?;
-            copy_back(done, &output)?;
+        Self { buckets, places, name_offsets, numels, rank, world, sharded, local_len: local }
+    }
+
+    /// Buckets, in the order their gradients become final.
+    pub fn bucket_count(&self) -> usize {
+        self.buckets.len()
+    }
+
+    /// Elements of bucket `b` with its padding (the length of its flat tensors).
+    pub fn padded_len(&self, b: usize) -> i64 {
+        self.buckets[b].padded
+    }
+
+    /// The backward stage after which bucket `b`'s gradients are final.
+    pub fn ready_after(&self, b: usize) -> usize {
+        self.buckets[b].ready_after
+    }
+
+    /// Parameter `i`'s bucket and its offset in it.
+    pub fn place(&self, i: usize) -> (usize, i64) {
+        self.places[i]
+    }
+
+    /// The ranks and this one.
+    pub fn world(&self) -> (usize, usize) {
+        (self.rank, self.world)
+    }
+
+    /// Whether each rank owns a 1/N slice of every bucket (ZeRO-2).
+    pub fn sharded(&self) -> bool {
+        self.sharded
+    }
+
+    /// `(offset in the bucket, length)` of what this rank updates of bucket `b`: all of it, or
+    /// its slice under ZeRO-2.
+    pub fn owned(&self, b: usize) -> (i64, i64) {
+        let padded = self.buckets[b].padded;
+        if self.sharded {
+            let shard = padded / self.world as i64;
+            (self.rank as i64 * shard, shard)
+        } else {
+            (0, padded)
+        }
+    }
+
+    /// Where bucket `b`'s owned part starts in the local space of the optimizer state.
+    pub fn local_offset(&self, b: usize) -> i64 {
+        self.buckets[b].local
+    }
+
+    /// Elements of the local space (the optimizer state's length).
+    pub fn local_len(&self) -> i64 {
+        self.local_len
+    }
+
+    /// Every `(name-ordered flat start, length, local offset)` this rank owns, padding left out:
+    /// the ranges of its checkpoint shard, and what it reads back on resume.
+    pub fn owned_ranges(&self) -> Vec<(i64, i64, i64)> {
+        let mut ranges = Vec::new();
+        for (b, bucket) in self.buckets.iter().enumerate() {
+            let (own_start, own_len) = self.owned(b);
+            let mut at = 0;
+            for &i in &bucket.members {
+                let (start, end) = (own_start.max(at), (own_start + own_len).min(at + self.numels[i]));
+                if start < end {
+                    ranges.push((self.name_offsets[i] + start - at, end - start, bucket.local + start - own_start));
+                }
+                at += self.numels[i];
+            }
+        }
+        ranges
+    }
+}
+
+/// The collectives of one optimizer step over the flat gradient and parameter buckets: each
+/// bucket's reduction, started as soon as the backward has finished its gradients, and under
+/// ZeRO-2 the all-gather of the updated weights. With `noop` (`[distributed] noop_collectives`)
+/// every one of them is skipped: a rank's buckets keep its own values, in place.
+pub struct GradientExchange {
+    noop: bool,
+    /// Per bucket: the reduction in flight.
+    reductions: Vec<Option<Pending>>,
+    /// Buckets whose reduction has started: always a prefix, in bucket order.
+    started: usize,
+    /// Per bucket: the all-gather in flight.
+    gathers: Vec<Option<Pending>>,
+}
+
+impl GradientExchange {
+    /// Nothing in flight, for a layout of `buckets` buckets.
+    pub fn new(buckets: usize, noop: bool) -> Self {
+        Self {
+            noop,
+            reductions: (0..buckets).map(|_| None).collect(),
+            started: 0,
+            gathers: (0..buckets).map(|_| None).collect(),
+        }
+    }
+
+    /// Starts the reduction of every bucket not started yet whose gradients are final once
+    /// backward stage `stage` is done (`usize::MAX`: all that remain). `grads` are the flat
+    /// gradient buckets.
+    pub fn start_ready(
+        &mut self,
+        layout: &FlatLayout,
+        grads: &[Tensor],
+        stage: usize,
+        pg: &ProcessGroup,
+    ) -> Result<()> {
+        let total = layout.bucket_count();
+        while self.started < total && layout.ready_after(self.started) <= stage {
+            let b = self.started;
+            self.started += 1;
+            if self.noop {
+                continue;
+            }
+            let what = format!("gradient bucket {}/{total}", b + 1);
+            let bucket = &grads[b];
+            let pending = if layout.sharded() && pg.backend() == Backend::Nccl {
+                let (offset, shard) = layout.owned(b);
+                // In place: this rank's slice of the bucket receives its slice of the sum.
+                pg.reduce_scatter_sum_start(&bucket.f_narrow(0, offset, shard)?, bucket, &what)?
+            } else {
+                pg.all_reduce_sum_start(bucket, &what)?
+            };
+            self.reductions[b] = Some(pending);
         }
         Ok(())
     }
 
-    /// Optimizer steps taken.
-    pub fn steps(&self) -> u64 {
-        self.step
+    /// Waits for bucket `b`'s reduction (started by [`Self::start_ready`]): afterwards its owned
+    /// part holds the sum over ranks. `block`: wait on the host with the timeout (a stalled peer
+    /// then fails here, naming it), else only order the device's next work after it.
+    pub fn finish_reduction(&mut self, b: usize, block: bool, pg: &ProcessGroup) -> Result<()> {
+        assert!(b < self.started, "bucket {b} was never reduced");
+        match self.reductions[b].take() {
+            Some(pending) if block => pg.wait(pending),
+            Some(pending) => pg.wait_on_stream(pending),
+            None => Ok(()),
+        }
     }
 
-    /// The full fp32 master weights, gathered from every rank (all ranks take part).
-    pub fn gather_masters(&self, pg: &ProcessGroup) -> Result<Vec<(String, Tensor)>> {
-        let total = self.buckets.len();
-        let offsets = &self.offsets;
-        let mut out = Vec::with_capacity(self.params.len());
-        for (b, bucket) in self.buckets.iter().enumerate() {
-            let shard = bucket.shard(self.world);
-            let input = self.master.f_narrow(0, self.local_offsets[b], shard)?;
-            let output = Tensor::f_zeros([shard * self.world as i64], (Kind::Float, input.device()))?;
-            let work = pg.all_gather_start(&output, &input, &format!("master weights bucket {}/{total}", b + 1))?;
-            pg.wait(work)?;
-            for &i in &bucket.members {
-                let (name, p) = &self.params[i];
-                let values =
-                    output.f_narrow(0, offsets[i] - bucket.start, p.numel() as i64)?.f_view(p.size().as_slice())?;
-                out.push((name.clone(), values.f_to_device(tch::Device::Cpu)?));
-            }
+    /// Starts the all-gather of bucket `b`'s weights into every rank's `params` bucket, whose
+    /// owned slice holds this rank's updated values (ZeRO-2), in place.
+    pub fn start_gather(&mut self, layout: &FlatLayout, params: &Tensor, b: usize, pg: &ProcessGroup) -> Result<()> {
+        if self.noop {
+            return Ok(());
         }
-        Ok(out)
+        let (offset, shard) = layout.owned(b);
+        let what = format!("weights bucket {}/{}", b + 1, layout.bucket_count());
+        self.gathers[b] = Some(pg.all_gather_start(params, &params.f_narrow(0, offset, shard)?, &what)?);
+        Ok(())
     }
 
-    /// Writes this rank's shard (`optimizer-rank-R-of-N.safetensors` in `dir`).
-    pub fn save(&self, dir: &Path) -> Result<PathBuf> {
-        let ranges = self.owned_ranges();
-        let path = dir.join(format!("{SHARD_PREFIX}{:05}-of-{:05}.safetensors", self.rank, self.world));
-        let flat: Vec<i64> = ranges.iter().flat_map(|&(s, l, o)| [s, l, o]).collect();
-        let cpu = |t: &Tensor| t.f_to_device(tch::Device::Cpu);
-        let named = [
-            ("ranges", Tensor::from_slice(&flat).f_view([-1, 3])?),
-            ("exp_avg", cpu(&self.exp_avg)?),
-            ("exp_avg_sq", cpu(&self.exp_avg_sq)?),
-            ("master", cpu(&self.master)?),
-            ("step", Tensor::from_slice(&[self.step as i64])),
-        ];
-        let refs: Vec<(&str, &Tensor)> = named.iter().map(|(n, t)| (*n, t)).collect();
-        Tensor::write_safetensors(&refs, &path)
-            .map_err(|e| Error::Safetensors { path: path.clone(), reason: e.to_string() })?;
-        Ok(path)
+    /// Waits for every all-gather started, the last on the host (see [`Self::finish_reduction`]).
+    pub fn finish_gathers(&mut self, pg: &ProcessGroup) -> Result<()> {
+        let pending: Vec<Pending> = self.gathers.iter_mut().filter_map(Option::take).collect();
+        let last = pending.len().saturating_sub(1);
+        for (k, gather) in pending.into_iter().enumerate() {
+            if k == last { pg.wait(gather)? } else { pg.wait_on_stream(gather)? }
+        }
+        Ok(())
     }
 
-    /// Loads this rank's slices from a checkpoint of any world size and stage, and sets every
-    /// parameter from the loaded masters when `with_params` (LoRA runs) — else from its current
-    /// (just loaded) value.
-    pub fn load(&mut self, dir: &Path, pg: &ProcessGroup, with_params: bool) -> Result<()> {
-        let state = FlatState::open(dir, &self.params)?;
-        let device = self.master.device();
-        for (start, len, local) in self.owned_ranges() {
-            for (name, target) in [("exp_avg", &self.exp_avg), ("exp_avg_sq", &self.exp_avg_sq)] {
-                target.f_narrow(0, local, len)?.f_copy_(&state.read(name, start, len)?.f_to_device(device)?)?;
-            }
-            if with_params || state.has_masters() {
-                self.master
-                    .f_narrow(0, local, len)?
-                    .f_copy_(&state.read("master", start, len)?.f_to_device(device)?)?;
-            }
-        }
-        if !(with_params || state.has_masters()) {
-            self.master = self.owned_from_parameters()?;
-        }
-        self.step = state.step;
-        tch::no_grad(|| self.gather_parameters(pg))
+    /// Forgets the step's reductions (all waited for): the next backward starts from bucket 0.
+    pub fn reset(&mut self) {
+        debug_assert!(self.reductions.iter().all(Option::is_none), "a reduction was never waited for");
+        self.started = 0;
     }
 }
 
@@ -435,10 +328,10 @@ impl FlatState {
         if single.is_file() {
             let tensors = read(&single)?;
             let step = step_of(&tensors);
-            let offsets = offsets(params);
             let masters = params.iter().all(|(name, _)| tensors.contains_key(&format!("param.{name}")));
             let mut pieces = Vec::new();
-            for (i, (name, p)) in params.iter().enumerate() {
+            let mut offset = 0;
+            for (name, p) in params {
                 let mut map = BTreeMap::new();
                 for (key, file_key) in [
                     ("exp_avg", format!("exp_avg.{name}")),
@@ -460,7 +353,8 @@ impl FlatState {
                         }
                     }
                 }
-                pieces.push((offsets[i], p.numel() as i64, map));
+                pieces.push((offset, p.numel() as i64, map));
+                offset += p.numel() as i64;
             }
             return Ok(Self { pieces, masters, step });
         }
@@ -544,5 +438,72 @@ impl FlatState {
             }
         }
         Ok(out)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use tch::Device;
+
+    use super::*;
+
+    /// Parameters `w0..w5` of the given sizes, fp32 (4 bytes each).
+    fn params(sizes: &[i64]) -> Vec<(String, Tensor)> {
+        sizes
+            .iter()
+            .enumerate()
+            .map(|(i, &n)| (format!("w{i}"), Tensor::zeros([n], (Kind::Float, Device::Cpu))))
+            .collect()
+    }
+
+    /// Buckets follow the stages (later stages later, name order within one), hold whole
+    /// parameters up to the size (one may span two stages: it is ready after the later), are
+    /// padded to the world size, and the ranks' owned ranges tile the name-ordered space once.
+    #[test]
+    fn buckets_follow_the_backward_and_shards_tile_the_parameters() {
+        let sizes = [1, 3, 7, 2, 4, 6];
+        let p = params(&sizes);
+        // w4, w5 finish first (stage 0), then w2, w3 (1), then w0, w1 (2).
+        let stage_of = |name: &str| match name {
+            "w4" | "w5" => 0,
+            "w2" | "w3" => 1,
+            _ => 2,
+        };
+        // 10 elements of 4 bytes a bucket.
+        let bucket_mib = 40.0 / MIB;
+        let total: i64 = sizes.iter().sum();
+        for world in [1, 2, 3] {
+            let mut covered = vec![0u32; total as usize];
+            for rank in 0..world {
+                let layout = FlatLayout::new(&p, stage_of, bucket_mib, rank, world, true);
+                let members: Vec<Vec<usize>> = layout.buckets.iter().map(|b| b.members.clone()).collect();
+                assert_eq!(members, vec![vec![4, 5], vec![2, 3, 0], vec![1]], "world {world}");
+                let ready: Vec<usize> = (0..layout.bucket_count()).map(|b| layout.ready_after(b)).collect();
+                assert_eq!(ready, vec![0, 2, 2]);
+                for b in 0..layout.bucket_count() {
+                    assert_eq!(layout.padded_len(b) % world as i64, 0);
+                    assert!(layout.padded_len(b) - layout.buckets[b].len < world as i64);
+                }
+                assert_eq!(layout.place(0), (1, 9), "w0 follows w2 and w3 in its bucket");
+                for (start, len, local) in layout.owned_ranges() {
+                    assert!(local + len <= layout.local_len());
+                    for e in start..start + len {
+                        covered[e as usize] += 1;
+                    }
+                }
+            }
+            assert!(covered.iter().all(|&c| c == 1), "world {world}: {covered:?}");
+        }
+    }
+
+    /// Replicated, every rank owns whole buckets and its local space is the bucket space.
+    #[test]
+    fn replicated_layout_owns_everything() {
+        let p = params(&[5, 3, 7]);
+        let layout = FlatLayout::new(&p, |_| 0, 1.0, 1, 2, false);
+        assert_eq!(layout.bucket_count(), 1);
+        assert_eq!(layout.owned(0), (0, 16));
+        assert_eq!(layout.local_len(), 16);
+        assert_eq!(layout.owned_ranges(), vec![(0, 5, 0), (5, 3, 5), (8, 7, 8)]);
     }
 }

@@ -1,6 +1,7 @@
 //! The only `unsafe` in the trainer: calls into the c10d shim (`trainer/csrc/`, built by
-//! `build.rs` against the libtorch tch links). Each wrapper owns its C++ object and frees it on
-//! drop; every call turns the shim's returned message into an [`FfiError`].
+//! `build.rs` against the libtorch tch links), and the one autograd setter tch lacks
+//! ([`set_grad`]). Each wrapper owns its C++ object and frees it on drop; every call turns the
+//! shim's returned message into an [`FfiError`].
 #![allow(unsafe_code)]
 
 use std::ffi::{CStr, CString, c_char, c_int, c_void};
@@ -83,6 +84,8 @@ unsafe extern "C" {
     ) -> *mut c_char;
     fn trainer_c10d_barrier(group: *mut RawGroup, timeout_ms: i64) -> *mut c_char;
     fn trainer_c10d_work_wait(work: *mut RawWork, timeout_ms: i64) -> *mut c_char;
+    fn trainer_c10d_work_synchronize(work: *mut RawWork) -> *mut c_char;
+    fn trainer_c10d_set_grad(param: *mut c_void, grad: *mut c_void) -> *mut c_char;
     fn trainer_c10d_work_free(work: *mut RawWork);
 }
 
@@ -220,6 +223,13 @@ impl Work {
         // SAFETY: the work object is alive until self drops after this call.
         check(unsafe { trainer_c10d_work_wait(self.0, timeout_ms) })
     }
+
+    /// Makes the calling thread's current device stream wait for the collective, without
+    /// blocking the host (NCCL); for CPU work it does nothing: use [`Self::wait`] there.
+    pub fn synchronize(self) -> FfiResult<()> {
+        // SAFETY: the work object is alive until self drops after this call.
+        check(unsafe { trainer_c10d_work_synchronize(self.0) })
+    }
 }
 
 impl Drop for Work {
@@ -227,6 +237,15 @@ impl Drop for Work {
         // SAFETY: we own the handle and drop it once.
         unsafe { trainer_c10d_work_free(self.0) }
     }
+}
+
+/// Makes `grad` the gradient tensor of `param` (same shape, dtype and device, checked): the
+/// autograd engine then accumulates `param`'s gradients into it in place, so a view into a flat
+/// buffer receives them. Fails when the two do not match.
+pub fn set_grad(param: &Tensor, grad: &Tensor) -> FfiResult<()> {
+    // SAFETY: both handles are alive for the call; the parameter keeps its own reference to
+    // `grad`'s implementation (an at::Tensor copy), so `grad` may drop afterwards.
+    check(unsafe { trainer_c10d_set_grad(raw(param), raw(grad)) })
 }
 
 /// Whether this build has ProcessGroupNCCL.

@@ -21,7 +21,7 @@ use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use tch::{Device, Tensor};
 
-pub use data_parallel::{FlatState, GradientBuckets, ShardedAdamW};
+pub use data_parallel::{FlatLayout, FlatState, GradientExchange, SHARD_PREFIX};
 pub use ffi::{Backend, cuda_mem_get_info, cuda_memory_peaks, has_nccl};
 pub use launch::{DEFAULT_MASTER_PORT, Launch, Launcher, first_host};
 
@@ -50,6 +50,7 @@ pub struct ProcessGroup {
     failed: std::cell::Cell<bool>,
     heartbeat: Option<(Arc<AtomicBool>, std::thread::JoinHandle<()>)>,
     device: Device,
+    backend: Backend,
 }
 
 /// A collective in flight, waited on with [`ProcessGroup::wait`].
@@ -135,6 +136,7 @@ impl ProcessGroup {
             failed: std::cell::Cell::new(false),
             heartbeat: Some((stop, thread)),
             device,
+            backend,
         };
         pg.mark(0)?;
         let group = ffi::Group::new(backend, pg.store(), launch.rank, launch.world_size, timeout_ms)
@@ -154,6 +156,11 @@ impl ProcessGroup {
     /// The device collectives run on (tensors passed in must live there).
     pub fn device(&self) -> Device {
         self.device
+    }
+
+    /// The c10d backend: NCCL on CUDA devices, Gloo on the CPU.
+    pub fn backend(&self) -> Backend {
+        self.backend
     }
 
     /// The timeout of every collective.
@@ -230,6 +237,19 @@ impl ProcessGroup {
     pub fn wait(&self, pending: Pending) -> Result<()> {
         let Pending { work, what, sequence, started } = pending;
         work.wait(self.timeout_ms).map_err(|e| self.failure(&what, sequence, started, &e))
+    }
+
+    /// Orders what this thread runs on the device next after a collective started by one of the
+    /// `*_start` calls, blocking the host only where it must: with NCCL the current CUDA stream
+    /// waits on the collective's event and the host goes on (a failure or a stall then surfaces
+    /// at the next [`Self::wait`], which blocks with the timeout); Gloo's CPU tensors need the
+    /// host to wait, as [`Self::wait`] does.
+    pub fn wait_on_stream(&self, pending: Pending) -> Result<()> {
+        if self.backend == Backend::Gloo {
+            return self.wait(pending);
+        }
+        let Pending { work, what, sequence, started } = pending;
+        work.synchronize().map_err(|e| self.failure(&what, sequence, started, &e))
     }
 
     /// Starts an in-place sum of `tensor` over ranks.

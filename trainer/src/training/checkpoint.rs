@@ -86,7 +86,7 @@ pub(super) fn save_checkpoint(
         pg.barrier("checkpoint folder created")?;
     }
     // A LoRA run keeps its adapters' exact values here too (the LoRA file holds B scaled).
-    optimizer.save(&temp, model.lora_vs.is_some(), rank)?;
+    optimizer.save(&temp, model.lora_vs.is_some())?;
     if let Some(pg) = pg {
         // Every shard is in before rank 0 marks the checkpoint complete.
         pg.barrier("optimizer state written")?;

@@ -212,11 +212,17 @@ pub struct DistributedConfig {
     /// Gradient bucket size in MiB: gradients are flattened into buckets of about this size and
     /// each bucket is reduced in one collective (PyTorch DDP's default is 25). Valid: finite, > 0.
     pub bucket_mib: f64,
+    /// Benchmarking only: the gradient and weight collectives of each step become local no-ops
+    /// (each rank keeps its own gradient sums and its own weights; everything computed around
+    /// them is unchanged), so a run's step time without communication can be set against the
+    /// real one (`trainer comm-cost`). The ranks' weights drift apart: never for training. The
+    /// loss and gradient-norm sums stay real collectives.
+    pub noop_collectives: bool,
 }
 
 impl Default for DistributedConfig {
     fn default() -> Self {
-        Self { zero_stage: 0, timeout_seconds: 300.0, bucket_mib: 25.0 }
+        Self { zero_stage: 0, timeout_seconds: 300.0, bucket_mib: 25.0, noop_collectives: false }
     }
 }
 

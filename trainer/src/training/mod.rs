@@ -21,11 +21,12 @@
 //! `RUN_DIR/config.json`. `RUN_DIR/metrics.jsonl` has one line per step.
 //!
 //! One file per part: `config` (the TOML), `adamw` (optimizer), `lr_schedule`,
-//! `objective` (models and loss), `latent_cache`, `checkpoint`, `pretrain` (the loop) and
-//! `finetune`.
+//! `objective` (models and loss), `latent_cache`, `checkpoint`, `pretrain` (the loop),
+//! `finetune` and `comm_cost` (the exchange's share of a data-parallel step).
 
 mod adamw;
 mod checkpoint;
+mod comm_cost;
 mod config;
 mod finetune;
 mod latent_cache;
@@ -35,11 +36,12 @@ mod parallel;
 mod pretrain;
 
 pub use adamw::AdamW;
-pub(crate) use adamw::{trainable_parameters, update as adamw_update};
+pub(crate) use adamw::trainable_parameters;
 pub use checkpoint::{CheckpointLayout, TrainState, list_checkpoints};
+pub use comm_cost::{CommCost, VariantTiming, comm_cost};
 pub use config::{DistributedConfig, LoopConfig, ModelConfig, OptimConfig, Precision, PretrainConfig};
 pub use finetune::{FinetuneRequest, finetune, finetune_config, finetune_on};
 pub use latent_cache::LatentCache;
 pub use lr_schedule::learning_rate;
-pub use objective::{CogNvsModel, Draws};
+pub use objective::{Backward, CogNvsModel, Draws};
 pub use pretrain::{RunSummary, StepMetrics, pretrain, pretrain_on, read_metrics};

@@ -170,45 +170,54 @@ impl CogNvsModel {
         noise_log_std: f64,
         cache: Option<&LatentCache>,
     ) -> Result<Tensor> {
-        Ok(self.loss_graph(batch, noise_log_mean, noise_log_std, cache, false, Draws::SINGLE)?.0)
+        Ok(self.loss_graph(batch, noise_log_mean, noise_log_std, cache, None, Draws::SINGLE)?.0)
     }
 
     /// The loss of one batch, as [`loss`](Self::loss), back-propagated with the gradient divided
-    /// by `divisor` (the micro-batches per step); returns the unscaled loss value. With
-    /// `checkpointing`, the transformer keeps only each block's input and recomputes the blocks
-    /// during the backward (see
-    /// [`forward_checkpointed`](CogVideoXTransformer3DModel::forward_checkpointed)): the same
-    /// gradients for a fraction of the activation memory.
-    /// `condition_noise` is (mean, std) of log σ; `draws` says which samples of the global batch
-    /// this process holds.
+    /// by `divisor` (the micro-batches per step) block by block as `backward` says; returns the
+    /// unscaled loss value. `condition_noise` is (mean, std) of log σ; `draws` says which
+    /// samples of the global batch this process holds. A non-finite loss is not
+    /// back-propagated, but `backward.on_stage` still sees every stage, so every rank starts
+    /// the same collectives.
     pub fn loss_backward(
         &self,
         batch: &Batch,
         condition_noise: (f64, f64),
         cache: Option<&LatentCache>,
         divisor: f64,
-        checkpointing: bool,
+        backward: Backward<'_>,
         draws: Draws,
     ) -> Result<f64> {
         let (noise_log_mean, noise_log_std) = condition_noise;
-        let (loss, tape) = self.loss_graph(batch, noise_log_mean, noise_log_std, cache, checkpointing, draws)?;
+        let Backward { checkpointing, on_stage } = backward;
+        let mut no_hook = |_: usize| -> Result<()> { Ok(()) };
+        let on_stage: &mut dyn FnMut(usize) -> Result<()> = match on_stage {
+            Some(hook) => hook,
+            None => &mut no_hook,
+        };
+        let (loss, tape) = self.loss_graph(batch, noise_log_mean, noise_log_std, cache, Some(checkpointing), draws)?;
+        let tape = tape.expect("a training graph has a tape");
         let value = loss.double_value(&[]);
         if value.is_finite() {
             loss.f_div_scalar(divisor)?.f_backward()?;
-            if let Some(tape) = tape {
-                tape.backward()?;
+            tape.backward(on_stage)?;
+        } else {
+            for stage in 0..self.transformer.backward_stages() {
+                on_stage(stage)?;
             }
         }
         Ok(value)
     }
 
+    /// The loss and, for training (`taped`: with or without checkpointing), the transformer's
+    /// tape for [`BlockTape::backward`]; without `taped` the plain forward's graph.
     fn loss_graph(
         &self,
         batch: &Batch,
         noise_log_mean: f64,
         noise_log_std: f64,
         cache: Option<&LatentCache>,
-        checkpointing: bool,
+        taped: Option<bool>,
         draws: Draws,
     ) -> Result<(Tensor, Option<BlockTape<'_>>)> {
         let device = self.text.device();
@@ -269,11 +278,12 @@ impl CogNvsModel {
             ofs: None,
             image_rotary_emb: None,
         };
-        let (v, tape) = if checkpointing {
-            let (v, tape) = self.transformer.forward_checkpointed(&transformer_input, true)?;
-            (v, Some(tape))
-        } else {
-            (self.transformer.forward(&transformer_input, true)?, None)
+        let (v, tape) = match taped {
+            Some(checkpointing) => {
+                let (v, tape) = self.transformer.forward_taped(&transformer_input, true, checkpointing)?;
+                (v, Some(tape))
+            }
+            None => (self.transformer.forward(&transformer_input, true)?, None),
         };
         let v = v.f_to_kind(Kind::Float)?;
         let alphas: Vec<f64> =
@@ -288,6 +298,18 @@ impl CogNvsModel {
         let x0_hat = xt.f_mul(&sqrt_alpha)?.f_sub(&v.f_mul(&sqrt_one_minus)?)?;
         Ok((x0_hat.f_sub(&x0)?.f_square()?.f_mul(&weight)?.f_mean(Kind::Float)?, tape))
     }
+}
+
+/// How [`CogNvsModel::loss_backward`] runs the transformer's backward: block by block (see
+/// [`CogVideoXTransformer3DModel::forward_taped`]), reporting each finished stage.
+pub struct Backward<'a> {
+    /// Keep only each block's input and recompute the blocks during the backward (gradient
+    /// checkpointing): the same gradients for a fraction of the activation memory.
+    pub checkpointing: bool,
+    /// Called with each stage of the backward once the gradients of its parameters are final
+    /// ([`CogVideoXTransformer3DModel::backward_stage_of`]), in order; a data-parallel step
+    /// starts reducing them there.
+    pub on_stage: Option<&'a mut dyn FnMut(usize) -> Result<()>>,
 }
 
 /// Which samples of the step's global batch this process computes: with `world` ranks of `b`

@@ -10,7 +10,7 @@ use tch::{Device, Kind};
 
 use super::checkpoint::{list_checkpoints, save_checkpoint};
 use super::parallel::StepOptimizer;
-use super::{CheckpointLayout, CogNvsModel, Draws, LatentCache, PretrainConfig, TrainState, learning_rate};
+use super::{Backward, CheckpointLayout, CogNvsModel, Draws, LatentCache, PretrainConfig, TrainState, learning_rate};
 use crate::autoencoder_kl_cogvideox as vae;
 use crate::data::{Batch, DataConfig, DataPosition, ShardLoader};
 use crate::distributed::ProcessGroup;
@@ -195,17 +195,23 @@ pub fn pretrain_on(
         let started = Instant::now();
         // Every draw of this step comes from (seed, step): resumed runs repeat them exactly.
         tch::manual_seed(step_seed(config.train.seed, state.step));
-        optimizer.zero_grad();
+        optimizer.zero_grad()?;
         let mut loss_sum = 0.0;
         let mut bad_batch = None;
-        for _ in 0..accumulation {
+        for micro_batch in 1..=accumulation {
             let batch = loader.next_batch()?;
+            // The last micro-batch's backward starts each gradient bucket's exchange as it ends.
+            let mut exchange = |stage| optimizer.backward_stage_done(stage, pg);
+            let backward = Backward {
+                checkpointing: config.train.gradient_checkpointing,
+                on_stage: (micro_batch == accumulation).then_some(&mut exchange as _),
+            };
             let value = model.loss_backward(
                 &batch,
                 (config.train.condition_noise_log_mean, config.train.condition_noise_log_std),
                 cache.as_ref(),
                 accumulation as f64,
-                config.train.gradient_checkpointing,
+                backward,
                 draws,
             )?;
             loss_sum += value;

@@ -107,7 +107,14 @@ fn frozen_vae_and_text_embedding_hold_no_autograd_state() {
     let cache_dir = dir.path().join("latents");
     for cache in [None, Some(LatentCache::open(&cache_dir, &model, &config.data).unwrap())] {
         let value = model
-            .loss_backward(&batch, (-3.0, 0.5), cache.as_ref(), 1.0, true, trainer::training::Draws::SINGLE)
+            .loss_backward(
+                &batch,
+                (-3.0, 0.5),
+                cache.as_ref(),
+                1.0,
+                trainer::training::Backward { checkpointing: true, on_stage: None },
+                trainer::training::Draws::SINGLE,
+            )
             .unwrap();
         assert!(value.is_finite());
         for (name, variable) in model.vae_vs.variables() {

@@ -1,7 +1,7 @@
 //! Multi-process training on c10d/Gloo (CPU), launched by torchrun from the venv and by
-//! RANK/WORLD_SIZE set by hand: 2 ranks × batch 1 equal 1 rank × batch 2, ZeRO-2 equals ZeRO-0,
-//! kill-and-relaunch resumes exactly, a dead or stalled rank fails the job naming it, and
-//! ranks that disagree or bad launcher variables fail at start with nothing written.
+//! RANK/WORLD_SIZE set by hand: 2 ranks × batch 1 equal 1 rank × batch 2, ZeRO-2 equals ZeRO-0
+//! bit for bit, kill-and-relaunch resumes exactly, a dead or stalled rank fails the job naming
+//! it, and ranks that disagree or bad launcher variables fail at start with nothing written.
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -119,11 +119,14 @@ fn two_ranks_equal_one_rank_and_zero2_equals_zero0_and_relaunch_resumes() {
     let reference = losses(&single);
     println!("1 rank x batch 2: {reference:?}\n2 ranks x batch 1: {:?}\nZeRO-2: {:?}", losses(&ddp), losses(&sharded));
     assert_losses_close("2 ranks vs 1 rank", &losses(&ddp), &reference, LOSS_TOLERANCE);
-    assert_losses_close("ZeRO-2 vs ZeRO-0", &losses(&sharded), &losses(&ddp), LOSS_TOLERANCE);
     let ddp_vs_single = max_weight_difference(&ddp, &single, steps);
     let zero_vs_ddp = max_weight_difference(&sharded, &ddp, steps);
     println!("max |weight| difference: 2 ranks vs 1 {ddp_vs_single:e}, ZeRO-2 vs ZeRO-0 {zero_vs_ddp:e}");
-    assert!(ddp_vs_single <= WEIGHT_TOLERANCE && zero_vs_ddp <= WEIGHT_TOLERANCE);
+    assert!(ddp_vs_single <= WEIGHT_TOLERANCE);
+    // The same sums (both all-reduce each bucket on Gloo) and the same element-wise update:
+    // ZeRO-2 is ZeRO-0 bit for bit.
+    assert_eq!(losses(&sharded), losses(&ddp), "ZeRO-2 vs ZeRO-0");
+    assert_eq!(zero_vs_ddp, 0.0, "ZeRO-2 vs ZeRO-0 weights");
     // Only rank 0 wrote: one metrics line per step, one sample folder per validation, one event file.
     assert_eq!(read_metrics(&ddp).unwrap().len(), steps as usize);
     let events = std::fs::read_dir(&ddp)

@@ -366,8 +366,9 @@ impl ShardedAdamW {
         Ok(out)
     }
 
-    /// Writes this rank's shard (`optimizer-rank-R-of-N.safetensors` in `dir`).
-    pub fn save(&self, dir: &Path) -> Result<PathBuf> {
+    /// Writes this rank's shard (`optimizer-rank-R-of-N.safetensors` in `dir`); returns its size
+    /// and digest.
+    pub fn save(&self, dir: &Path) -> Result<crate::weights::WrittenFile> {
         let ranges = self.owned_ranges();
         let path = dir.join(format!("{SHARD_PREFIX}{:05}-of-{:05}.safetensors", self.rank, self.world));
         let flat: Vec<i64> = ranges.iter().flat_map(|&(s, l, o)| [s, l, o]).collect();
@@ -379,10 +380,7 @@ impl ShardedAdamW {
             ("master", cpu(&self.master)?),
             ("step", Tensor::from_slice(&[self.step as i64])),
         ];
-        let refs: Vec<(&str, &Tensor)> = named.iter().map(|(n, t)| (*n, t)).collect();
-        Tensor::write_safetensors(&refs, &path)
-            .map_err(|e| Error::Safetensors { path: path.clone(), reason: e.to_string() })?;
-        Ok(path)
+        crate::weights::write_safetensors(&path, &named.map(|(n, t)| (n.to_string(), t)))
     }
 
     /// Loads this rank's slices from a checkpoint of any world size and stage, and sets every

@@ -143,8 +143,8 @@ impl AdamW {
 
     /// Writes the moments and the step count, and with `with_params` the parameters' own fp32
     /// values (`param.{name}`; the master copies in mixed precision), for runs whose parameters
-    /// are saved nowhere else exactly (LoRA adapters).
-    pub(super) fn save(&self, path: &Path, with_params: bool) -> Result<()> {
+    /// are saved nowhere else exactly (LoRA adapters). Returns the file's size and digest.
+    pub(super) fn save(&self, path: &Path, with_params: bool) -> Result<crate::weights::WrittenFile> {
         let mut named: Vec<(String, Tensor)> = Vec::new();
         let masters = self.master_weights();
         for (i, (name, param)) in self.params.iter().enumerate() {
@@ -156,9 +156,7 @@ impl AdamW {
             }
         }
         named.push(("step".to_string(), Tensor::from_slice(&[self.step as i64])));
-        let refs: Vec<(&str, &Tensor)> = named.iter().map(|(n, t)| (n.as_str(), t)).collect();
-        Tensor::write_safetensors(&refs, path)
-            .map_err(|e| Error::Safetensors { path: path.to_path_buf(), reason: e.to_string() })
+        crate::weights::write_safetensors(path, &named)
     }
 
     /// Reads what [`Self::save`] wrote; with `with_params` also copies the saved parameter

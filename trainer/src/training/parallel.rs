@@ -9,6 +9,7 @@ use tch::Tensor;
 use super::{AdamW, CogNvsModel, PretrainConfig, trainable_parameters};
 use crate::distributed::{GradientBuckets, ProcessGroup, ShardedAdamW};
 use crate::error::Result;
+use crate::weights::WrittenFile;
 
 /// The run's optimizer and, with several ranks, how gradients meet.
 pub(super) enum StepOptimizer {
@@ -86,12 +87,14 @@ impl StepOptimizer {
     }
 
     /// Writes the optimizer state into checkpoint folder `dir`: rank 0's `optimizer.safetensors`
-    /// (replicated state), or every rank's shard.
-    pub(super) fn save(&self, dir: &Path, with_params: bool, rank: usize) -> Result<()> {
+    /// (replicated state), or every rank's shard. Returns the files this rank wrote.
+    pub(super) fn save(&self, dir: &Path, with_params: bool, rank: usize) -> Result<Vec<WrittenFile>> {
         match self {
-            Self::Replicated { adamw, .. } if rank == 0 => adamw.save(&dir.join("optimizer.safetensors"), with_params),
-            Self::Replicated { .. } => Ok(()),
-            Self::Sharded(sharded) => sharded.save(dir).map(|_| ()),
+            Self::Replicated { adamw, .. } if rank == 0 => {
+                Ok(vec![adamw.save(&dir.join("optimizer.safetensors"), with_params)?])
+            }
+            Self::Replicated { .. } => Ok(Vec::new()),
+            Self::Sharded(sharded) => Ok(vec![sharded.save(dir)?]),
         }
     }
 }

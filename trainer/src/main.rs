@@ -122,6 +122,10 @@ struct FinetuneArgs {
     /// A LoRA file (pytorch_lora_weights.safetensors) merged into the init transformer first.
     #[arg(long)]
     lora: Option<PathBuf>,
+    /// Continue the run in --out from its newest intact checkpoint (after a preemption, exit
+    /// status 75), on the pairs it built.
+    #[arg(long)]
+    resume: bool,
     /// Compute device: cpu, cuda or cuda:N.
     #[arg(long, default_value = "cpu")]
     device: String,
@@ -177,7 +181,8 @@ struct PretrainArgs {
     /// Run folder: checkpoints/, metrics.jsonl, config.json.
     #[arg(long)]
     out: PathBuf,
-    /// Continue the run in --out from its latest checkpoint.
+    /// Continue the run in --out from its newest intact checkpoint (every file checked against
+    /// the digests its state.json lists; damaged ones are skipped, naming the file).
     #[arg(long)]
     resume: bool,
     /// Optimizer steps in all, overriding the config's `loop.steps`.
@@ -311,9 +316,9 @@ fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Forward(args) => run_forward(args),
         Command::Eval(args) => run_eval(args),
-        Command::Pretrain(args) => run_pretrain(args),
+        Command::Pretrain(args) => training_exit(run_pretrain(args)),
         Command::Sample(args) => run_sample(args),
-        Command::Finetune(args) => run_finetune(args),
+        Command::Finetune(args) => training_exit(run_finetune(args)),
         Command::Plan(args) => run_plan(args),
         Command::CommCheck(args) => run_comm_check(args),
         Command::MergeLora(args) => {
@@ -321,6 +326,22 @@ fn main() -> anyhow::Result<()> {
             println!("merged {merged} adapted layers into {}", args.out.display());
             Ok(())
         }
+    }
+}
+
+/// Ends a training command with its documented exit status (README, "Long runs"): 0 done,
+/// 75 preempted after a complete checkpoint, 74 a checkpoint could not be written, 1 any other
+/// error. `preempted` comes back once the run's process group is gone.
+fn training_exit(result: anyhow::Result<bool>) -> anyhow::Result<()> {
+    use trainer::training::preempt;
+    match result {
+        Ok(false) => Ok(()),
+        Ok(true) => std::process::exit(preempt::EXIT_PREEMPTED),
+        Err(e) if matches!(e.downcast_ref(), Some(trainer::Error::CheckpointWrite { .. })) => {
+            eprintln!("Error: {e:?}");
+            std::process::exit(preempt::EXIT_CHECKPOINT_FAILED)
+        }
+        Err(e) => Err(e),
     }
 }
 
@@ -447,7 +468,7 @@ fn show_step(bar: &indicatif::ProgressBar, m: &trainer::training::StepMetrics) {
     bar.set_message(format!("loss {:.4}, {:.2} step/s", m.loss, 1.0 / m.seconds.max(1e-9)));
 }
 
-fn run_finetune(args: FinetuneArgs) -> anyhow::Result<()> {
+fn run_finetune(args: FinetuneArgs) -> anyhow::Result<bool> {
     let device = forward::parse_device(&args.device)?;
     let bar = step_bar(args.steps);
     let request = trainer::training::FinetuneRequest {
@@ -458,6 +479,7 @@ fn run_finetune(args: FinetuneArgs) -> anyhow::Result<()> {
         trajectories: args.trajectories,
         config: args.config,
         lora: args.lora,
+        resume: args.resume,
     };
     let timeout = match &request.config {
         Some(path) => trainer::training::PretrainConfig::from_toml_file(path)?.distributed.timeout_seconds,
@@ -475,7 +497,7 @@ fn run_finetune(args: FinetuneArgs) -> anyhow::Result<()> {
         args.out.display(),
         summary.last_checkpoint.map_or("none".to_string(), |p| p.display().to_string())
     );
-    Ok(())
+    Ok(summary.preempted)
 }
 
 fn run_sample(args: SampleArgs) -> anyhow::Result<()> {
@@ -505,7 +527,7 @@ fn run_sample(args: SampleArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn run_pretrain(args: PretrainArgs) -> anyhow::Result<()> {
+fn run_pretrain(args: PretrainArgs) -> anyhow::Result<bool> {
     use trainer::training;
     let mut config = training::PretrainConfig::from_toml_file(&args.config)?;
     if let Some(steps) = args.steps {
@@ -528,7 +550,7 @@ fn run_pretrain(args: PretrainArgs) -> anyhow::Result<()> {
         args.out.display(),
         summary.last_checkpoint.map_or("none".to_string(), |p| p.display().to_string())
     );
-    Ok(())
+    Ok(summary.preempted)
 }
 
 fn run_plan(args: PlanArgs) -> anyhow::Result<()> {

@@ -85,10 +85,24 @@ pub struct LoopConfig {
     pub steps: u64,
     /// Seed of model init and of every per-step draw. Valid: any.
     pub seed: u64,
-    /// Steps between checkpoints (and one at the end). Valid: ≥ 1.
-    pub checkpoint_every: u64,
-    /// Checkpoints kept. Valid: ≥ 1.
+    /// How often a checkpoint is written (and one at the end): every N optimizer steps
+    /// (`checkpoint_every = 500`) or every so many minutes of the run (`checkpoint_every =
+    /// "30min"`, timed on rank 0 from the last checkpoint or the start, and written after the
+    /// step that crosses it). Valid: ≥ 1 step, or a finite number of minutes > 0.
+    pub checkpoint_every: CheckpointEvery,
+    /// Checkpoints kept: the newest this many intact ones (damaged ones never count).
+    /// Valid: ≥ 1.
     pub keep_last: usize,
+    /// Signals that preempt the run: the step in progress finishes, a checkpoint is written and
+    /// the process exits with status 75 (see `trainer::training::preempt`). Valid: names among
+    /// `SIGTERM`, `SIGUSR1`, `SIGUSR2`, `SIGINT`, `SIGHUP`; empty: none (the signals' default
+    /// actions).
+    pub preempt_signals: Vec<String>,
+    /// Seconds after a preemption signal after which the process ends at once, without
+    /// finishing its checkpoint, whatever it is doing (keep it below the time the scheduler
+    /// leaves before SIGKILL, so the job script still gets to requeue). Valid: finite, ≥ 0
+    /// (0: no deadline).
+    pub preempt_grace_seconds: f64,
     /// Mean of log σ of the condition noise augmentation. Valid: finite, in
     /// [−[`MAX_ABS_LOG_SIGMA`], [`MAX_ABS_LOG_SIGMA`]].
     pub condition_noise_log_mean: f64,
@@ -144,8 +158,10 @@ impl Default for LoopConfig {
         Self {
             steps: 12_000,
             seed: 0,
-            checkpoint_every: 500,
+            checkpoint_every: CheckpointEvery::Steps(500),
             keep_last: 3,
+            preempt_signals: vec!["SIGTERM".to_string(), "SIGUSR1".to_string()],
+            preempt_grace_seconds: 0.0,
             condition_noise_log_mean: -3.0,
             condition_noise_log_std: 0.5,
             validate_every: 0,
@@ -153,6 +169,55 @@ impl Default for LoopConfig {
             latent_cache: None,
             precision: Precision::Auto,
             gradient_checkpointing: false,
+        }
+    }
+}
+
+/// How often checkpoints are written: `checkpoint_every = 500` (steps) or `"30min"` (minutes).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum CheckpointEvery {
+    /// Every this many optimizer steps.
+    Steps(u64),
+    /// After the first step that ends this many minutes after the last checkpoint (or the start).
+    Minutes(f64),
+}
+
+impl CheckpointEvery {
+    /// Parses `"30min"`, `"30 min"`, `"1.5 minutes"` (minutes) or `"500"` (steps).
+    pub fn parse(text: &str) -> Option<Self> {
+        let text = text.trim();
+        if let Ok(steps) = text.parse::<u64>() {
+            return Some(Self::Steps(steps));
+        }
+        let number = ["minutes", "minute", "min"].iter().find_map(|unit| text.strip_suffix(unit))?;
+        number.trim().parse::<f64>().ok().map(Self::Minutes)
+    }
+}
+
+impl Serialize for CheckpointEvery {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> std::result::Result<S::Ok, S::Error> {
+        match self {
+            Self::Steps(steps) => serializer.serialize_u64(*steps),
+            Self::Minutes(minutes) => serializer.serialize_str(&format!("{minutes}min")),
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for CheckpointEvery {
+    fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> std::result::Result<Self, D::Error> {
+        #[derive(Deserialize)]
+        #[serde(untagged)]
+        enum Written {
+            Steps(u64),
+            Text(String),
+        }
+        match Written::deserialize(deserializer)? {
+            Written::Steps(steps) => Ok(Self::Steps(steps)),
+            Written::Text(text) => Self::parse(&text).ok_or_else(|| {
+                serde::de::Error::custom(format!(
+                    "`{text}` is neither a number of steps (500) nor of minutes (\"30min\")"
+                ))
+            }),
         }
     }
 }
@@ -269,12 +334,30 @@ impl PretrainConfig {
         for (field, value) in [
             ("optim.grad_accumulation", o.grad_accumulation),
             ("loop.steps", t.steps),
-            ("loop.checkpoint_every", t.checkpoint_every),
             ("loop.keep_last", t.keep_last as u64),
         ] {
             if value == 0 {
                 return Err(bad(field, "0 must be ≥ 1".to_string()));
             }
+        }
+        match t.checkpoint_every {
+            CheckpointEvery::Steps(0) => return Err(bad("loop.checkpoint_every", "0 steps must be ≥ 1".to_string())),
+            CheckpointEvery::Minutes(m) if !(m.is_finite() && m > 0.0) => {
+                return Err(bad("loop.checkpoint_every", format!("{m} minutes must be finite and > 0")));
+            }
+            _ => {}
+        }
+        for name in &t.preempt_signals {
+            if super::preempt::signal_number(name).is_none() {
+                let known: Vec<&str> = super::preempt::SIGNALS.iter().map(|(n, _)| *n).collect();
+                return Err(bad("loop.preempt_signals", format!("`{name}` is not one of {}", known.join(", "))));
+            }
+        }
+        if !(t.preempt_grace_seconds.is_finite() && t.preempt_grace_seconds >= 0.0) {
+            return Err(bad(
+                "loop.preempt_grace_seconds",
+                format!("{} must be finite and ≥ 0 (0: no deadline)", t.preempt_grace_seconds),
+            ));
         }
         if !(t.condition_noise_log_mean.is_finite() && t.condition_noise_log_mean.abs() <= MAX_ABS_LOG_SIGMA) {
             return Err(bad(

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use tch::Device;
 
-use super::{PretrainConfig, RunSummary, StepMetrics, pretrain_on};
+use super::{PretrainConfig, RunSummary, StepMetrics};
 use crate::distributed::ProcessGroup;
 use crate::error::{Error, Result};
 
@@ -25,6 +25,9 @@ pub struct FinetuneRequest {
     pub config: Option<PathBuf>,
     /// A LoRA file merged into `init`'s transformer before finetuning (a base plus an adapter).
     pub lora: Option<PathBuf>,
+    /// Continue the run in `out` from its newest intact checkpoint (after a preemption), on the
+    /// pairs it built.
+    pub resume: bool,
 }
 
 /// `trainer finetune`: test-time finetuning on one video (DESIGN §1). Its self-supervised pairs
@@ -36,11 +39,13 @@ pub fn finetune(request: &FinetuneRequest, device: Device, progress: impl FnMut(
     finetune_on(request, device, None, progress)
 }
 
-/// [`finetune`] as one rank of `pg` (None: one process). Rank 0 builds the video's pairs (one
-/// shard in `RUN/pairs/`) while the others wait at a barrier; then every rank trains on its
-/// share of each global batch as in [`super::pretrain_on`]. The pairs, the global batch and every
-/// draw are those of a single process, so the result does not depend on the world size (up to
-/// fp32 reduction order), provided the global batch divides by it.
+/// [`finetune`] as one rank of `pg` (None: one process). Rank 0 takes the run folder's lock,
+/// then builds the video's pairs (one shard in `RUN/pairs/`) while the others wait at a barrier;
+/// then every rank trains on its share of each global batch as in [`super::pretrain_on`]
+/// (preemption signals included). The pairs, the global batch and every draw are those of a
+/// single process, so the result does not depend on the world size (up to fp32 reduction
+/// order), provided the global batch divides by it. With `resume`, the pairs already built are
+/// reused and training continues from the newest intact checkpoint.
 pub fn finetune_on(
     request: &FinetuneRequest,
     device: Device,
@@ -51,18 +56,20 @@ pub fn finetune_on(
     let FinetuneRequest { sequence: sequence_dir, out: run, trajectories, .. } = request;
     let trajectories = *trajectories;
     let (mut config, _) = finetune_config(request)?;
-    if run.join("config.json").exists() {
+    if run.join("config.json").exists() && !request.resume {
         return Err(Error::InvalidArgument {
             name: "out".to_string(),
-            reason: format!("{} already holds a run; choose another folder", run.display()),
+            reason: format!(
+                "{} already holds a run; pass --resume to continue it or choose another folder",
+                run.display()
+            ),
         });
     }
-    if let Some(pg) = pg {
-        // Every rank has checked the folder before rank 0 writes into it.
-        pg.barrier("finetune start")?;
-    }
+    // Every rank has checked the folder before rank 0 locks and writes into it.
+    let lock = super::RunLock::acquire_on(run, "trainer finetune", pg)?;
     let pairs_dir = run.join("pairs");
-    if rank == 0 {
+    let built = request.resume && crate::data::ClipIndex::open(std::slice::from_ref(&pairs_dir)).is_ok();
+    if rank == 0 && !built {
         let sequence = datagen::sequence::read_sequence(sequence_dir)?;
         let frames = config.data.frames as u32;
         let pairs_config = datagen::pairs::PairsConfig {
@@ -94,7 +101,7 @@ pub fn finetune_on(
     }
     let batch = config.data.batch_size.min(clips).max(1);
     config.data.batch_size = (batch / world).max(1) * world;
-    pretrain_on(&config, &[pairs_dir], run, false, device, pg, progress)
+    super::pretrain::train(&config, &[pairs_dir], run, request.resume, device, pg, Some(lock), progress)
 }
 
 /// The training config `trainer finetune` runs `request` with, and the name of the file it came
@@ -133,6 +140,8 @@ pub fn finetune_config(request: &FinetuneRequest) -> Result<(PretrainConfig, Str
     }
     config.model.vae = crate::sampling::find_vae(init, None)?.display().to_string();
     config.train.steps = request.steps;
-    config.train.checkpoint_every = config.train.checkpoint_every.min(request.steps.max(1));
+    if let super::CheckpointEvery::Steps(every) = config.train.checkpoint_every {
+        config.train.checkpoint_every = super::CheckpointEvery::Steps(every.min(request.steps.max(1)));
+    }
     Ok((config, source_name))
 }

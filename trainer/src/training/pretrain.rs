@@ -3,14 +3,19 @@
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind};
 
 use super::checkpoint::{list_checkpoints, save_checkpoint};
 use super::parallel::StepOptimizer;
-use super::{CheckpointLayout, CogNvsModel, Draws, LatentCache, PretrainConfig, TrainState, learning_rate};
+use super::preempt::PreemptWatch;
+use super::run_lock::RunLock;
+use super::{
+    CheckpointEvery, CheckpointLayout, CogNvsModel, Draws, LatentCache, PretrainConfig, TrainState, consensus,
+    learning_rate,
+};
 use crate::autoencoder_kl_cogvideox as vae;
 use crate::data::{Batch, DataConfig, DataPosition, ShardLoader};
 use crate::distributed::ProcessGroup;
@@ -41,6 +46,9 @@ pub struct RunSummary {
     pub steps: u64,
     /// The last checkpoint.
     pub last_checkpoint: Option<PathBuf>,
+    /// Whether a preemption signal stopped the run before its last step (after writing the
+    /// checkpoint of the step it was in): the caller exits with [`super::preempt::EXIT_PREEMPTED`].
+    pub preempted: bool,
 }
 
 /// `trainer pretrain`: trains up to `config.train.steps`, resuming from the run's latest
@@ -61,7 +69,9 @@ pub fn pretrain(
 /// partition), draws every random value for the whole global batch and keeps its own
 /// ([`Draws`]), and gradients are averaged over ranks once per optimizer step, so the run
 /// computes what one process would at that batch size. Only rank 0 writes the run folder
-/// (config, metrics, TensorBoard events, samples, checkpoints); the others meet it at barriers.
+/// (config, metrics, TensorBoard events, samples, checkpoints), holding its [`RunLock`] for the
+/// whole run; the others meet it at collectives. The configured preemption signals stop the run
+/// after the step in progress with a complete checkpoint (see [`super::preempt`]).
 pub fn pretrain_on(
     config: &PretrainConfig,
     shards: &[PathBuf],
@@ -69,6 +79,22 @@ pub fn pretrain_on(
     resume: bool,
     device: Device,
     pg: Option<&ProcessGroup>,
+    progress: impl FnMut(&StepMetrics),
+) -> Result<RunSummary> {
+    train(config, shards, run, resume, device, pg, None, progress)
+}
+
+/// [`pretrain_on`], with the run's lock already taken by the caller (`finetune` takes it before
+/// it writes the video's pairs into the run folder) or taken here, after the ranks agree.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn train(
+    config: &PretrainConfig,
+    shards: &[PathBuf],
+    run: &Path,
+    resume: bool,
+    device: Device,
+    pg: Option<&ProcessGroup>,
+    lock: Option<RunLock>,
     mut progress: impl FnMut(&StepMetrics),
 ) -> Result<RunSummary> {
     let (rank, world) = pg.map_or((0, 1), |pg| (pg.rank, pg.world_size));
@@ -78,9 +104,25 @@ pub fn pretrain_on(
     let data = rank_data_config(config, rank, world)?;
     crate::data::describe(shards, &data)?;
     let run_config = run.join("config.json");
+    // Read by every rank before the agreement, so before rank 0 writes the folder.
+    let holds_a_run = run_config.exists();
     let text = serde_json::to_vec_pretty(config).expect("config serialises");
-    let latest = if resume { list_checkpoints(run).pop() } else { None };
-    if !resume && run_config.exists() {
+    if let Some(pg) = pg {
+        // Ranks that disagree stop here, before anything is written.
+        let shard_list: Vec<String> = shards.iter().map(|p| p.display().to_string()).collect();
+        let seen: Vec<String> = list_checkpoints(run).iter().map(|(step, _)| step.to_string()).collect();
+        pg.agree(&[
+            ("the training config", blake3::hash(&text).to_hex()[..16].to_string()),
+            ("the shard folders", blake3::hash(shard_list.join("\n").as_bytes()).to_hex()[..16].to_string()),
+            ("the world size", world.to_string()),
+            ("the checkpoints in the run folder", if resume { seen.join(",") } else { "(not resuming)".to_string() }),
+        ])?;
+    }
+    let _lock = match lock {
+        Some(lock) => lock,
+        None => RunLock::acquire_on(run, "trainer pretrain", pg)?,
+    };
+    if !resume && holds_a_run {
         return Err(Error::InvalidArgument {
             name: "out".to_string(),
             reason: format!(
@@ -89,18 +131,17 @@ pub fn pretrain_on(
             ),
         });
     }
-    if let Some(pg) = pg {
-        // Ranks that disagree stop here, before anything is written.
-        let shard_list: Vec<String> = shards.iter().map(|p| p.display().to_string()).collect();
-        pg.agree(&[
-            ("the training config", blake3::hash(&text).to_hex()[..16].to_string()),
-            ("the shard folders", blake3::hash(shard_list.join("\n").as_bytes()).to_hex()[..16].to_string()),
-            ("the world size", world.to_string()),
-            ("the checkpoint resumed", latest.as_ref().map_or("none".to_string(), |(step, _)| format!("step {step}"))),
-        ])?;
-    }
+    let signals: Vec<i32> =
+        config.train.preempt_signals.iter().filter_map(|name| super::preempt::signal_number(name)).collect();
+    let grace =
+        (config.train.preempt_grace_seconds > 0.0).then(|| Duration::from_secs_f64(config.train.preempt_grace_seconds));
+    let watch = PreemptWatch::install(&signals, grace)?;
     if lead {
-        std::fs::create_dir_all(run).map_err(|source| Error::Io { path: run.to_path_buf(), error: source })?;
+        // The lock holder is the only writer: what a killed run left half written can go.
+        super::checkpoint::remove_partial(run);
+    }
+    let latest = if resume { super::checkpoint::newest_intact(run, pg)? } else { None };
+    if lead {
         std::fs::write(&run_config, &text).map_err(|source| Error::Io { path: run_config.clone(), error: source })?;
     }
 
@@ -119,8 +160,9 @@ pub fn pretrain_on(
         data_position: DataPosition::default(),
         seed: config.train.seed,
         layout: pg.map(|_| CheckpointLayout { world_size: world, zero_stage: config.distributed.zero_stage }),
+        files: Default::default(),
     };
-    if let Some((_, dir)) = &latest {
+    if let Some((dir, saved)) = &latest {
         // A LoRA run's adapters resume from the optimizer file's exact values; its base is the
         // configured model, loaded above.
         let lora_file = dir.join(crate::lora::LORA_WEIGHTS_NAME);
@@ -142,14 +184,7 @@ pub fn pretrain_on(
             }
         }
         optimizer.load(dir, model.lora_vs.is_some(), pg)?;
-        let path = dir.join("state.json");
-        let text = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), error: source })?;
-        let saved: TrainState = serde_json::from_str(&text).map_err(|e| Error::InvalidConfig {
-            source_name: path.display().to_string(),
-            field: "(json)".to_string(),
-            reason: e.to_string(),
-        })?;
-        state = TrainState { layout: state.layout, ..saved };
+        state = TrainState { layout: state.layout, files: Default::default(), ..saved.clone() };
     }
     let kind = config.train.precision.kind(device);
     if kind != Kind::Float {
@@ -173,15 +208,21 @@ pub fn pretrain_on(
     };
     let mut events = if lead { Some(crate::tensorboard::EventWriter::create(run)?) } else { None };
     let mut loader = ShardLoader::open(shards, data.clone(), state.data_position)?;
-    let mut last_checkpoint = latest.map(|(_, d)| d);
+    let mut last_checkpoint = latest.map(|(d, _)| d);
     let accumulation = config.optim.grad_accumulation;
     let cache = match &config.train.latent_cache {
         Some(dir) => Some(LatentCache::open(dir, &model, &config.data)?),
         None => None,
     };
-    let draws = Draws { rank: rank as i64, world: world as i64 };
     let mut validation: Option<Result<Batch>> = None;
-    while state.step < config.train.steps {
+    let draws = Draws { rank: rank as i64, world: world as i64 };
+    let mut since_checkpoint = Instant::now();
+    let stop_now = |watch: &PreemptWatch| -> Result<bool> {
+        Ok(consensus::any_rank(pg, [watch.received().is_some()], "preemption")?[0])
+    };
+    // A signal during start-up stops before the first step: nothing new to save.
+    let mut preempted = stop_now(&watch)?;
+    while state.step < config.train.steps && !preempted {
         let started = Instant::now();
         // Every draw of this step comes from (seed, step): resumed runs repeat them exactly.
         tch::manual_seed(step_seed(config.train.seed, state.step));
@@ -257,7 +298,15 @@ pub fn pretrain_on(
         if lead {
             progress(&metrics);
         }
-        if config.train.validate_every > 0 && state.step.is_multiple_of(config.train.validate_every) {
+        // Once per step the ranks agree on a preemption signal and on rank 0's checkpoint clock.
+        let clock_due = match config.train.checkpoint_every {
+            CheckpointEvery::Minutes(minutes) => lead && since_checkpoint.elapsed().as_secs_f64() >= minutes * 60.0,
+            CheckpointEvery::Steps(_) => false,
+        };
+        let [signalled, clock_due] =
+            consensus::any_rank(pg, [watch.received().is_some(), clock_due], "preemption and checkpoint clock")?;
+        preempted = signalled;
+        if !preempted && config.train.validate_every > 0 && state.step.is_multiple_of(config.train.validate_every) {
             if lead {
                 let batch = validation.get_or_insert_with(|| {
                     ShardLoader::open(
@@ -280,12 +329,53 @@ pub fn pretrain_on(
             if let Some(pg) = pg {
                 pg.barrier("validation sample on rank 0")?;
             }
+            // A signal that came during validation is acted on now, not a step later.
+            preempted = stop_now(&watch)?;
         }
-        if state.step.is_multiple_of(config.train.checkpoint_every) || state.step == config.train.steps {
-            last_checkpoint = Some(save_checkpoint(run, &model, &optimizer, &state, config.train.keep_last, pg)?);
+        let scheduled = match config.train.checkpoint_every {
+            CheckpointEvery::Steps(every) => state.step.is_multiple_of(every),
+            CheckpointEvery::Minutes(_) => clock_due,
+        };
+        let last = state.step == config.train.steps;
+        if scheduled || last || preempted {
+            let written = save_checkpoint(run, &model, &optimizer, &state, config.train.keep_last, pg)?;
+            since_checkpoint = Instant::now();
+            if let Some(events) = events.as_mut() {
+                let gigabytes = written.bytes as f64 / 1e9;
+                eprintln!(
+                    "checkpoint {}: {gigabytes:.3} GB in {:.1} s ({:.2} GB/s)",
+                    written.dir.display(),
+                    written.seconds,
+                    gigabytes / written.seconds.max(f64::MIN_POSITIVE)
+                );
+                events.scalars(
+                    state.step as i64,
+                    &[("checkpoint/gigabytes", gigabytes as f32), ("checkpoint/seconds", written.seconds as f32)],
+                )?;
+                events.flush()?;
+            }
+            last_checkpoint = Some(written.dir);
+            if !preempted && !last {
+                // A signal that came while the checkpoint was written needs no second one.
+                preempted = stop_now(&watch)?;
+            }
         }
     }
-    Ok(RunSummary { resumed_from, steps: state.step, last_checkpoint })
+    let preempted = preempted && state.step < config.train.steps;
+    let signal = watch.received();
+    if preempted {
+        watch.hold_until_exit();
+    }
+    if preempted && lead {
+        let signal = signal.map_or("a preemption signal (on another rank)".to_string(), super::preempt::signal_name);
+        eprintln!(
+            "{signal}: stopped after step {} with a complete checkpoint ({}); exit status {}: rerun with --resume",
+            state.step,
+            last_checkpoint.as_ref().map_or("none".to_string(), |p| p.display().to_string()),
+            super::preempt::EXIT_PREEMPTED
+        );
+    }
+    Ok(RunSummary { resumed_from, steps: state.step, last_checkpoint, preempted })
 }
 
 /// This rank's data config: its share of the global batch, its rank and the world size.

@@ -9,6 +9,7 @@ mod eval_parity;
 mod forward_cli;
 mod hostile_inputs;
 mod libtorch;
+mod long_runs;
 mod lora;
 mod parity;
 mod plan;

@@ -108,9 +108,10 @@ pub struct LoopConfig {
     pub condition_noise_log_mean: f64,
     /// Standard deviation of log σ. Valid: finite, in [0, [`MAX_ABS_LOG_SIGMA`]].
     pub condition_noise_log_std: f64,
-    /// Steps between validation samples (0: none): the first pair of the data is sampled from
-    /// its conditioning into `RUN/samples/step-N/` (`sample.mp4`, `contact_sheet.png` with
-    /// target | conditioning | sample rows). Valid: any.
+    /// Steps between validations (0: none). With a `[validation]` section, its held-out pairs
+    /// are sampled and measured (see [`ValidationConfig`]); without one, only the first training
+    /// pair is sampled. Either way the first pair's sample goes to `RUN/samples/step-N/`
+    /// (`sample.mp4`, `contact_sheet.png` with target | conditioning | sample rows). Valid: any.
     pub validate_every: u64,
     /// Denoising steps of a validation sample. Valid: 1 to the scheduler's 1000 training
     /// timesteps.
@@ -222,6 +223,48 @@ impl<'de> Deserialize<'de> for CheckpointEvery {
     }
 }
 
+/// `[validation]`: held-out pairs sampled and measured every `[loop] validate_every` steps.
+/// The set is fixed for the run: up to `pairs` held-out clips, each with its trajectory and
+/// window drawn from `seed` and its sampling noise from `seed` and its index, so values at
+/// different steps compare the model alone. PSNR and SSIM (and LPIPS with `lpips_weights`),
+/// over whole frames and over the co-visible pixels, go to `metrics.jsonl` and TensorBoard.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ValidationConfig {
+    /// Shard folders of held-out pairs (never trained on). Valid: folders of finished shards.
+    pub shards: Vec<PathBuf>,
+    /// Fraction of the training shards' clips held out by clip id (a hash of the id, so the same
+    /// clips whatever the seed, the shard order or the world size) and never trained on.
+    /// Valid: in [0, 1); at least one of `shards` and `holdout_fraction` given.
+    pub holdout_fraction: f64,
+    /// Held-out pairs sampled at each validation (fewer when fewer clips are held out); with
+    /// several ranks each samples its share. Valid: 1 to [`MAX_VALIDATION_PAIRS`].
+    pub pairs: usize,
+    /// Seed of the pairs' trajectories, windows and sampling noise. Valid: any.
+    pub seed: u64,
+    /// LPIPS weights (`scripts/convert_eval_weights.py lpips`): adds LPIPS and LPIPS over the
+    /// co-visible pixels. Valid: an existing file (its tensors are checked at the start).
+    pub lpips_weights: Option<PathBuf>,
+    /// LPIPS backbone. Valid: `alex` or `vgg`.
+    pub lpips_net: crate::eval::lpips::LpipsNet,
+}
+
+impl Default for ValidationConfig {
+    fn default() -> Self {
+        Self {
+            shards: Vec::new(),
+            holdout_fraction: 0.0,
+            pairs: 8,
+            seed: 0,
+            lpips_weights: None,
+            lpips_net: crate::eval::lpips::LpipsNet::Alex,
+        }
+    }
+}
+
+/// Most validation pairs: each is a full sampling run of `[loop] validation_steps` steps.
+pub const MAX_VALIDATION_PAIRS: usize = 4096;
+
 /// `trainer pretrain --config` TOML.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -244,6 +287,9 @@ pub struct PretrainConfig {
     /// Multi-process training (ignored at world size 1).
     #[serde(default)]
     pub distributed: DistributedConfig,
+    /// Held-out validation (none when the section is absent).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub validation: Option<ValidationConfig>,
 }
 
 /// `[distributed]`: how ranks share the work when the launcher starts several processes
@@ -358,6 +404,23 @@ impl PretrainConfig {
                 "loop.preempt_grace_seconds",
                 format!("{} must be finite and ≥ 0 (0: no deadline)", t.preempt_grace_seconds),
             ));
+        }
+        if let Some(v) = &self.validation {
+            if !(0.0..1.0).contains(&v.holdout_fraction) {
+                return Err(bad("validation.holdout_fraction", format!("{} must be in [0, 1)", v.holdout_fraction)));
+            }
+            if v.shards.is_empty() && v.holdout_fraction == 0.0 {
+                return Err(bad(
+                    "validation",
+                    "give held-out `shards`, a `holdout_fraction` of the training clips, or both".to_string(),
+                ));
+            }
+            if !(1..=MAX_VALIDATION_PAIRS).contains(&v.pairs) {
+                return Err(bad("validation.pairs", format!("{} must be in 1..={MAX_VALIDATION_PAIRS}", v.pairs)));
+            }
+            if let Some(path) = v.lpips_weights.as_ref().filter(|p| !p.is_file()) {
+                return Err(bad("validation.lpips_weights", format!("{} is not a file", path.display())));
+            }
         }
         if !(t.condition_noise_log_mean.is_finite() && t.condition_noise_log_mean.abs() <= MAX_ABS_LOG_SIGMA) {
             return Err(bad(

@@ -115,7 +115,10 @@ pub fn finetune_config(request: &FinetuneRequest) -> Result<(PretrainConfig, Str
         Some(path) => (PretrainConfig::from_toml_file(path)?, path.display().to_string()),
         None => {
             let path = init.join("../../config.json");
-            (PretrainConfig::from_json_file(&path)?, path.display().to_string())
+            let mut config = PretrainConfig::from_json_file(&path)?;
+            // The init run's held-out pairs belong to its corpus, not to the test video.
+            config.validation = None;
+            (config, path.display().to_string())
         }
     };
     match crate::lora::lora_checkpoint(init)? {

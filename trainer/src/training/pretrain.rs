@@ -3,6 +3,7 @@
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use serde::{Deserialize, Serialize};
@@ -12,12 +13,13 @@ use super::checkpoint::{list_checkpoints, save_checkpoint};
 use super::parallel::StepOptimizer;
 use super::preempt::PreemptWatch;
 use super::run_lock::RunLock;
+use super::validation::ValidationMetrics;
 use super::{
     CheckpointEvery, CheckpointLayout, CogNvsModel, Draws, LatentCache, PretrainConfig, TrainState, consensus,
     learning_rate,
 };
 use crate::autoencoder_kl_cogvideox as vae;
-use crate::data::{Batch, DataConfig, DataPosition, ShardLoader};
+use crate::data::{DataConfig, DataPosition, ShardLoader};
 use crate::distributed::ProcessGroup;
 use crate::error::{Error, Result};
 use crate::weights;
@@ -102,7 +104,12 @@ pub(super) fn train(
     // A bad config or bad shard folders fail before the run folder is touched.
     config.validate("training config")?;
     let data = rank_data_config(config, rank, world)?;
-    crate::data::describe(shards, &data)?;
+    let (training_clips, held_out) = super::validation::split_training_clips(config, shards)?;
+    if lead && let Some(held_out) = &held_out {
+        eprintln!("data: training on {} clips; {} held out for validation", training_clips.len(), held_out.len());
+    }
+    let training_clips = Arc::new(training_clips);
+    crate::data::batches_per_epoch(training_clips.clone(), &data)?;
     let run_config = run.join("config.json");
     // Read by every rank before the agreement, so before rank 0 writes the folder.
     let holds_a_run = run_config.exists();
@@ -206,15 +213,21 @@ pub(super) fn train(
     } else {
         None
     };
+    let mut log_line = |line: String| -> Result<()> {
+        if let Some(file) = metrics_file.as_mut() {
+            writeln!(file, "{line}").map_err(|source| Error::Io { path: run.join("metrics.jsonl"), error: source })?;
+        }
+        Ok(())
+    };
     let mut events = if lead { Some(crate::tensorboard::EventWriter::create(run)?) } else { None };
-    let mut loader = ShardLoader::open(shards, data.clone(), state.data_position)?;
+    let mut loader = ShardLoader::new(training_clips, data.clone(), state.data_position)?;
     let mut last_checkpoint = latest.map(|(d, _)| d);
     let accumulation = config.optim.grad_accumulation;
     let cache = match &config.train.latent_cache {
         Some(dir) => Some(LatentCache::open(dir, &model, &config.data)?),
         None => None,
     };
-    let mut validation: Option<Result<Batch>> = None;
+    let validation = super::validation::Validation::new(config, held_out, device)?;
     let draws = Draws { rank: rank as i64, world: world as i64 };
     let mut since_checkpoint = Instant::now();
     let stop_now = |watch: &PreemptWatch| -> Result<bool> {
@@ -277,10 +290,7 @@ pub(super) fn train(
             grad_norm,
             seconds: started.elapsed().as_secs_f64(),
         };
-        if let Some(file) = metrics_file.as_mut() {
-            writeln!(file, "{}", serde_json::to_string(&metrics).expect("metrics serialise"))
-                .map_err(|source| Error::Io { path: run.join("metrics.jsonl"), error: source })?;
-        }
+        log_line(serde_json::to_string(&metrics).expect("metrics serialise"))?;
         if let Some(events) = events.as_mut() {
             let samples = (config.data.batch_size as u64 * accumulation) as f64;
             events.scalars(
@@ -307,27 +317,18 @@ pub(super) fn train(
             consensus::any_rank(pg, [watch.received().is_some(), clock_due], "preemption and checkpoint clock")?;
         preempted = signalled;
         if !preempted && config.train.validate_every > 0 && state.step.is_multiple_of(config.train.validate_every) {
-            if lead {
-                let batch = validation.get_or_insert_with(|| {
-                    ShardLoader::open(
-                        shards,
-                        DataConfig { batch_size: 1, ..config.data.clone() },
-                        DataPosition::default(),
-                    )
-                    .and_then(|mut l| l.next_batch())
-                });
-                let batch = batch
-                    .as_ref()
-                    .map_err(|e| Error::InvalidArgument { name: "validation".to_string(), reason: e.to_string() })?;
-                let sheet = write_validation_sample(run, state.step, &model, batch, config)?;
-                if let Some(events) = events.as_mut() {
-                    events.image("validation/contact_sheet", state.step as i64, &sheet)?;
-                    events.flush()?;
-                }
+            let (measured, sheet) = validation.run(state.step, &model, config, shards, run, pg)?;
+            if let Some(measured) = &measured {
+                log_line(serde_json::json!({ "step": state.step, "validation": measured }).to_string())?;
             }
-            // The other ranks wait for rank 0's sample here, within the collective timeout.
-            if let Some(pg) = pg {
-                pg.barrier("validation sample on rank 0")?;
+            if let Some(events) = events.as_mut() {
+                if let Some(measured) = &measured {
+                    events.scalars(state.step as i64, &measured.scalars())?;
+                }
+                if let Some(sheet) = &sheet {
+                    events.image("validation/contact_sheet", state.step as i64, sheet)?;
+                }
+                events.flush()?;
             }
             // A signal that came during validation is acted on now, not a step later.
             preempted = stop_now(&watch)?;
@@ -416,58 +417,9 @@ fn write_run_models(run: &Path, config: &PretrainConfig, model: &CogNvsModel) ->
     Ok(())
 }
 
-/// Samples the validation pair's conditioning and writes the video and a contact sheet. Its
-/// random draws come from (seed, step) too, and every training step reseeds, so validation does
-/// not change the training run.
-fn write_validation_sample(
-    run: &Path,
-    step: u64,
-    model: &CogNvsModel,
-    batch: &Batch,
-    config: &PretrainConfig,
-) -> Result<image::RgbImage> {
-    let dir = run.join("samples").join(format!("step-{step:08}"));
-    std::fs::create_dir_all(&dir).map_err(|source| Error::Io { path: dir.clone(), error: source })?;
-    let device = model.text.device();
-    let condition = batch.condition.f_narrow(0, 0, 1)?.f_to_device(device)?;
-    tch::manual_seed(step_seed(config.train.seed ^ VALIDATION_SEED, step));
-    let video = crate::sampling::generate(
-        &model.transformer,
-        &model.vae,
-        &condition,
-        &model.text,
-        None,
-        config.train.validation_steps,
-        1.0,
-    )?;
-    let sample = crate::sampling::to_frames(&video)?;
-    let target = crate::sampling::to_frames(&batch.target.f_narrow(0, 0, 1)?)?;
-    let cond = crate::sampling::to_frames(&condition)?;
-    datagen::video::encode_video(&dir.join("sample.mp4"), &sample, VALIDATION_FPS)?;
-    let picked: Vec<usize> = (0..SHEET_ROWS).map(|k| k * (sample.len() - 1) / (SHEET_ROWS - 1)).collect();
-    let rows: Vec<Vec<image::RgbImage>> =
-        picked.iter().map(|&i| vec![target[i].clone(), cond[i].clone(), sample[i].clone()]).collect();
-    let sheet = datagen::contact_sheet::contact_sheet(&rows);
-    let sheet_path = dir.join("contact_sheet.png");
-    sheet.save(&sheet_path).map_err(|e| Error::InvalidInput {
-        path: sheet_path.clone(),
-        what: "contact sheet".to_string(),
-        reason: e.to_string(),
-    })?;
-    let provenance = serde_json::json!({ "step": step, "pair": batch.provenance[0] });
-    std::fs::write(dir.join("pair.json"), provenance.to_string())
-        .map_err(|source| Error::Io { path: dir, error: source })?;
-    Ok(sheet)
-}
-
-/// Mixed into the seed of validation sampling (so it differs from the training draws).
-const VALIDATION_SEED: u64 = 0x5eed_0f5a_3b1e;
-/// Frame rate of validation videos (CogVideoX's 8 fps).
-const VALIDATION_FPS: f64 = 8.0;
-/// Frames shown on a validation contact sheet.
-const SHEET_ROWS: usize = 4;
-
-fn step_seed(seed: u64, step: u64) -> i64 {
+/// The seed of tch's generator for step `step` of a run seeded `seed` (also the validation
+/// pairs' sampling seeds, with `step` their index).
+pub(super) fn step_seed(seed: u64, step: u64) -> i64 {
     let mut hasher = blake3::Hasher::new();
     hasher.update(b"cognvs train step v1");
     hasher.update(&seed.to_le_bytes());
@@ -476,32 +428,60 @@ fn step_seed(seed: u64, step: u64) -> i64 {
     i64::from_le_bytes(bytes.as_bytes()[..8].try_into().expect("8 bytes")) & i64::MAX
 }
 
-/// Keeps the metrics lines of steps up to `step` (a resumed run rewrites what followed).
+/// A line of `metrics.jsonl` that is not a step's: `{"step": N, "validation": {...}}`.
+#[derive(Deserialize)]
+struct ValidationLine {
+    step: u64,
+    validation: ValidationMetrics,
+}
+
+/// Keeps the metrics lines (steps' and validations') of steps up to `step` (a resumed run
+/// rewrites what followed).
 fn rewrite_metrics(run: &Path, step: u64) -> Result<()> {
+    #[derive(Deserialize)]
+    struct Step {
+        step: u64,
+    }
     let path = run.join("metrics.jsonl");
     let Ok(text) = std::fs::read_to_string(&path) else { return Ok(()) };
     let kept: String = text
         .lines()
-        .filter(|line| serde_json::from_str::<StepMetrics>(line).is_ok_and(|m| m.step <= step))
+        .filter(|line| serde_json::from_str::<Step>(line).is_ok_and(|m| m.step <= step))
         .map(|line| format!("{line}\n"))
         .collect();
     schemas::write_atomic(&path, kept.as_bytes())?;
     Ok(())
 }
 
-/// Reads a run's `metrics.jsonl`.
-pub fn read_metrics(run: &Path) -> Result<Vec<StepMetrics>> {
+/// The lines of a run's `metrics.jsonl` that parse as `T`, or the first error of a line that is
+/// neither a `T` nor skipped by `skip`.
+fn read_lines<T: serde::de::DeserializeOwned>(run: &Path, skip: impl Fn(&serde_json::Value) -> bool) -> Result<Vec<T>> {
     let path = run.join("metrics.jsonl");
     let text = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), error: source })?;
-    text.lines()
-        .map(|line| {
-            serde_json::from_str(line).map_err(|e| Error::InvalidConfig {
-                source_name: path.display().to_string(),
-                field: "(jsonl)".to_string(),
-                reason: e.to_string(),
-            })
-        })
-        .collect()
+    let bad = |e: serde_json::Error| Error::InvalidConfig {
+        source_name: path.display().to_string(),
+        field: "(jsonl)".to_string(),
+        reason: e.to_string(),
+    };
+    let mut out = Vec::new();
+    for line in text.lines() {
+        let value: serde_json::Value = serde_json::from_str(line).map_err(bad)?;
+        if !skip(&value) {
+            out.push(serde_json::from_str(line).map_err(bad)?);
+        }
+    }
+    Ok(out)
+}
+
+/// Reads the step lines of a run's `metrics.jsonl`.
+pub fn read_metrics(run: &Path) -> Result<Vec<StepMetrics>> {
+    read_lines(run, |v| v.get("validation").is_some())
+}
+
+/// Reads the validation lines of a run's `metrics.jsonl`: (step, means).
+pub fn read_validation(run: &Path) -> Result<Vec<(u64, ValidationMetrics)>> {
+    let lines: Vec<ValidationLine> = read_lines(run, |v| v.get("validation").is_none())?;
+    Ok(lines.into_iter().map(|l| (l.step, l.validation)).collect())
 }
 
 #[cfg(test)]

@@ -18,3 +18,4 @@ mod scheduler;
 mod tensorboard;
 mod transformer;
 mod vae;
+mod validation;

@@ -84,7 +84,6 @@ fn handlers() -> &'static Handlers {
 
 /// Watches for preemption signals while a run trains (see the module docs).
 pub struct PreemptWatch {
-    signals: Vec<i32>,
     stop: Arc<AtomicBool>,
     thread: Option<JoinHandle<()>>,
 }
@@ -94,6 +93,18 @@ impl PreemptWatch {
     /// exits that long after the first signal if it has not ended by then.
     pub fn install(signals: &[i32], grace: Option<Duration>) -> Result<Self> {
         let h = handlers();
+        let mut idle = h.idle.lock().expect("no panic while held");
+        // Every handler is registered (once per process) before any is armed.
+        for &sig in signals {
+            if let std::collections::btree_map::Entry::Vacant(entry) = idle.entry(sig) {
+                let flag = Arc::new(AtomicBool::new(true));
+                register(sig, &flag, h).map_err(|e| Error::InvalidArgument {
+                    name: "loop.preempt_signals".to_string(),
+                    reason: format!("cannot handle {}: {e}", signal_name(sig)),
+                })?;
+                entry.insert(flag);
+            }
+        }
         {
             let mut watches = h.watches.lock().expect("no panic while held");
             if *watches == 0 {
@@ -102,33 +113,19 @@ impl PreemptWatch {
             }
             *watches += 1;
         }
-        let mut idle = h.idle.lock().expect("no panic while held");
-        for &sig in signals {
-            let flag = match idle.get(&sig) {
-                Some(flag) => flag.clone(),
-                None => {
-                    let flag = Arc::new(AtomicBool::new(true));
-                    register(sig, &flag, h).map_err(|e| Error::InvalidArgument {
-                        name: "loop.preempt_signals".to_string(),
-                        reason: format!("cannot handle {}: {e}", signal_name(sig)),
-                    })?;
-                    idle.insert(sig, flag.clone());
-                    flag
-                }
-            };
-            flag.store(false, Ordering::SeqCst);
+        for sig in signals {
+            idle[sig].store(false, Ordering::SeqCst);
         }
         drop(idle);
-        let stop = Arc::new(AtomicBool::new(false));
-        let thread = {
-            let stop = stop.clone();
-            let (received, which) = (h.received.clone(), h.which.clone());
-            std::thread::Builder::new()
-                .name("preempt-watch".to_string())
-                .spawn(move || watch(&stop, &received, &which, grace))
-                .map_err(|error| Error::Io { path: "<preemption watch thread>".into(), error })?
-        };
-        Ok(Self { signals: signals.to_vec(), stop, thread: Some(thread) })
+        // Armed from here on: should the thread not start, dropping `this` disarms again.
+        let mut this = Self { stop: Arc::new(AtomicBool::new(false)), thread: None };
+        let (stop, received, which) = (this.stop.clone(), h.received.clone(), h.which.clone());
+        let thread = std::thread::Builder::new()
+            .name("preempt-watch".to_string())
+            .spawn(move || watch(&stop, &received, &which, grace))
+            .map_err(|error| Error::Io { path: "<preemption watch thread>".into(), error })?;
+        this.thread = Some(thread);
+        Ok(this)
     }
 
     /// The first signal received since the watch started, if any (this process only: the
@@ -163,11 +160,9 @@ impl Drop for PreemptWatch {
         let mut watches = h.watches.lock().expect("no panic while held");
         *watches -= 1;
         if *watches == 0 {
-            let idle = h.idle.lock().expect("no panic while held");
-            for sig in &self.signals {
-                if let Some(flag) = idle.get(sig) {
-                    flag.store(true, Ordering::SeqCst);
-                }
+            // No watch left: every handler acts as its signal's default action again.
+            for flag in h.idle.lock().expect("no panic while held").values() {
+                flag.store(true, Ordering::SeqCst);
             }
         }
     }

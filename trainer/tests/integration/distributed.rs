@@ -332,17 +332,7 @@ fn finetune_on_two_ranks_equals_one_and_logs_tensorboard_events() {
 
     // The run's event file, read by tensorboard's own reader: one scalar per step for each tag,
     // equal to metrics.jsonl, and the validation contact sheet (validate_every = 3).
-    let events = dir.path().join("events");
-    std::fs::create_dir_all(&events).unwrap();
-    for entry in std::fs::read_dir(&ranks).unwrap() {
-        let path = entry.unwrap().path();
-        if path.file_name().unwrap().to_string_lossy().starts_with("events.out.tfevents.") {
-            std::fs::copy(&path, events.join(path.file_name().unwrap())).unwrap();
-        }
-    }
-    let out = dir.path().join("events.json");
-    super::parity::run_python("read_tensorboard.py", &[events.as_os_str(), out.as_os_str()]);
-    let read: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let read = read_events(&ranks, dir.path());
     let metrics = read_metrics(&ranks).unwrap();
     let series = read["scalars"]["train/loss"].as_array().unwrap();
     assert_eq!(series.len(), metrics.len());
@@ -354,4 +344,20 @@ fn finetune_on_two_ranks_equals_one_and_logs_tensorboard_events() {
         assert_eq!(read["scalars"][tag].as_array().unwrap().len(), metrics.len(), "{tag}");
     }
     assert_eq!(read["images"]["validation/contact_sheet"].as_array().unwrap().len(), 1, "{read}");
+}
+
+/// What tensorboard's own reader finds in the event files of `run` (`scripts/read_tensorboard.py`:
+/// scalars and images by tag), with `scratch` for its input folder and output.
+pub(super) fn read_events(run: &Path, scratch: &Path) -> serde_json::Value {
+    let events = scratch.join("events");
+    std::fs::create_dir_all(&events).unwrap();
+    for entry in std::fs::read_dir(run).unwrap() {
+        let path = entry.unwrap().path();
+        if path.file_name().unwrap().to_string_lossy().starts_with("events.out.tfevents.") {
+            std::fs::copy(&path, events.join(path.file_name().unwrap())).unwrap();
+        }
+    }
+    let out = scratch.join("events.json");
+    super::parity::run_python("read_tensorboard.py", &[events.as_os_str(), out.as_os_str()]);
+    serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap()
 }

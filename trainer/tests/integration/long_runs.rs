@@ -280,10 +280,11 @@ fn a_damaged_newest_checkpoint_is_skipped_and_never_outlives_the_last_intact_one
     assert_success(&trainer(&pretrain_args(&first, &shards, &run, false)).output().unwrap());
     assert_each_damage_is_caught(&run);
 
-    // step-4 damaged; resumed with keep_last = 1 and a checkpoint every step up to 3: the run
-    // continues from step 2 and its new step-3 checkpoint is kept, not the damaged step-4 one.
+    // step-4 damaged; resumed with keep_last = 2 and a checkpoint every step up to 3: the run
+    // continues from step 2, and the two intact checkpoints 2 and 3 are kept (counting the
+    // damaged step 4 as one of two would remove step 2).
     damage(&run.join("checkpoints/step-00000004/transformer/diffusion_pytorch_model.safetensors"), "truncated");
-    let resumed = long_config(dir.path(), "resumed", 3, 0, &[("checkpoint_every", "1"), ("keep_last", "1")]);
+    let resumed = long_config(dir.path(), "resumed", 3, 0, &[("checkpoint_every", "1"), ("keep_last", "2")]);
     let output = trainer(&pretrain_args(&resumed, &shards, &run, true)).output().unwrap();
     assert_success(&output);
     let err = stderr(&output);
@@ -293,7 +294,7 @@ fn a_damaged_newest_checkpoint_is_skipped_and_never_outlives_the_last_intact_one
     );
     assert!(err.contains("continuing from step-00000002"), "{err}");
     let kept: Vec<u64> = list_checkpoints(&run).into_iter().map(|(s, _)| s).collect();
-    assert_eq!(kept, vec![3, 4], "step 3 (intact) is kept beside the damaged step 4 it will replace");
+    assert_eq!(kept, vec![2, 3, 4], "the intact 2 and 3, and the damaged 4 the run will rewrite");
     assert_eq!(checkpoint::newest_intact(&run, None).unwrap().unwrap().1.step, 3);
 }
 

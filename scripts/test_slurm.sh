@@ -5,7 +5,11 @@
 #       checks that the result equals a one-worker `datagen build` (same clips, same BLAKE3 of
 #       every encoded frame and co-visibility mask, as datagen's corpus tests compare them);
 #   (b) runs a 2-task `srun` of `trainer pretrain` on configs/pretrain_tiny.toml (few steps) and
-#       checks that both tasks exit 0 and that exactly one run folder with checkpoints exists.
+#       checks that both tasks exit 0 and that exactly one run folder with checkpoints exists;
+#       then submits the same training as scripts/train.sbatch, sends its tasks SIGUSR1 mid-run
+#       (what the script's `--signal` asks Slurm to send ahead of the time limit), and checks
+#       that the trainer checkpointed and exited 75, that the script requeued the job, and that
+#       the requeued job resumed and finished with losses and weights equal to the srun's.
 # Every daemon it started is stopped on exit, and the temp folder removed (KEEP=1 keeps it).
 #
 #   cargo build -p datagen -p trainer --bins
@@ -23,8 +27,8 @@ repo="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 datagen="$repo/target/debug/datagen"
 trainer="$repo/target/debug/trainer"
 python="${TRAINER_PYTHON:-$repo/.venv/bin/python}"
-# Training steps of (b): enough for one mid-run and one final checkpoint.
-train_steps=4
+# Training steps of (b): enough to signal the sbatch job mid-run, after its third step.
+train_steps=24
 # Tasks of (b); TRAIN_TASKS=1 checks the Slurm launch path alone, without distribution.
 train_tasks="${TRAIN_TASKS:-2}"
 # Seconds to wait for the node to come up idle, and for each job.
@@ -233,13 +237,14 @@ if [[ "$parts" == *b* ]]; then
     printf '[clip]\nlength = 9\nstride = 4\n' >"$work/pairs.toml"
     "$datagen" pairs "$work/seq" --out "$work/pairs" --config "$work/pairs.toml" --seed 0 >/dev/null
     # Global batch: one clip per rank.
-    sed -e "s/^steps = .*/steps = $train_steps/" -e "s/^batch_size = [0-9]*/batch_size = $train_tasks/" -e 's/^checkpoint_every = .*/checkpoint_every = 2/' \
+    sed -e "s/^steps = .*/steps = $train_steps/" -e "s/^batch_size = [0-9]*/batch_size = $train_tasks/" -e 's/^checkpoint_every = .*/checkpoint_every = 8/' \
         -e 's/^validate_every = .*/validate_every = 0/' "$repo/configs/pretrain_tiny.toml" >"$work/pretrain.toml"
     mkdir -p "$work/runs"
     ((cpus >= train_tasks)) || fail "this node has $cpus CPU(s); (b) needs $train_tasks"
     ts=$SECONDS
-    # Short error messages in the task logs, not backtraces.
-    RUST_BACKTRACE=0 RUST_LIB_BACKTRACE=0 srun --nodes=1 --ntasks="$train_tasks" --cpus-per-task=1 --mem=4G --time=00:15:00 --kill-on-bad-exit=1 \
+    # Short error messages in the task logs, not backtraces; one thread per task, as
+    # scripts/train.sbatch sets it (--cpus-per-task), so that both runs reduce in the same order.
+    OMP_NUM_THREADS=1 RUST_BACKTRACE=0 RUST_LIB_BACKTRACE=0 srun --nodes=1 --ntasks="$train_tasks" --cpus-per-task=1 --mem=4G --time=00:15:00 --kill-on-bad-exit=1 \
         --output="$work/log/pretrain-%t.out" \
         "$trainer" pretrain --config "$work/pretrain.toml" --shards "$work/pairs" --out "$work/runs/run" \
         || fail "srun of trainer pretrain failed (exit $?); task logs: $(tail -n 5 "$work"/log/pretrain-*.out)"
@@ -252,6 +257,57 @@ if [[ "$parts" == *b* ]]; then
     # One line per step: only one rank logs.
     lines="$(wc -l <"${runs[0]}/metrics.jsonl")"
     ((lines == train_steps)) || fail "${runs[0]}/metrics.jsonl has $lines lines for $train_steps steps"
+    uninterrupted="${runs[0]}"
+
+    echo "==> (b) scripts/train.sbatch preempted by SIGUSR1 mid-run, requeued, resumed"
+    # The script runs ./target/release/trainer from the submit folder: the dev build under test.
+    mkdir -p "$work/submit/target/release"
+    ln -sf "$trainer" "$work/submit/target/release/trainer"
+    preempted="$work/runs/preempted"
+    ts=$SECONDS
+    # Command-line options override the script's #SBATCH lines (sized for a GPU cluster).
+    job="$(cd "$work/submit" && TRAINER_DEVICE=cpu RUST_BACKTRACE=0 sbatch --parsable --nodes=1 \
+        --ntasks-per-node="$train_tasks" --gpus-per-node=0 --cpus-per-task=1 --mem=4G --time=00:15:00 \
+        --output="$work/log/train-sbatch.out" "$repo/scripts/train.sbatch" "$work/pretrain.toml" "$work/pairs" "$preempted")"
+    job="${job%%;*}"
+    deadline=$((SECONDS + job_timeout))
+    until (($(cat "$preempted/metrics.jsonl" 2>/dev/null | wc -l) >= 3)); do
+        ((SECONDS < deadline)) || fail "job $job logged no 3 steps: $(scontrol show job "$job" 2>&1 | head -n 5)"
+        sleep 0.2
+    done
+    scancel --signal=USR1 "$job"
+    # Requeued, started again and completed: Restarts=1, JobState=COMPLETED.
+    until [[ "$(scontrol show job "$job" -o 2>/dev/null)" =~ JobState=COMPLETED.*Restarts=1 ]]; do
+        state="$(scontrol show job "$job" -o 2>/dev/null)"
+        [[ "$state" =~ JobState=(FAILED|CANCELLED|TIMEOUT|NODE_FAIL|OUT_OF_MEMORY) ]] && fail "job $job: $state"
+        # slurmctld holds a requeued batch job for 2 minutes (Reason=BeginTime): start it now.
+        if [[ "$state" =~ JobState=PENDING.*Reason=BeginTime ]]; then
+            scontrol update JobId="$job" StartTime=now
+        fi
+        ((SECONDS < deadline)) || fail "job $job not requeued and completed in time: $state"
+        sleep 0.5
+    done
+    echo "preempted, requeued and resumed job ran in $((SECONDS - ts)) s"
+    log="$work/log/train-sbatch.out"
+    grep -q "SIGUSR1: stopped after step" "$log" || fail "no preemption checkpoint in $log"
+    grep -q "trainer preempted (exit 75): requeueing job $job" "$log" || fail "the script did not requeue on 75: $log"
+    grep -q "restart 1 of job $job: resuming" "$log" || fail "the requeued job did not resume: $log"
+    "$python" - "$uninterrupted" "$preempted" "$train_steps" <<'EOF'
+import json, pathlib, sys
+
+uninterrupted, preempted, steps = pathlib.Path(sys.argv[1]), pathlib.Path(sys.argv[2]), int(sys.argv[3])
+
+def losses(run):
+    return [json.loads(line)["loss"] for line in (run / "metrics.jsonl").read_text().splitlines() if "loss" in line]
+
+a, b = losses(uninterrupted), losses(preempted)
+if len(a) != steps or a != b:
+    sys.exit(f"losses differ: uninterrupted {a}, preempted and resumed {b}")
+weights = f"checkpoints/step-{steps:08d}/transformer/diffusion_pytorch_model.safetensors"
+if (uninterrupted / weights).read_bytes() != (preempted / weights).read_bytes():
+    sys.exit(f"{weights} differs between the uninterrupted and the preempted run")
+print(f"preempted run equals the uninterrupted one: {steps} losses, final weights byte for byte")
+EOF
     echo "(b) passed in $((SECONDS - tb)) s"
 fi
 echo "test_slurm: all requested parts passed"

@@ -19,8 +19,8 @@ pub use pairs::{
     SCHEMA_VERSION_KEY, TrajectoryKind, TrajectoryRecord, pair_schema,
 };
 pub use shard::{
-    InputDigest, ShardReader, ShardStats, ShardWriter, ShardWriterOptions, clip_count, is_finished, read_clip,
-    read_shard, read_stats, stats_path, write_atomic,
+    InputDigest, ShardReader, ShardStats, ShardWriter, ShardWriterOptions, clip_count, clip_ids, is_finished,
+    read_clip, read_shard, read_stats, stats_path, write_atomic,
 };
 pub use status::{InputStatus, StatusRecord, read_status_table, status_schema, write_status_table};
 pub use trajectory_bank::{BANK_SCHEMA_NAME, BANK_SCHEMA_VERSION, BankEntry, bank_schema, read_bank, write_bank};

@@ -445,6 +445,28 @@ pub fn clip_count(path: &Path) -> Result<usize> {
     Ok(open_checked(path)?.metadata().file_metadata().num_rows() as usize)
 }
 
+/// The clip ids of a shard, in row order, reading only that column.
+pub fn clip_ids(path: &Path) -> Result<Vec<String>> {
+    use arrow_array::Array as _;
+    let builder = open_checked(path)?;
+    let parquet = |source| Error::Parquet { path: path.to_owned(), source };
+    let column =
+        builder.schema().index_of("clip_id").map_err(|_| Error::mismatch(path, "clip_id", "column missing"))?;
+    let mask = parquet::arrow::ProjectionMask::roots(builder.parquet_schema(), [column]);
+    let reader = builder.with_projection(mask).build().map_err(parquet)?;
+    let mut ids = Vec::new();
+    for batch in reader {
+        let batch = batch.map_err(|source| Error::Arrow { path: path.to_owned(), source })?;
+        let values = batch
+            .column(0)
+            .as_any()
+            .downcast_ref::<arrow_array::StringArray>()
+            .ok_or_else(|| Error::mismatch(path, "clip_id", "not a string column"))?;
+        ids.extend(values.iter().map(|id| id.unwrap_or_default().to_string()));
+    }
+    Ok(ids)
+}
+
 /// Reads every clip of a shard.
 pub fn read_shard(path: &Path) -> Result<Vec<ClipRecord>> {
     ShardReader::open(path)?.collect()

@@ -242,6 +242,24 @@ impl ClipIndex {
     pub fn shards(&self) -> &[PathBuf] {
         &self.shards
     }
+
+    /// The clips whose id `held` selects, and the others, each in index order (reads only the
+    /// shards' clip-id columns). Either part may be empty.
+    pub fn split_by_id(&self, held: impl Fn(&str) -> bool) -> Result<(Self, Self)> {
+        let ids: Vec<Vec<String>> = self.shards.iter().map(|path| schemas::clip_ids(path)).collect::<Result<_, _>>()?;
+        let (selected, rest) = self.clips.iter().partition(|clip| held(&ids[clip.shard][clip.row]));
+        Ok((Self { shards: self.shards.clone(), clips: selected }, Self { shards: self.shards.clone(), clips: rest }))
+    }
+
+    /// This index's clips followed by `other`'s.
+    pub fn joined(&self, other: &Self) -> Self {
+        let offset = self.shards.len();
+        let moved = other.clips.iter().map(|c| ClipRef { shard: c.shard + offset, row: c.row });
+        Self {
+            shards: self.shards.iter().chain(&other.shards).cloned().collect(),
+            clips: self.clips.iter().copied().chain(moved).collect(),
+        }
+    }
 }
 
 fn rng(seed: u64, parts: &[u64]) -> ChaCha8Rng {
@@ -489,7 +507,10 @@ impl Drop for ShardLoader {
 /// The shard folders' clip count and the batches per epoch a config gives, without loading.
 pub fn describe(dirs: &[PathBuf], config: &DataConfig) -> Result<(usize, u64)> {
     let index = Arc::new(ClipIndex::open(dirs)?);
-    let clips = index.len();
-    let plan = Plan::new(index, config.clone())?;
-    Ok((clips, plan.batches_per_epoch))
+    Ok((index.len(), batches_per_epoch(index, config)?))
+}
+
+/// The batches per epoch a config gives over `index`; an error when not even one fits.
+pub fn batches_per_epoch(index: Arc<ClipIndex>, config: &DataConfig) -> Result<u64> {
+    Ok(Plan::new(index, config.clone())?.batches_per_epoch)
 }

@@ -104,6 +104,20 @@ pub enum Error {
         /// What happened, naming the ranks involved.
         reason: String,
     },
+    /// A checkpoint could not be written (disk full, quota, I/O error). The run stops here: its
+    /// earlier checkpoints are untouched and `--resume` continues from the newest of them.
+    #[error(
+        "checkpoint of step {step} could not be written: {reason}; the run stopped, earlier checkpoints are \
+         untouched ({kept})"
+    )]
+    CheckpointWrite {
+        /// The step whose checkpoint failed.
+        step: u64,
+        /// What failed, naming the file.
+        reason: String,
+        /// The newest complete checkpoint left, in words.
+        kept: String,
+    },
     /// A safetensors file is malformed.
     #[error("{path}: safetensors: {reason}")]
     Safetensors {

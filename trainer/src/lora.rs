@@ -177,14 +177,15 @@ pub fn file_tensors(
     Ok(named)
 }
 
-/// Writes the adapters of `lora_vs` to `path` in diffusers' layout (see [`file_tensors`]).
-pub fn save(lora_vs: &nn::VarStore, values: &BTreeMap<String, Tensor>, scale: f64, path: &Path) -> Result<()> {
-    let named = file_tensors(lora_vs, values, scale)?;
-    let refs: Vec<(&str, &Tensor)> = named.iter().map(|(n, t)| (n.as_str(), t)).collect();
-    let temp = path.with_extension("safetensors.tmp");
-    Tensor::write_safetensors(&refs, &temp)
-        .map_err(|e| Error::Safetensors { path: temp.clone(), reason: e.to_string() })?;
-    std::fs::rename(&temp, path).map_err(|source| Error::Io { path: path.to_path_buf(), error: source })
+/// Writes the adapters of `lora_vs` to `path` in diffusers' layout (see [`file_tensors`]);
+/// returns the file's size and digest.
+pub fn save(
+    lora_vs: &nn::VarStore,
+    values: &BTreeMap<String, Tensor>,
+    scale: f64,
+    path: &Path,
+) -> Result<crate::weights::WrittenFile> {
+    crate::weights::write_safetensors(path, &file_tensors(lora_vs, values, scale)?)
 }
 
 /// A LoRA file's adapters by module: `(A, B·s)` with the file's scale applied (1 for the files

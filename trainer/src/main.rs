@@ -212,7 +212,8 @@ struct FinetuneArgs {
     config: Option<PathBuf>,
     #[command(flatten)]
     model: ModelArgs,
-    /// Continue the run in --out from its latest checkpoint.
+    /// Continue the run in --out from its newest intact checkpoint (after a preemption, exit
+    /// status 75), on the pairs it built.
     #[arg(long)]
     resume: bool,
     /// Compute device: cpu, cuda or cuda:N.
@@ -380,7 +381,8 @@ struct PretrainArgs {
     /// Run folder: checkpoints/, metrics.jsonl, config.json.
     #[arg(long)]
     out: PathBuf,
-    /// Continue the run in --out from its latest checkpoint.
+    /// Continue the run in --out from its newest intact checkpoint (every file checked against
+    /// the digests its state.json lists; damaged ones are skipped, naming the file).
     #[arg(long)]
     resume: bool,
     /// Optimizer steps in all, overriding the config's `loop.steps`.
@@ -514,10 +516,10 @@ fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Forward(args) => run_forward(args),
         Command::Eval(args) => run_eval(args),
-        Command::Pretrain(args) => run_pretrain(args),
+        Command::Pretrain(args) => training_exit(run_pretrain(args)),
         Command::Sample(args) => run_sample(args),
-        Command::Finetune(args) => run_finetune(args),
-        Command::Nvs(args) => run_nvs(args),
+        Command::Finetune(args) => training_exit(run_finetune(args)),
+        Command::Nvs(args) => training_exit(run_nvs(args)),
         Command::Plan(args) => run_plan(args),
         Command::CommCheck(args) => run_comm_check(args),
         Command::CommCost(args) => run_comm_cost(args),
@@ -526,6 +528,22 @@ fn main() -> anyhow::Result<()> {
             println!("merged {merged} adapted layers into {}", args.out.display());
             Ok(())
         }
+    }
+}
+
+/// Ends a training command with its documented exit status (README, "Long runs"): 0 done,
+/// 75 preempted after a complete checkpoint, 74 a checkpoint could not be written, 1 any other
+/// error. `preempted` comes back once the run's process group is gone.
+fn training_exit(result: anyhow::Result<bool>) -> anyhow::Result<()> {
+    use trainer::training::preempt;
+    match result {
+        Ok(false) => Ok(()),
+        Ok(true) => std::process::exit(preempt::EXIT_PREEMPTED),
+        Err(e) if matches!(e.downcast_ref(), Some(trainer::Error::CheckpointWrite { .. })) => {
+            eprintln!("Error: {e:?}");
+            std::process::exit(preempt::EXIT_CHECKPOINT_FAILED)
+        }
+        Err(e) => Err(e),
     }
 }
 
@@ -677,7 +695,7 @@ fn show_step(bar: &indicatif::ProgressBar, m: &trainer::training::StepMetrics) {
     bar.set_message(format!("loss {:.4}, {:.2} step/s", m.loss, 1.0 / m.seconds.max(1e-9)));
 }
 
-fn run_finetune(args: FinetuneArgs) -> anyhow::Result<()> {
+fn run_finetune(args: FinetuneArgs) -> anyhow::Result<bool> {
     let device = forward::parse_device(&args.device)?;
     let bar = step_bar(args.steps);
     let request = trainer::training::FinetuneRequest {
@@ -710,10 +728,10 @@ fn run_finetune(args: FinetuneArgs) -> anyhow::Result<()> {
         args.out.display(),
         summary.last_checkpoint.map_or("none".to_string(), |p| p.display().to_string())
     );
-    Ok(())
+    Ok(summary.preempted)
 }
 
-fn run_nvs(args: NvsArgs) -> anyhow::Result<()> {
+fn run_nvs(args: NvsArgs) -> anyhow::Result<bool> {
     use trainer::nvs::Progress;
     let device = forward::parse_device(&args.device)?;
     let request = trainer::nvs::NvsRequest {
@@ -742,7 +760,7 @@ fn run_nvs(args: NvsArgs) -> anyhow::Result<()> {
     let (device, pg) = join_job(device, timeout)?;
     let lead = pg.as_ref().is_none_or(|pg| pg.rank == 0);
     let mut bar = indicatif::ProgressBar::hidden();
-    let record = trainer::nvs::run(&request, device, pg.as_ref(), &mut |event| {
+    let outcome = trainer::nvs::run(&request, device, pg.as_ref(), &mut |event| {
         if !lead {
             return;
         }
@@ -764,7 +782,16 @@ fn run_nvs(args: NvsArgs) -> anyhow::Result<()> {
         }
     })?;
     bar.finish();
-    if let Some(record) = record {
+    if outcome.preempted {
+        eprintln!(
+            "preempted: every finished phase and trajectory is recorded in {}; run the same command again to \
+             continue (exit status {})",
+            args.out.join("nvs.json").display(),
+            trainer::training::preempt::EXIT_PREEMPTED
+        );
+        return Ok(true);
+    }
+    if let Some(record) = outcome.record {
         for output in &record.outputs {
             println!(
                 "{}: {} ({} frames), {}",
@@ -776,7 +803,7 @@ fn run_nvs(args: NvsArgs) -> anyhow::Result<()> {
         }
         println!("settings, seeds and digests: {}", args.out.join("nvs.json").display());
     }
-    Ok(())
+    Ok(false)
 }
 
 fn run_sample(args: SampleArgs) -> anyhow::Result<()> {
@@ -843,7 +870,7 @@ fn progress_bar(len: u64, what: &str) -> indicatif::ProgressBar {
     bar
 }
 
-fn run_pretrain(args: PretrainArgs) -> anyhow::Result<()> {
+fn run_pretrain(args: PretrainArgs) -> anyhow::Result<bool> {
     use trainer::training;
     let mut config = training::PretrainConfig::from_toml_file(&args.config)?;
     if let Some(steps) = args.steps {
@@ -866,7 +893,7 @@ fn run_pretrain(args: PretrainArgs) -> anyhow::Result<()> {
         args.out.display(),
         summary.last_checkpoint.map_or("none".to_string(), |p| p.display().to_string())
     );
-    Ok(())
+    Ok(summary.preempted)
 }
 
 fn run_plan(args: PlanArgs) -> anyhow::Result<()> {

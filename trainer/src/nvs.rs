@@ -12,7 +12,13 @@
 //!    (source | render | result rows) per trajectory.
 //!
 //! `nvs.json` keeps every setting, the seeds, the inputs' digests and the outputs' digests. A
-//! folder whose `nvs.json` records other settings or other inputs is refused.
+//! folder whose `nvs.json` records other settings or other inputs is refused, and one that
+//! another `nvs` is working in (its `trainer.lock`) too.
+//!
+//! Preemption: a signal during finetuning ends it as `finetune` does (a complete checkpoint, see
+//! [`crate::training::preempt`]); during rendering and sampling the job stops after the
+//! trajectory in progress. Either way the caller exits with
+//! [`crate::training::preempt::EXIT_PREEMPTED`] and the same command continues the job.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -141,6 +147,15 @@ pub enum Progress<'a> {
 
 const RECORD: &str = "nvs.json";
 
+/// How a call of [`run`] ended.
+#[derive(Debug)]
+pub struct Outcome {
+    /// The record as written (None on ranks other than 0).
+    pub record: Option<Record>,
+    /// Whether a preemption signal stopped the job before its end (run it again to continue).
+    pub preempted: bool,
+}
+
 /// Runs (or continues) the job; `pg` makes the finetuning phase one rank of a multi-process run
 /// (the other phases run on rank 0 alone; other ranks return after finetuning).
 pub fn run(
@@ -148,9 +163,13 @@ pub fn run(
     device: Device,
     pg: Option<&crate::distributed::ProcessGroup>,
     progress: &mut dyn FnMut(Progress),
-) -> Result<Option<Record>> {
+) -> Result<Outcome> {
     let names = trajectory_names(&request.trajectories)?;
     let rank = pg.map_or(0, |pg| pg.rank);
+    // One job per output folder; the finetuning run below holds its own folder's lock as well.
+    let _lock = crate::training::RunLock::acquire_on(&request.out, "trainer nvs", pg)?;
+    // Alive for the whole job, so that no signal falls between the phases' own watches.
+    let watch = preemption_watch(request)?;
     let settings = serde_json::to_value(settings(request)).expect("settings serialise");
     let record_path = request.out.join(RECORD);
     let mut record = match read_record(&record_path)? {
@@ -216,8 +235,8 @@ pub fn run(
             resume: true,
         };
         let summary = crate::training::finetune_on(&finetune, device, pg, |m| progress(Progress::Step(m)))?;
-        if rank != 0 {
-            return Ok(None);
+        if summary.preempted || rank != 0 {
+            return Ok(Outcome { record: (rank == 0).then_some(record), preempted: summary.preempted });
         }
         let checkpoint = summary.last_checkpoint.ok_or_else(|| Error::InvalidArgument {
             name: "steps".to_string(),
@@ -229,7 +248,7 @@ pub fn run(
     } else if request.steps > 0 {
         progress(Progress::Skipped("finetune"));
         if rank != 0 {
-            return Ok(None);
+            return Ok(Outcome { record: None, preempted: false });
         }
     } else {
         record.checkpoint = Some(request.model.checkpoint.display().to_string());
@@ -240,6 +259,12 @@ pub fn run(
         model.checkpoint = PathBuf::from(record.checkpoint.as_ref().expect("set above"));
         model.lora = None;
     }
+
+    // Rendering and sampling stop between trajectories on a preemption signal.
+    let stopped = |record: Record| -> Result<Outcome> {
+        write_record(&record_path, &record)?;
+        Ok(Outcome { record: Some(record), preempted: true })
+    };
 
     // 2. Renders.
     let stack = request.stack_background.unwrap_or(sequence.len() > request.framing.frames);
@@ -266,6 +291,10 @@ pub fn run(
         });
         write_record(&record_path, &record)?;
         progress(Progress::Trajectory(&names[i]));
+        if watch.received().is_some() {
+            watch.hold_until_exit();
+            return stopped(record);
+        }
     }
 
     // 3. Samples, with one load of the model.
@@ -294,11 +323,29 @@ pub fn run(
             record.outputs[i] = Output { sample_seconds: Some(seconds), ..output.with_render(&record.outputs[i]) };
             write_record(&record_path, &record)?;
             progress(Progress::Trajectory(&name));
+            if watch.received().is_some() && record.outputs.iter().any(|o| o.video.is_none()) {
+                watch.hold_until_exit();
+                return stopped(record);
+            }
         }
     }
     record.complete = true;
     write_record(&record_path, &record)?;
-    Ok(Some(record))
+    Ok(Outcome { record: Some(record), preempted: false })
+}
+
+/// The preemption watch of the rendering and sampling phases: the finetuning config's signals
+/// and grace (`[loop] preempt_signals`, `preempt_grace_seconds`), else their defaults.
+fn preemption_watch(request: &NvsRequest) -> Result<crate::training::preempt::PreemptWatch> {
+    let train = match &request.config {
+        Some(path) => crate::training::PretrainConfig::from_toml_file(path)?.train,
+        None => crate::training::LoopConfig::default(),
+    };
+    let signals: Vec<i32> =
+        train.preempt_signals.iter().filter_map(|name| crate::training::preempt::signal_number(name)).collect();
+    let grace =
+        (train.preempt_grace_seconds > 0.0).then(|| std::time::Duration::from_secs_f64(train.preempt_grace_seconds));
+    crate::training::preempt::PreemptWatch::install(&signals, grace)
 }
 
 impl Output {

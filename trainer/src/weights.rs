@@ -477,13 +477,14 @@ pub fn check_shape(name: &str, tensor: &Tensor, expected: &[i64]) -> Result<()> 
 /// `_diffusers_version`) and the weights, in one file or, above `max_shard_bytes`, in shards with
 /// an index. Every file goes to a temporary name first and is renamed when complete; stale weight
 /// files of an earlier save in the same folder are removed. Tensors keep the store's dtype.
+/// Returns the files written, with their sizes and digests.
 pub fn save<C: Serialize>(
     vs: &nn::VarStore,
     config: &C,
     class_name: &str,
     dir: &Path,
     max_shard_bytes: u64,
-) -> Result<()> {
+) -> Result<Vec<WrittenFile>> {
     save_tensors(vs.variables().into_iter().collect(), config, class_name, dir, max_shard_bytes)
 }
 
@@ -495,7 +496,7 @@ pub fn save_tensors<C: Serialize>(
     class_name: &str,
     dir: &Path,
     max_shard_bytes: u64,
-) -> Result<()> {
+) -> Result<Vec<WrittenFile>> {
     std::fs::create_dir_all(dir).map_err(|source| Error::Io { path: dir.to_path_buf(), error: source })?;
     let mut json = serde_json::to_value(config)
         .map_err(|e| Error::InvalidArgument { name: "config".to_string(), reason: format!("cannot serialise: {e}") })?;
@@ -504,7 +505,7 @@ pub fn save_tensors<C: Serialize>(
         map.insert("_diffusers_version".to_string(), DIFFUSERS_VERSION.into());
     }
     let text = serde_json::to_string_pretty(&json).expect("a JSON value serialises");
-    schemas::shard::write_atomic(&dir.join("config.json"), text.as_bytes())?;
+    let mut written = vec![write_file(&dir.join("config.json"), text.as_bytes())?];
 
     let mut shards: Vec<Vec<(String, Tensor)>> = vec![Vec::new()];
     let mut shard_bytes = 0u64;
@@ -523,45 +524,164 @@ pub fn save_tensors<C: Serialize>(
         let _ = std::fs::remove_file(dir.join(stale));
     }
     if shards.len() == 1 {
-        write_safetensors(&dir.join(WEIGHTS_NAME), &shards[0])?;
-        return Ok(());
+        written.push(write_safetensors(&dir.join(WEIGHTS_NAME), &shards[0])?);
+        return Ok(written);
     }
     let count = shards.len();
     let mut weight_map = BTreeMap::new();
     for (i, shard) in shards.iter().enumerate() {
         let file = format!("diffusion_pytorch_model-{:05}-of-{count:05}.safetensors", i + 1);
-        write_safetensors(&dir.join(&file), shard)?;
+        written.push(write_safetensors(&dir.join(&file), shard)?);
         for (name, _) in shard {
             weight_map.insert(name.clone(), file.clone());
         }
     }
     let index = serde_json::json!({ "metadata": { "total_size": total }, "weight_map": weight_map });
     let text = serde_json::to_string_pretty(&index).expect("a JSON value serialises");
-    Ok(schemas::shard::write_atomic(&dir.join(WEIGHTS_INDEX_NAME), text.as_bytes())?)
+    written.push(write_file(&dir.join(WEIGHTS_INDEX_NAME), text.as_bytes())?);
+    Ok(written)
 }
 
-fn write_safetensors(path: &Path, tensors: &[(String, Tensor)]) -> Result<()> {
-    let mut buffers = Vec::with_capacity(tensors.len());
-    for (name, tensor) in tensors {
-        let t = tensor.f_detach()?.f_to_device(Device::Cpu)?.f_contiguous()?;
-        let numel = t.numel();
-        let mut data = vec![0u8; numel * t.kind().elt_size_in_bytes()];
-        t.f_copy_data_u8(&mut data, numel)?;
-        let shape: Vec<usize> = t.size().iter().map(|&d| d as usize).collect();
-        buffers.push((name.clone(), dtype_of(t.kind())?, shape, data));
+/// A file as written: its path, its size and the BLAKE3 digest of its bytes, hashed as they went
+/// to disk (a checkpoint lists these in its `state.json`; checking them later needs no second
+/// read at write time).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct WrittenFile {
+    /// Where it was written.
+    pub path: PathBuf,
+    /// Its size in bytes.
+    pub bytes: u64,
+    /// BLAKE3 of its content, hex.
+    pub blake3: String,
+}
+
+/// Bytes on their way to a file, hashed and counted as they pass.
+struct DigestWriter {
+    file: std::io::BufWriter<std::fs::File>,
+    hasher: blake3::Hasher,
+    bytes: u64,
+}
+
+impl std::io::Write for DigestWriter {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let written = self.file.write(buf)?;
+        self.hasher.update(&buf[..written]);
+        self.bytes += written as u64;
+        Ok(written)
     }
-    let views = buffers
-        .iter()
-        .map(|(name, dtype, shape, data)| {
-            safetensors::tensor::TensorView::new(*dtype, shape.clone(), data)
-                .map(|v| (name.clone(), v))
-                .map_err(|e| Error::Safetensors { path: path.to_path_buf(), reason: e.to_string() })
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.file.flush()
+    }
+}
+
+/// Buffer of the file writer and size of the pieces a large tensor is copied out in: large
+/// enough that each write is one long sequential request, small against any tensor's memory.
+const WRITE_CHUNK_BYTES: usize = 64 << 20;
+
+/// Writes `path` through `fill`: into a temporary file in the same folder, flushed to the disk
+/// (`fsync`) and renamed, so `path` is either absent, the old file or the complete new one. On
+/// any error the temporary file is removed and the error names `path`.
+fn write_digested(
+    path: &Path,
+    fill: impl FnOnce(&mut DigestWriter) -> std::result::Result<(), Error>,
+) -> Result<WrittenFile> {
+    let temp = path.with_file_name(format!(
+        ".{}.tmp-{}",
+        path.file_name().unwrap_or_default().to_string_lossy(),
+        std::process::id()
+    ));
+    let io = |error| Error::Io { path: path.to_path_buf(), error };
+    let result = (|| -> Result<WrittenFile> {
+        let file = std::fs::File::create(&temp).map_err(io)?;
+        let mut out = DigestWriter {
+            file: std::io::BufWriter::with_capacity(WRITE_CHUNK_BYTES, file),
+            hasher: blake3::Hasher::new(),
+            bytes: 0,
+        };
+        fill(&mut out)?;
+        let file = out.file.into_inner().map_err(|e| io(e.into_error()))?;
+        file.sync_all().map_err(io)?;
+        std::fs::rename(&temp, path).map_err(io)?;
+        Ok(WrittenFile {
+            path: path.to_path_buf(),
+            bytes: out.bytes,
+            blake3: out.hasher.finalize().to_hex().to_string(),
         })
-        .collect::<Result<Vec<_>>>()?;
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&temp);
+    }
+    result
+}
+
+/// Writes `bytes` to `path` atomically (see [`write_digested`]).
+pub fn write_file(path: &Path, bytes: &[u8]) -> Result<WrittenFile> {
+    write_digested(path, |out| {
+        std::io::Write::write_all(out, bytes).map_err(|error| Error::Io { path: path.to_path_buf(), error })
+    })
+}
+
+/// Writes named tensors as one safetensors file (the layout `Tensor::write_safetensors` and
+/// diffusers write: tensors ordered by dtype, then name; metadata `format: pt`), streamed tensor
+/// by tensor (never more than one tensor's bytes in memory) through the hasher to disk, atomically
+/// (see [`write_digested`]).
+pub fn write_safetensors(path: &Path, tensors: &[(String, Tensor)]) -> Result<WrittenFile> {
+    let bad = |reason: String| Error::Safetensors { path: path.to_path_buf(), reason };
+    let mut order: Vec<(&String, &Tensor, Dtype)> =
+        tensors.iter().map(|(name, t)| Ok((name, t, storage_dtype(name, t.kind())?))).collect::<Result<_>>()?;
+    order.sort_by(|(a, _, da), (b, _, db)| db.cmp(da).then(a.cmp(b)));
+    let mut infos = Vec::with_capacity(order.len());
+    let mut offset = 0usize;
+    for (name, tensor, dtype) in &order {
+        let len = tensor.numel() * tensor.kind().elt_size_in_bytes();
+        let shape = tensor.size().iter().map(|&d| d as usize).collect();
+        infos.push((
+            (*name).clone(),
+            safetensors::tensor::TensorInfo { dtype: *dtype, shape, data_offsets: (offset, offset + len) },
+        ));
+        offset += len;
+    }
     let metadata = Some(std::collections::HashMap::from([("format".to_string(), "pt".to_string())]));
-    let bytes = safetensors::serialize(views, metadata)
-        .map_err(|e| Error::Safetensors { path: path.to_path_buf(), reason: e.to_string() })?;
-    Ok(schemas::shard::write_atomic(path, &bytes)?)
+    let header = safetensors::tensor::Metadata::new(metadata, infos).map_err(|e| bad(e.to_string()))?;
+    let mut header = serde_json::to_string(&header).map_err(|e| bad(e.to_string()))?.into_bytes();
+    // The data starts 8-byte aligned (the safetensors crate pads its headers with spaces so).
+    header.resize(header.len().next_multiple_of(8), b' ');
+    write_digested(path, |out| {
+        let io = |error| Error::Io { path: path.to_path_buf(), error };
+        std::io::Write::write_all(out, &(header.len() as u64).to_le_bytes()).map_err(io)?;
+        std::io::Write::write_all(out, &header).map_err(io)?;
+        let mut buffer = Vec::new();
+        for (_, tensor, _) in &order {
+            let flat = tensor.f_detach()?.f_to_device(Device::Cpu)?.f_contiguous()?.f_reshape([-1])?;
+            let element = flat.kind().elt_size_in_bytes();
+            let total = flat.numel();
+            let step = (WRITE_CHUNK_BYTES / element).max(1);
+            for start in (0..total).step_by(step) {
+                let n = step.min(total - start);
+                buffer.resize(n * element, 0);
+                flat.f_narrow(0, start as i64, n as i64)?.f_copy_data_u8(&mut buffer, n)?;
+                std::io::Write::write_all(out, &buffer).map_err(io)?;
+            }
+        }
+        Ok(())
+    })
+}
+
+/// The safetensors dtype a tensor of `kind` is stored as.
+fn storage_dtype(name: &str, kind: Kind) -> Result<Dtype> {
+    Ok(match kind {
+        Kind::Int64 => Dtype::I64,
+        Kind::Int => Dtype::I32,
+        Kind::Uint8 => Dtype::U8,
+        Kind::Int8 => Dtype::I8,
+        Kind::Bool => Dtype::BOOL,
+        floating => dtype_of(floating).map_err(|_| Error::DtypeDevice {
+            tensor: name.to_string(),
+            expected: "a floating-point, integer or bool kind".to_string(),
+            actual: format!("{floating:?}"),
+        })?,
+    })
 }
 
 #[cfg(test)]
@@ -593,6 +713,32 @@ mod tests {
                 assert!(v.equal(w), "{k} differs after {name} round trip");
             }
         }
+    }
+
+    #[test]
+    fn streamed_safetensors_read_back_and_their_digest_is_of_the_bytes_written() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("state.safetensors");
+        // One tensor longer than a write chunk, so it goes out in two pieces.
+        let long = (WRITE_CHUNK_BYTES / 4 + 1) as i64;
+        let tensors = vec![
+            ("exp_avg.b".to_string(), Tensor::randn([3, 5], (Kind::Float, Device::Cpu))),
+            ("step".to_string(), Tensor::from_slice(&[7i64])),
+            ("a.bf16".to_string(), Tensor::randn([11], (Kind::BFloat16, Device::Cpu))),
+            ("master".to_string(), Tensor::arange(long, (Kind::Float, Device::Cpu))),
+        ];
+        let written = write_safetensors(&path, &tensors).unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        assert_eq!(written.bytes, bytes.len() as u64);
+        assert_eq!(written.blake3, blake3::hash(&bytes).to_hex().to_string());
+        // The safetensors crate's parser accepts the header, tch reads every tensor back.
+        SafeTensors::deserialize(&bytes).unwrap();
+        let read: BTreeMap<String, Tensor> = Tensor::read_safetensors(&path).unwrap().into_iter().collect();
+        for (name, tensor) in &tensors {
+            assert!(read[name].equal(tensor), "{name}");
+        }
+        let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
+        assert_eq!(left, vec!["state.safetensors"], "no temporary file is left");
     }
 
     #[test]

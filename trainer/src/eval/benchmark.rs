@@ -227,7 +227,7 @@ fn load_checked(
 }
 
 /// LPIPS per frame and masked LPIPS per frame (mean of the spatial map over co-visible pixels).
-fn lpips_frames(
+pub(crate) fn lpips_frames(
     model: &Lpips,
     pred: &[RgbImage],
     target: &[RgbImage],

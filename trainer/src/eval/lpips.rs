@@ -29,8 +29,9 @@ pub const HOW_TO_GET: &str = "convert torchvision's backbone (~/.cache/torch/hub
      or vgg16-397923af.pth) and the lpips package's heads (site-packages/lpips/weights/v0.1/alex.pth or vgg.pth) \
      with `scripts/convert_eval_weights.py lpips --net alex --backbone BACKBONE.pth --heads HEADS.pth --out FILE`";
 
-/// The backbone.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// The backbone (`alex` or `vgg` in configs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum LpipsNet {
     /// torchvision AlexNet (the lpips default and the papers' LPIPS).
     Alex,

@@ -354,8 +354,9 @@ impl AdamW {
     /// fp32 values (`param.{name}`; the master copies in mixed precision), for runs whose
     /// parameters are saved nowhere else exactly (LoRA adapters), written by rank 0 when every
     /// rank holds the whole state; under ZeRO-2 every rank's slices with the ranges they cover
-    /// (`optimizer-rank-R-of-N.safetensors`, masters always).
-    pub fn save(&self, dir: &Path, with_params: bool) -> Result<()> {
+    /// (`optimizer-rank-R-of-N.safetensors`, masters always). Returns the file this rank wrote,
+    /// with its size and digest (None where it writes none).
+    pub fn save(&self, dir: &Path, with_params: bool) -> Result<Option<crate::weights::WrittenFile>> {
         let (rank, world) = self.layout.world();
         let (path, named) = if self.layout.sharded() {
             let flat: Vec<i64> = self.layout.owned_ranges().iter().flat_map(|&(s, l, o)| [s, l, o]).collect();
@@ -389,11 +390,9 @@ impl AdamW {
             named.push(("step".to_string(), Tensor::from_slice(&[self.step as i64])));
             (dir.join("optimizer.safetensors"), named)
         } else {
-            return Ok(());
+            return Ok(None);
         };
-        let refs: Vec<(&str, &Tensor)> = named.iter().map(|(n, t)| (n.as_str(), t)).collect();
-        Tensor::write_safetensors(&refs, &path)
-            .map_err(|e| Error::Safetensors { path: path.clone(), reason: e.to_string() })
+        Ok(Some(crate::weights::write_safetensors(&path, &named)?))
     }
 
     /// Loads the state of checkpoint `dir`, written by either layout at any world size. With

@@ -95,18 +95,33 @@ pub struct LoopConfig {
     pub steps: u64,
     /// Seed of model init and of every per-step draw. Valid: any.
     pub seed: u64,
-    /// Steps between checkpoints (and one at the end). Valid: ≥ 1.
-    pub checkpoint_every: u64,
-    /// Checkpoints kept. Valid: ≥ 1.
+    /// How often a checkpoint is written (and one at the end): every N optimizer steps
+    /// (`checkpoint_every = 500`) or every so many minutes of the run (`checkpoint_every =
+    /// "30min"`, timed on rank 0 from the last checkpoint or the start, and written after the
+    /// step that crosses it). Valid: ≥ 1 step, or a finite number of minutes > 0.
+    pub checkpoint_every: CheckpointEvery,
+    /// Checkpoints kept: the newest this many intact ones (damaged ones never count).
+    /// Valid: ≥ 1.
     pub keep_last: usize,
+    /// Signals that preempt the run: the step in progress finishes, a checkpoint is written and
+    /// the process exits with status 75 (see `trainer::training::preempt`). Valid: names among
+    /// `SIGTERM`, `SIGUSR1`, `SIGUSR2`, `SIGINT`, `SIGHUP`; empty: none (the signals' default
+    /// actions).
+    pub preempt_signals: Vec<String>,
+    /// Seconds after a preemption signal after which the process ends at once, without
+    /// finishing its checkpoint, whatever it is doing (keep it below the time the scheduler
+    /// leaves before SIGKILL, so the job script still gets to requeue). Valid: finite, ≥ 0
+    /// (0: no deadline).
+    pub preempt_grace_seconds: f64,
     /// Mean of log σ of the condition noise augmentation. Valid: finite, in
     /// [−[`MAX_ABS_LOG_SIGMA`], [`MAX_ABS_LOG_SIGMA`]].
     pub condition_noise_log_mean: f64,
     /// Standard deviation of log σ. Valid: finite, in [0, [`MAX_ABS_LOG_SIGMA`]].
     pub condition_noise_log_std: f64,
-    /// Steps between validation samples (0: none): the first pair of the data is sampled from
-    /// its conditioning into `RUN/samples/step-N/` (`sample.mp4`, `contact_sheet.png` with
-    /// target | conditioning | sample rows). Valid: any.
+    /// Steps between validations (0: none). With a `[validation]` section, its held-out pairs
+    /// are sampled and measured (see [`ValidationConfig`]); without one, only the first training
+    /// pair is sampled. Either way the first pair's sample goes to `RUN/samples/step-N/`
+    /// (`sample.mp4`, `contact_sheet.png` with target | conditioning | sample rows). Valid: any.
     pub validate_every: u64,
     /// Denoising steps of a validation sample. Valid: 1 to the scheduler's 1000 training
     /// timesteps.
@@ -158,8 +173,10 @@ impl Default for LoopConfig {
         Self {
             steps: 12_000,
             seed: 0,
-            checkpoint_every: 500,
+            checkpoint_every: CheckpointEvery::Steps(500),
             keep_last: 3,
+            preempt_signals: vec!["SIGTERM".to_string(), "SIGUSR1".to_string()],
+            preempt_grace_seconds: 0.0,
             condition_noise_log_mean: -3.0,
             condition_noise_log_std: 0.5,
             validate_every: 0,
@@ -171,6 +188,97 @@ impl Default for LoopConfig {
         }
     }
 }
+
+/// How often checkpoints are written: `checkpoint_every = 500` (steps) or `"30min"` (minutes).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum CheckpointEvery {
+    /// Every this many optimizer steps.
+    Steps(u64),
+    /// After the first step that ends this many minutes after the last checkpoint (or the start).
+    Minutes(f64),
+}
+
+impl CheckpointEvery {
+    /// Parses `"30min"`, `"30 min"`, `"1.5 minutes"` (minutes) or `"500"` (steps).
+    pub fn parse(text: &str) -> Option<Self> {
+        let text = text.trim();
+        if let Ok(steps) = text.parse::<u64>() {
+            return Some(Self::Steps(steps));
+        }
+        let number = ["minutes", "minute", "min"].iter().find_map(|unit| text.strip_suffix(unit))?;
+        number.trim().parse::<f64>().ok().map(Self::Minutes)
+    }
+}
+
+impl Serialize for CheckpointEvery {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> std::result::Result<S::Ok, S::Error> {
+        match self {
+            Self::Steps(steps) => serializer.serialize_u64(*steps),
+            Self::Minutes(minutes) => serializer.serialize_str(&format!("{minutes}min")),
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for CheckpointEvery {
+    fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> std::result::Result<Self, D::Error> {
+        #[derive(Deserialize)]
+        #[serde(untagged)]
+        enum Written {
+            Steps(u64),
+            Text(String),
+        }
+        match Written::deserialize(deserializer)? {
+            Written::Steps(steps) => Ok(Self::Steps(steps)),
+            Written::Text(text) => Self::parse(&text).ok_or_else(|| {
+                serde::de::Error::custom(format!(
+                    "`{text}` is neither a number of steps (500) nor of minutes (\"30min\")"
+                ))
+            }),
+        }
+    }
+}
+
+/// `[validation]`: held-out pairs sampled and measured every `[loop] validate_every` steps.
+/// The set is fixed for the run: up to `pairs` held-out clips, each with its trajectory and
+/// window drawn from `seed` and its sampling noise from `seed` and its index, so values at
+/// different steps compare the model alone. PSNR and SSIM (and LPIPS with `lpips_weights`),
+/// over whole frames and over the co-visible pixels, go to `metrics.jsonl` and TensorBoard.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ValidationConfig {
+    /// Shard folders of held-out pairs (never trained on). Valid: folders of finished shards.
+    pub shards: Vec<PathBuf>,
+    /// Fraction of the training shards' clips held out by clip id (a hash of the id, so the same
+    /// clips whatever the seed, the shard order or the world size) and never trained on.
+    /// Valid: in [0, 1); at least one of `shards` and `holdout_fraction` given.
+    pub holdout_fraction: f64,
+    /// Held-out pairs sampled at each validation (fewer when fewer clips are held out); with
+    /// several ranks each samples its share. Valid: 1 to [`MAX_VALIDATION_PAIRS`].
+    pub pairs: usize,
+    /// Seed of the pairs' trajectories, windows and sampling noise. Valid: any.
+    pub seed: u64,
+    /// LPIPS weights (`scripts/convert_eval_weights.py lpips`): adds LPIPS and LPIPS over the
+    /// co-visible pixels. Valid: an existing file (its tensors are checked at the start).
+    pub lpips_weights: Option<PathBuf>,
+    /// LPIPS backbone. Valid: `alex` or `vgg`.
+    pub lpips_net: crate::eval::lpips::LpipsNet,
+}
+
+impl Default for ValidationConfig {
+    fn default() -> Self {
+        Self {
+            shards: Vec::new(),
+            holdout_fraction: 0.0,
+            pairs: 8,
+            seed: 0,
+            lpips_weights: None,
+            lpips_net: crate::eval::lpips::LpipsNet::Alex,
+        }
+    }
+}
+
+/// Most validation pairs: each is a full sampling run of `[loop] validation_steps` steps.
+pub const MAX_VALIDATION_PAIRS: usize = 4096;
 
 /// `trainer pretrain --config` TOML.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -194,6 +302,9 @@ pub struct PretrainConfig {
     /// Multi-process training (ignored at world size 1).
     #[serde(default)]
     pub distributed: DistributedConfig,
+    /// Held-out validation (none when the section is absent).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub validation: Option<ValidationConfig>,
 }
 
 /// `[distributed]`: how ranks share the work when the launcher starts several processes
@@ -290,11 +401,46 @@ impl PretrainConfig {
         for (field, value) in [
             ("optim.grad_accumulation", o.grad_accumulation),
             ("loop.steps", t.steps),
-            ("loop.checkpoint_every", t.checkpoint_every),
             ("loop.keep_last", t.keep_last as u64),
         ] {
             if value == 0 {
                 return Err(bad(field, "0 must be ≥ 1".to_string()));
+            }
+        }
+        match t.checkpoint_every {
+            CheckpointEvery::Steps(0) => return Err(bad("loop.checkpoint_every", "0 steps must be ≥ 1".to_string())),
+            CheckpointEvery::Minutes(m) if !(m.is_finite() && m > 0.0) => {
+                return Err(bad("loop.checkpoint_every", format!("{m} minutes must be finite and > 0")));
+            }
+            _ => {}
+        }
+        for name in &t.preempt_signals {
+            if super::preempt::signal_number(name).is_none() {
+                let known: Vec<&str> = super::preempt::SIGNALS.iter().map(|(n, _)| *n).collect();
+                return Err(bad("loop.preempt_signals", format!("`{name}` is not one of {}", known.join(", "))));
+            }
+        }
+        if !(t.preempt_grace_seconds.is_finite() && t.preempt_grace_seconds >= 0.0) {
+            return Err(bad(
+                "loop.preempt_grace_seconds",
+                format!("{} must be finite and ≥ 0 (0: no deadline)", t.preempt_grace_seconds),
+            ));
+        }
+        if let Some(v) = &self.validation {
+            if !(0.0..1.0).contains(&v.holdout_fraction) {
+                return Err(bad("validation.holdout_fraction", format!("{} must be in [0, 1)", v.holdout_fraction)));
+            }
+            if v.shards.is_empty() && v.holdout_fraction == 0.0 {
+                return Err(bad(
+                    "validation",
+                    "give held-out `shards`, a `holdout_fraction` of the training clips, or both".to_string(),
+                ));
+            }
+            if !(1..=MAX_VALIDATION_PAIRS).contains(&v.pairs) {
+                return Err(bad("validation.pairs", format!("{} must be in 1..={MAX_VALIDATION_PAIRS}", v.pairs)));
+            }
+            if let Some(path) = v.lpips_weights.as_ref().filter(|p| !p.is_file()) {
+                return Err(bad("validation.lpips_weights", format!("{} is not a file", path.display())));
             }
         }
         if !(t.condition_noise_log_mean.is_finite() && t.condition_noise_log_mean.abs() <= MAX_ABS_LOG_SIGMA) {

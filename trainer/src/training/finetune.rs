@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use tch::Device;
 
-use super::{PretrainConfig, RunSummary, StepMetrics, pretrain_on};
+use super::{PretrainConfig, RunSummary, StepMetrics};
 use crate::distributed::ProcessGroup;
 use crate::error::{Error, Result};
 
@@ -35,8 +35,8 @@ pub struct FinetuneRequest {
     pub config: Option<PathBuf>,
     /// A LoRA file merged into `init`'s transformer before finetuning (a base plus an adapter).
     pub lora: Option<PathBuf>,
-    /// Continue the run in `out` (its pairs and its latest checkpoint) instead of refusing a
-    /// folder that holds one.
+    /// Continue the run in `out` from its newest intact checkpoint (after a preemption), on the
+    /// pairs it built; a folder without a run starts one.
     pub resume: bool,
 }
 
@@ -49,11 +49,13 @@ pub fn finetune(request: &FinetuneRequest, device: Device, progress: impl FnMut(
     finetune_on(request, device, None, progress)
 }
 
-/// [`finetune`] as one rank of `pg` (None: one process). Rank 0 builds the video's pairs (one
-/// shard in `RUN/pairs/`) while the others wait at a barrier; then every rank trains on its
-/// share of each global batch as in [`super::pretrain_on`]. The pairs, the global batch and every
-/// draw are those of a single process, so the result does not depend on the world size (up to
-/// fp32 reduction order), provided the global batch divides by it.
+/// [`finetune`] as one rank of `pg` (None: one process). Rank 0 takes the run folder's lock,
+/// then builds the video's pairs (one shard in `RUN/pairs/`) while the others wait at a barrier;
+/// then every rank trains on its share of each global batch as in [`super::pretrain_on`]
+/// (preemption signals included). The pairs, the global batch and every draw are those of a
+/// single process, so the result does not depend on the world size (up to fp32 reduction
+/// order), provided the global batch divides by it. With `resume`, the pairs already built are
+/// reused and training continues from the newest intact checkpoint.
 pub fn finetune_on(
     request: &FinetuneRequest,
     device: Device,
@@ -66,20 +68,21 @@ pub fn finetune_on(
     let (mut config, _) = finetune_config(request)?;
     config.validate("finetune config")?;
     config.model.check_text_embedding()?;
-    // The run's config is written once its pairs are: a run that has one has its pairs.
-    let resumed = run.join("config.json").exists();
-    if resumed && !request.resume {
+    let started = run.join("config.json").exists();
+    if started && !request.resume {
         return Err(Error::InvalidArgument {
             name: "out".to_string(),
-            reason: format!("{} already holds a run; choose another folder", run.display()),
+            reason: format!(
+                "{} already holds a run; pass --resume to continue it or choose another folder",
+                run.display()
+            ),
         });
     }
-    if let Some(pg) = pg {
-        // Every rank has checked the folder before rank 0 writes into it.
-        pg.barrier("finetune start")?;
-    }
+    // Every rank has checked the folder before rank 0 locks and writes into it.
+    let lock = super::RunLock::acquire_on(run, "trainer finetune", pg)?;
     let pairs_dir = run.join("pairs");
-    if rank == 0 && !resumed {
+    let built = request.resume && crate::data::ClipIndex::open(std::slice::from_ref(&pairs_dir)).is_ok();
+    if rank == 0 && !built {
         let sequence = datagen::sequence::read_sequence(sequence_dir)?;
         let frames = config.data.frames as u32;
         let pairs_config = datagen::pairs::PairsConfig {
@@ -111,7 +114,7 @@ pub fn finetune_on(
     }
     let batch = config.data.batch_size.min(clips).max(1);
     config.data.batch_size = (batch / world).max(1) * world;
-    pretrain_on(&config, &[pairs_dir], run, resumed, device, pg, progress)
+    super::pretrain::train(&config, &[pairs_dir], run, started, device, pg, Some(lock), progress)
 }
 
 /// The training config `trainer finetune` runs `request` with, and the name of the file it came
@@ -126,13 +129,18 @@ pub fn finetune_config(request: &FinetuneRequest) -> Result<(PretrainConfig, Str
     let (mut config, source_name) = match &request.config {
         Some(path) => (PretrainConfig::from_toml_file(path)?, path.display().to_string()),
         None if run_config.is_file() => {
-            (PretrainConfig::from_json_file(&run_config)?, run_config.display().to_string())
+            let mut config = PretrainConfig::from_json_file(&run_config)?;
+            // The init run's held-out pairs belong to its corpus, not to the test video.
+            config.validation = None;
+            (config, run_config.display().to_string())
         }
         None => {
             return Err(Error::InvalidArgument {
                 name: "config".to_string(),
                 reason: format!(
-                    "{} is not the checkpoint of a trainer run (no {}): pass --config with the training settings                      (configs/finetune_cognvs_lora.toml or configs/finetune_cognvs_full.toml for the released CogNVS                      checkpoint)",
+                    "{} is not the checkpoint of a trainer run (no {}): pass --config with the training settings \
+                     (configs/finetune_5b_lora_1gpu.toml, finetune_5b_full_1gpu.toml or finetune_5b_full.toml for \
+                     the released CogNVS checkpoint)",
                     init.display(),
                     run_config.display()
                 ),
@@ -171,6 +179,8 @@ pub fn finetune_config(request: &FinetuneRequest) -> Result<(PretrainConfig, Str
     }
     config.model.zero_text_embedding |= request.zero_text_embedding;
     config.train.steps = request.steps;
-    config.train.checkpoint_every = config.train.checkpoint_every.min(request.steps.max(1));
+    if let super::CheckpointEvery::Steps(every) = config.train.checkpoint_every {
+        config.train.checkpoint_every = super::CheckpointEvery::Steps(every.min(request.steps.max(1)));
+    }
     Ok((config, source_name))
 }

@@ -16,32 +16,48 @@
 //!
 //! Checkpoints: `RUN_DIR/checkpoints/step-NNNNNNNN/` holds `transformer/` (diffusers layout,
 //! loadable by `from_pretrained`), `optimizer.safetensors` (AdamW moments) and `state.json`
-//! (step, data position); written under a temporary name and renamed, the oldest beyond
-//! `keep_last` removed. With `validate_every`, validation samples go to `RUN_DIR/samples/`. The frozen VAE is saved once as `RUN_DIR/vae/` and the run's config as
-//! `RUN_DIR/config.json`. `RUN_DIR/metrics.jsonl` has one line per step.
+//! (step, data position, every other file's size and digest); written under a temporary name
+//! and renamed, the oldest intact ones beyond `keep_last` removed. With `validate_every`,
+//! validation samples go to `RUN_DIR/samples/`. The frozen VAE is saved once as `RUN_DIR/vae/`
+//! and the run's config as `RUN_DIR/config.json`. `RUN_DIR/metrics.jsonl` has one line per step
+//! and one per validation.
+//!
+//! Long runs: rank 0 holds the folder's lock for the whole run (`run_lock`), preemption signals
+//! end the run after a step with a complete checkpoint (`preempt`), `--resume` takes the newest
+//! checkpoint whose files match their digests (`checkpoint`), and held-out pairs are measured
+//! while training (`validation`); what the ranks decide together goes through `consensus`.
 //!
 //! One file per part: `config` (the TOML), `adamw` (optimizer), `lr_schedule`,
 //! `objective` (models and loss), `latent_cache`, `checkpoint`, `pretrain` (the loop),
-//! `finetune` and `comm_cost` (the exchange's share of a data-parallel step).
+//! `finetune`, `run_lock`, `preempt`, `consensus`, `validation` and `comm_cost` (the exchange's
+//! share of a data-parallel step).
 
 mod adamw;
-mod checkpoint;
+pub mod checkpoint;
 mod comm_cost;
 mod config;
+pub mod consensus;
 mod finetune;
 mod latent_cache;
 mod lr_schedule;
 mod objective;
 mod parallel;
+pub mod preempt;
 mod pretrain;
+pub mod run_lock;
+pub mod validation;
 
 pub use adamw::AdamW;
 pub(crate) use adamw::trainable_parameters;
-pub use checkpoint::{CheckpointLayout, TrainState, list_checkpoints};
+pub use checkpoint::{CheckpointLayout, FileRecord, TrainState, list_checkpoints};
 pub use comm_cost::{CommCost, VariantTiming, comm_cost};
-pub use config::{DistributedConfig, LoopConfig, ModelConfig, OptimConfig, Precision, PretrainConfig};
+pub use config::{
+    CheckpointEvery, DistributedConfig, LoopConfig, ModelConfig, OptimConfig, Precision, PretrainConfig,
+    ValidationConfig,
+};
 pub use finetune::{FinetuneRequest, finetune, finetune_config, finetune_on};
 pub use latent_cache::LatentCache;
 pub use lr_schedule::learning_rate;
 pub use objective::{Backward, CogNvsModel, Draws};
-pub use pretrain::{RunSummary, StepMetrics, pretrain, pretrain_on, read_metrics};
+pub use pretrain::{RunSummary, StepMetrics, pretrain, pretrain_on, read_metrics, read_validation};
+pub use run_lock::RunLock;

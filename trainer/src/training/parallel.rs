@@ -11,6 +11,7 @@ use tch::Tensor;
 use super::{AdamW, CogNvsModel, PretrainConfig, trainable_parameters};
 use crate::distributed::{FlatLayout, GradientExchange, ProcessGroup};
 use crate::error::Result;
+use crate::weights::WrittenFile;
 
 /// The run's optimizer and, with several ranks, how gradients meet.
 pub(super) struct StepOptimizer {
@@ -65,8 +66,8 @@ impl StepOptimizer {
     }
 
     /// Writes the optimizer state into checkpoint folder `dir`: rank 0's `optimizer.safetensors`
-    /// (replicated state), or every rank's shard.
-    pub(super) fn save(&self, dir: &Path, with_params: bool) -> Result<()> {
-        self.adamw.save(dir, with_params)
+    /// (replicated state), or every rank's shard. Returns the files this rank wrote.
+    pub(super) fn save(&self, dir: &Path, with_params: bool) -> Result<Vec<WrittenFile>> {
+        Ok(self.adamw.save(dir, with_params)?.into_iter().collect())
     }
 }

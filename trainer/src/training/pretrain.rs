@@ -3,16 +3,23 @@
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::time::Instant;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind};
 
 use super::checkpoint::{list_checkpoints, save_checkpoint};
 use super::parallel::StepOptimizer;
-use super::{Backward, CheckpointLayout, CogNvsModel, Draws, LatentCache, PretrainConfig, TrainState, learning_rate};
+use super::preempt::PreemptWatch;
+use super::run_lock::RunLock;
+use super::validation::ValidationMetrics;
+use super::{
+    Backward, CheckpointEvery, CheckpointLayout, CogNvsModel, Draws, LatentCache, PretrainConfig, TrainState,
+    consensus, learning_rate,
+};
 use crate::autoencoder_kl_cogvideox as vae;
-use crate::data::{Batch, DataConfig, DataPosition, ShardLoader};
+use crate::data::{DataConfig, DataPosition, ShardLoader};
 use crate::distributed::ProcessGroup;
 use crate::error::{Error, Result};
 use crate::weights;
@@ -50,6 +57,9 @@ pub struct RunSummary {
     pub steps: u64,
     /// The last checkpoint.
     pub last_checkpoint: Option<PathBuf>,
+    /// Whether a preemption signal stopped the run before its last step (after writing the
+    /// checkpoint of the step it was in): the caller exits with [`super::preempt::EXIT_PREEMPTED`].
+    pub preempted: bool,
 }
 
 /// `trainer pretrain`: trains up to `config.train.steps`, resuming from the run's latest
@@ -70,7 +80,9 @@ pub fn pretrain(
 /// partition), draws every random value for the whole global batch and keeps its own
 /// ([`Draws`]), and gradients are averaged over ranks once per optimizer step, so the run
 /// computes what one process would at that batch size. Only rank 0 writes the run folder
-/// (config, metrics, TensorBoard events, samples, checkpoints); the others meet it at barriers.
+/// (config, metrics, TensorBoard events, samples, checkpoints), holding its [`RunLock`] for the
+/// whole run; the others meet it at collectives. The configured preemption signals stop the run
+/// after the step in progress with a complete checkpoint (see [`super::preempt`]).
 pub fn pretrain_on(
     config: &PretrainConfig,
     shards: &[PathBuf],
@@ -78,6 +90,22 @@ pub fn pretrain_on(
     resume: bool,
     device: Device,
     pg: Option<&ProcessGroup>,
+    progress: impl FnMut(&StepMetrics),
+) -> Result<RunSummary> {
+    train(config, shards, run, resume, device, pg, None, progress)
+}
+
+/// [`pretrain_on`], with the run's lock already taken by the caller (`finetune` takes it before
+/// it writes the video's pairs into the run folder) or taken here, after the ranks agree.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn train(
+    config: &PretrainConfig,
+    shards: &[PathBuf],
+    run: &Path,
+    resume: bool,
+    device: Device,
+    pg: Option<&ProcessGroup>,
+    lock: Option<RunLock>,
     mut progress: impl FnMut(&StepMetrics),
 ) -> Result<RunSummary> {
     let (rank, world) = pg.map_or((0, 1), |pg| (pg.rank, pg.world_size));
@@ -86,11 +114,32 @@ pub fn pretrain_on(
     config.validate("training config")?;
     config.model.check_text_embedding()?;
     let data = rank_data_config(config, rank, world)?;
-    crate::data::describe(shards, &data)?;
+    let (training_clips, held_out) = super::validation::split_training_clips(config, shards)?;
+    if lead && let Some(held_out) = &held_out {
+        eprintln!("data: training on {} clips; {} held out for validation", training_clips.len(), held_out.len());
+    }
+    let training_clips = Arc::new(training_clips);
+    crate::data::batches_per_epoch(training_clips.clone(), &data)?;
     let run_config = run.join("config.json");
+    // Read by every rank before the agreement, so before rank 0 writes the folder.
+    let holds_a_run = run_config.exists();
     let text = serde_json::to_vec_pretty(config).expect("config serialises");
-    let latest = if resume { list_checkpoints(run).pop() } else { None };
-    if !resume && run_config.exists() {
+    if let Some(pg) = pg {
+        // Ranks that disagree stop here, before anything is written.
+        let shard_list: Vec<String> = shards.iter().map(|p| p.display().to_string()).collect();
+        let seen: Vec<String> = list_checkpoints(run).iter().map(|(step, _)| step.to_string()).collect();
+        pg.agree(&[
+            ("the training config", blake3::hash(&text).to_hex()[..16].to_string()),
+            ("the shard folders", blake3::hash(shard_list.join("\n").as_bytes()).to_hex()[..16].to_string()),
+            ("the world size", world.to_string()),
+            ("the checkpoints in the run folder", if resume { seen.join(",") } else { "(not resuming)".to_string() }),
+        ])?;
+    }
+    let _lock = match lock {
+        Some(lock) => lock,
+        None => RunLock::acquire_on(run, "trainer pretrain", pg)?,
+    };
+    if !resume && holds_a_run {
         return Err(Error::InvalidArgument {
             name: "out".to_string(),
             reason: format!(
@@ -99,18 +148,17 @@ pub fn pretrain_on(
             ),
         });
     }
-    if let Some(pg) = pg {
-        // Ranks that disagree stop here, before anything is written.
-        let shard_list: Vec<String> = shards.iter().map(|p| p.display().to_string()).collect();
-        pg.agree(&[
-            ("the training config", blake3::hash(&text).to_hex()[..16].to_string()),
-            ("the shard folders", blake3::hash(shard_list.join("\n").as_bytes()).to_hex()[..16].to_string()),
-            ("the world size", world.to_string()),
-            ("the checkpoint resumed", latest.as_ref().map_or("none".to_string(), |(step, _)| format!("step {step}"))),
-        ])?;
-    }
+    let signals: Vec<i32> =
+        config.train.preempt_signals.iter().filter_map(|name| super::preempt::signal_number(name)).collect();
+    let grace =
+        (config.train.preempt_grace_seconds > 0.0).then(|| Duration::from_secs_f64(config.train.preempt_grace_seconds));
+    let watch = PreemptWatch::install(&signals, grace)?;
     if lead {
-        std::fs::create_dir_all(run).map_err(|source| Error::Io { path: run.to_path_buf(), error: source })?;
+        // The lock holder is the only writer: what a killed run left half written can go.
+        super::checkpoint::remove_partial(run);
+    }
+    let latest = if resume { super::checkpoint::newest_intact(run, pg)? } else { None };
+    if lead {
         std::fs::write(&run_config, &text).map_err(|source| Error::Io { path: run_config.clone(), error: source })?;
     }
 
@@ -129,8 +177,9 @@ pub fn pretrain_on(
         data_position: DataPosition::default(),
         seed: config.train.seed,
         layout: pg.map(|_| CheckpointLayout { world_size: world, zero_stage: config.distributed.zero_stage }),
+        files: Default::default(),
     };
-    if let Some((_, dir)) = &latest {
+    if let Some((dir, saved)) = &latest {
         // A LoRA run's adapters resume from the optimizer file's exact values; its base is the
         // configured model, loaded above.
         let lora_file = dir.join(crate::lora::LORA_WEIGHTS_NAME);
@@ -152,14 +201,7 @@ pub fn pretrain_on(
             }
         }
         optimizer.load(dir, model.lora_vs.is_some(), pg)?;
-        let path = dir.join("state.json");
-        let text = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), error: source })?;
-        let saved: TrainState = serde_json::from_str(&text).map_err(|e| Error::InvalidConfig {
-            source_name: path.display().to_string(),
-            field: "(json)".to_string(),
-            reason: e.to_string(),
-        })?;
-        state = TrainState { layout: state.layout, ..saved };
+        state = TrainState { layout: state.layout, files: Default::default(), ..saved.clone() };
     }
     let kind = config.train.precision.kind(device);
     if kind != Kind::Float {
@@ -181,17 +223,29 @@ pub fn pretrain_on(
     } else {
         None
     };
+    let mut log_line = |line: String| -> Result<()> {
+        if let Some(file) = metrics_file.as_mut() {
+            writeln!(file, "{line}").map_err(|source| Error::Io { path: run.join("metrics.jsonl"), error: source })?;
+        }
+        Ok(())
+    };
     let mut events = if lead { Some(crate::tensorboard::EventWriter::create(run)?) } else { None };
-    let mut loader = ShardLoader::open(shards, data.clone(), state.data_position)?;
-    let mut last_checkpoint = latest.map(|(_, d)| d);
+    let mut loader = ShardLoader::new(training_clips, data.clone(), state.data_position)?;
+    let mut last_checkpoint = latest.map(|(d, _)| d);
     let accumulation = config.optim.grad_accumulation;
     let cache = match &config.train.latent_cache {
         Some(dir) => Some(LatentCache::open(dir, &model, &config.data)?),
         None => None,
     };
+    let validation = super::validation::Validation::new(config, held_out, device)?;
     let draws = Draws { rank: rank as i64, world: world as i64 };
-    let mut validation: Option<Result<Batch>> = None;
-    while state.step < config.train.steps {
+    let mut since_checkpoint = Instant::now();
+    let stop_now = |watch: &PreemptWatch| -> Result<bool> {
+        Ok(consensus::any_rank(pg, [watch.received().is_some()], "preemption")?[0])
+    };
+    // A signal during start-up stops before the first step: nothing new to save.
+    let mut preempted = stop_now(&watch)?;
+    while state.step < config.train.steps && !preempted {
         let started = Instant::now();
         // Every draw of this step comes from (seed, step): resumed runs repeat them exactly.
         tch::manual_seed(step_seed(config.train.seed, state.step));
@@ -259,10 +313,7 @@ pub fn pretrain_on(
             cuda_peak_allocated: peaks.map(|p| p.0),
             cuda_peak_reserved: peaks.map(|p| p.1),
         };
-        if let Some(file) = metrics_file.as_mut() {
-            writeln!(file, "{}", serde_json::to_string(&metrics).expect("metrics serialise"))
-                .map_err(|source| Error::Io { path: run.join("metrics.jsonl"), error: source })?;
-        }
+        log_line(serde_json::to_string(&metrics).expect("metrics serialise"))?;
         if let Some(events) = events.as_mut() {
             let samples = (config.data.batch_size as u64 * accumulation) as f64;
             events.scalars(
@@ -280,37 +331,75 @@ pub fn pretrain_on(
         if lead {
             progress(&metrics);
         }
-        if config.train.validate_every > 0 && state.step.is_multiple_of(config.train.validate_every) {
-            if lead {
-                let batch = validation.get_or_insert_with(|| {
-                    ShardLoader::open(
-                        shards,
-                        DataConfig { batch_size: 1, ..config.data.clone() },
-                        DataPosition::default(),
-                    )
-                    .and_then(|mut l| l.next_batch())
-                });
-                let batch = batch
-                    .as_ref()
-                    .map_err(|e| Error::InvalidArgument { name: "validation".to_string(), reason: e.to_string() })?;
-                let sheet = write_validation_sample(run, state.step, &model, batch, config)?;
-                if let Some(events) = events.as_mut() {
-                    events.image("validation/contact_sheet", state.step as i64, &sheet)?;
-                    events.flush()?;
+        // Once per step the ranks agree on a preemption signal and on rank 0's checkpoint clock.
+        let clock_due = match config.train.checkpoint_every {
+            CheckpointEvery::Minutes(minutes) => lead && since_checkpoint.elapsed().as_secs_f64() >= minutes * 60.0,
+            CheckpointEvery::Steps(_) => false,
+        };
+        let [signalled, clock_due] =
+            consensus::any_rank(pg, [watch.received().is_some(), clock_due], "preemption and checkpoint clock")?;
+        preempted = signalled;
+        if !preempted && config.train.validate_every > 0 && state.step.is_multiple_of(config.train.validate_every) {
+            let (measured, sheet) = validation.run(state.step, &model, config, shards, run, pg)?;
+            if let Some(measured) = &measured {
+                log_line(serde_json::json!({ "step": state.step, "validation": measured }).to_string())?;
+            }
+            if let Some(events) = events.as_mut() {
+                if let Some(measured) = &measured {
+                    events.scalars(state.step as i64, &measured.scalars())?;
                 }
+                if let Some(sheet) = &sheet {
+                    events.image("validation/contact_sheet", state.step as i64, sheet)?;
+                }
+                events.flush()?;
             }
-            // The other ranks wait for rank 0's sample here, within the collective timeout.
-            if let Some(pg) = pg {
-                pg.barrier("validation sample on rank 0")?;
-            }
+            // A signal that came during validation is acted on now, not a step later.
+            preempted = stop_now(&watch)?;
         }
-        let checkpoint_due =
-            state.step.is_multiple_of(config.train.checkpoint_every) || state.step == config.train.steps;
-        if config.train.save_checkpoints && checkpoint_due {
-            last_checkpoint = Some(save_checkpoint(run, &model, &optimizer, &state, config.train.keep_last, pg)?);
+        let scheduled = match config.train.checkpoint_every {
+            CheckpointEvery::Steps(every) => state.step.is_multiple_of(every),
+            CheckpointEvery::Minutes(_) => clock_due,
+        };
+        let last = state.step == config.train.steps;
+        if config.train.save_checkpoints && (scheduled || last || preempted) {
+            let written = save_checkpoint(run, &model, &optimizer, &state, config.train.keep_last, pg)?;
+            since_checkpoint = Instant::now();
+            if let Some(events) = events.as_mut() {
+                let gigabytes = written.bytes as f64 / 1e9;
+                eprintln!(
+                    "checkpoint {}: {gigabytes:.3} GB in {:.1} s ({:.2} GB/s)",
+                    written.dir.display(),
+                    written.seconds,
+                    gigabytes / written.seconds.max(f64::MIN_POSITIVE)
+                );
+                events.scalars(
+                    state.step as i64,
+                    &[("checkpoint/gigabytes", gigabytes as f32), ("checkpoint/seconds", written.seconds as f32)],
+                )?;
+                events.flush()?;
+            }
+            last_checkpoint = Some(written.dir);
+            if !preempted && !last {
+                // A signal that came while the checkpoint was written needs no second one.
+                preempted = stop_now(&watch)?;
+            }
         }
     }
-    Ok(RunSummary { resumed_from, steps: state.step, last_checkpoint })
+    let preempted = preempted && state.step < config.train.steps;
+    let signal = watch.received();
+    if preempted {
+        watch.hold_until_exit();
+    }
+    if preempted && lead {
+        let signal = signal.map_or("a preemption signal (on another rank)".to_string(), super::preempt::signal_name);
+        eprintln!(
+            "{signal}: stopped after step {} with a complete checkpoint ({}); exit status {}: rerun with --resume",
+            state.step,
+            last_checkpoint.as_ref().map_or("none".to_string(), |p| p.display().to_string()),
+            super::preempt::EXIT_PREEMPTED
+        );
+    }
+    Ok(RunSummary { resumed_from, steps: state.step, last_checkpoint, preempted })
 }
 
 /// This rank's data config: its share of the global batch, its rank and the world size.
@@ -351,58 +440,9 @@ fn write_run_models(run: &Path, config: &PretrainConfig, model: &CogNvsModel) ->
     Ok(())
 }
 
-/// Samples the validation pair's conditioning and writes the video and a contact sheet. Its
-/// random draws come from (seed, step) too, and every training step reseeds, so validation does
-/// not change the training run.
-fn write_validation_sample(
-    run: &Path,
-    step: u64,
-    model: &CogNvsModel,
-    batch: &Batch,
-    config: &PretrainConfig,
-) -> Result<image::RgbImage> {
-    let dir = run.join("samples").join(format!("step-{step:08}"));
-    std::fs::create_dir_all(&dir).map_err(|source| Error::Io { path: dir.clone(), error: source })?;
-    let device = model.text.device();
-    let condition = batch.condition.f_narrow(0, 0, 1)?.f_to_device(device)?;
-    tch::manual_seed(step_seed(config.train.seed ^ VALIDATION_SEED, step));
-    let video = crate::sampling::generate(
-        &model.transformer,
-        &model.vae,
-        &condition,
-        &model.text,
-        None,
-        config.train.validation_steps,
-        1.0,
-    )?;
-    let sample = crate::sampling::to_frames(&video)?;
-    let target = crate::sampling::to_frames(&batch.target.f_narrow(0, 0, 1)?)?;
-    let cond = crate::sampling::to_frames(&condition)?;
-    datagen::video::encode_video(&dir.join("sample.mp4"), &sample, VALIDATION_FPS)?;
-    let picked: Vec<usize> = (0..SHEET_ROWS).map(|k| k * (sample.len() - 1) / (SHEET_ROWS - 1)).collect();
-    let rows: Vec<Vec<image::RgbImage>> =
-        picked.iter().map(|&i| vec![target[i].clone(), cond[i].clone(), sample[i].clone()]).collect();
-    let sheet = datagen::contact_sheet::contact_sheet(&rows);
-    let sheet_path = dir.join("contact_sheet.png");
-    sheet.save(&sheet_path).map_err(|e| Error::InvalidInput {
-        path: sheet_path.clone(),
-        what: "contact sheet".to_string(),
-        reason: e.to_string(),
-    })?;
-    let provenance = serde_json::json!({ "step": step, "pair": batch.provenance[0] });
-    std::fs::write(dir.join("pair.json"), provenance.to_string())
-        .map_err(|source| Error::Io { path: dir, error: source })?;
-    Ok(sheet)
-}
-
-/// Mixed into the seed of validation sampling (so it differs from the training draws).
-const VALIDATION_SEED: u64 = 0x5eed_0f5a_3b1e;
-/// Frame rate of validation videos (CogVideoX's 8 fps).
-const VALIDATION_FPS: f64 = 8.0;
-/// Frames shown on a validation contact sheet.
-const SHEET_ROWS: usize = 4;
-
-fn step_seed(seed: u64, step: u64) -> i64 {
+/// The seed of tch's generator for step `step` of a run seeded `seed` (also the validation
+/// pairs' sampling seeds, with `step` their index).
+pub(super) fn step_seed(seed: u64, step: u64) -> i64 {
     let mut hasher = blake3::Hasher::new();
     hasher.update(b"cognvs train step v1");
     hasher.update(&seed.to_le_bytes());
@@ -411,32 +451,60 @@ fn step_seed(seed: u64, step: u64) -> i64 {
     i64::from_le_bytes(bytes.as_bytes()[..8].try_into().expect("8 bytes")) & i64::MAX
 }
 
-/// Keeps the metrics lines of steps up to `step` (a resumed run rewrites what followed).
+/// A line of `metrics.jsonl` that is not a step's: `{"step": N, "validation": {...}}`.
+#[derive(Deserialize)]
+struct ValidationLine {
+    step: u64,
+    validation: ValidationMetrics,
+}
+
+/// Keeps the metrics lines (steps' and validations') of steps up to `step` (a resumed run
+/// rewrites what followed).
 fn rewrite_metrics(run: &Path, step: u64) -> Result<()> {
+    #[derive(Deserialize)]
+    struct Step {
+        step: u64,
+    }
     let path = run.join("metrics.jsonl");
     let Ok(text) = std::fs::read_to_string(&path) else { return Ok(()) };
     let kept: String = text
         .lines()
-        .filter(|line| serde_json::from_str::<StepMetrics>(line).is_ok_and(|m| m.step <= step))
+        .filter(|line| serde_json::from_str::<Step>(line).is_ok_and(|m| m.step <= step))
         .map(|line| format!("{line}\n"))
         .collect();
     schemas::write_atomic(&path, kept.as_bytes())?;
     Ok(())
 }
 
-/// Reads a run's `metrics.jsonl`.
-pub fn read_metrics(run: &Path) -> Result<Vec<StepMetrics>> {
+/// The lines of a run's `metrics.jsonl` that parse as `T`, or the first error of a line that is
+/// neither a `T` nor skipped by `skip`.
+fn read_lines<T: serde::de::DeserializeOwned>(run: &Path, skip: impl Fn(&serde_json::Value) -> bool) -> Result<Vec<T>> {
     let path = run.join("metrics.jsonl");
     let text = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), error: source })?;
-    text.lines()
-        .map(|line| {
-            serde_json::from_str(line).map_err(|e| Error::InvalidConfig {
-                source_name: path.display().to_string(),
-                field: "(jsonl)".to_string(),
-                reason: e.to_string(),
-            })
-        })
-        .collect()
+    let bad = |e: serde_json::Error| Error::InvalidConfig {
+        source_name: path.display().to_string(),
+        field: "(jsonl)".to_string(),
+        reason: e.to_string(),
+    };
+    let mut out = Vec::new();
+    for line in text.lines() {
+        let value: serde_json::Value = serde_json::from_str(line).map_err(bad)?;
+        if !skip(&value) {
+            out.push(serde_json::from_str(line).map_err(bad)?);
+        }
+    }
+    Ok(out)
+}
+
+/// Reads the step lines of a run's `metrics.jsonl`.
+pub fn read_metrics(run: &Path) -> Result<Vec<StepMetrics>> {
+    read_lines(run, |v| v.get("validation").is_some())
+}
+
+/// Reads the validation lines of a run's `metrics.jsonl`: (step, means).
+pub fn read_validation(run: &Path) -> Result<Vec<(u64, ValidationMetrics)>> {
+    let lines: Vec<ValidationLine> = read_lines(run, |v| v.get("validation").is_none())?;
+    Ok(lines.into_iter().map(|l| (l.step, l.validation)).collect())
 }
 
 #[cfg(test)]

@@ -12,7 +12,7 @@ use trainer::training::read_metrics;
 use super::parity::{assert_success, python, read_tensors, repo_root};
 
 /// The tiny config at global batch 2, with a `[distributed]` section.
-fn config(dir: &Path, name: &str, steps: u64, zero_stage: u8, lr: &str) -> PathBuf {
+pub(super) fn config(dir: &Path, name: &str, steps: u64, zero_stage: u8, lr: &str) -> PathBuf {
     let text = std::fs::read_to_string(repo_root().join("configs/pretrain_tiny.toml"))
         .unwrap()
         .replace("steps = 20", &format!("steps = {steps}"))
@@ -28,7 +28,7 @@ fn config(dir: &Path, name: &str, steps: u64, zero_stage: u8, lr: &str) -> PathB
     path
 }
 
-fn pretrain_args(config: &Path, shards: &Path, out: &Path, resume: bool) -> Vec<std::ffi::OsString> {
+pub(super) fn pretrain_args(config: &Path, shards: &Path, out: &Path, resume: bool) -> Vec<std::ffi::OsString> {
     let mut args: Vec<std::ffi::OsString> = vec!["pretrain".into(), "--config".into(), config.into()];
     args.extend(["--shards".into(), shards.into(), "--out".into(), out.into()]);
     if resume {
@@ -37,7 +37,7 @@ fn pretrain_args(config: &Path, shards: &Path, out: &Path, resume: bool) -> Vec<
     args
 }
 
-fn torchrun(ranks: usize, args: &[std::ffi::OsString], port: u16) -> Command {
+pub(super) fn torchrun(ranks: usize, args: &[std::ffi::OsString], port: u16) -> Command {
     let torchrun = python().with_file_name("torchrun");
     let mut cmd = Command::new(torchrun);
     cmd.args(["--nproc-per-node", &ranks.to_string(), "--master-port", &port.to_string(), "--no-python"])
@@ -47,7 +47,7 @@ fn torchrun(ranks: usize, args: &[std::ffi::OsString], port: u16) -> Command {
 }
 
 /// `ranks` processes with RANK/WORLD_SIZE set by hand (rank 0 hosts the store).
-fn by_hand(ranks: usize, args: impl Fn(usize) -> Vec<std::ffi::OsString>, port: u16) -> Vec<Child> {
+pub(super) fn by_hand(ranks: usize, args: impl Fn(usize) -> Vec<std::ffi::OsString>, port: u16) -> Vec<Child> {
     (0..ranks)
         .map(|rank| {
             Command::new(env!("CARGO_BIN_EXE_trainer"))
@@ -65,22 +65,22 @@ fn by_hand(ranks: usize, args: impl Fn(usize) -> Vec<std::ffi::OsString>, port: 
         .collect()
 }
 
-fn losses(run: &Path) -> Vec<f64> {
+pub(super) fn losses(run: &Path) -> Vec<f64> {
     read_metrics(run).unwrap().iter().map(|m| m.loss).collect()
 }
 
-fn weights(run: &Path, step: u64) -> std::collections::BTreeMap<String, trainer::tch::Tensor> {
+pub(super) fn weights(run: &Path, step: u64) -> std::collections::BTreeMap<String, trainer::tch::Tensor> {
     read_tensors(&run.join(format!("checkpoints/step-{step:08}/transformer/diffusion_pytorch_model.safetensors")))
 }
 
 /// Largest |a − b| over every weight of two checkpoints.
-fn max_weight_difference(a: &Path, b: &Path, step: u64) -> f64 {
+pub(super) fn max_weight_difference(a: &Path, b: &Path, step: u64) -> f64 {
     let (a, b) = (weights(a, step), weights(b, step));
     assert_eq!(a.len(), b.len());
     a.iter().map(|(name, t)| (t - &b[name]).abs().max().double_value(&[])).fold(0.0, f64::max)
 }
 
-fn assert_losses_close(what: &str, actual: &[f64], expected: &[f64], relative: f64) {
+pub(super) fn assert_losses_close(what: &str, actual: &[f64], expected: &[f64], relative: f64) {
     assert_eq!(actual.len(), expected.len(), "{what}: {actual:?} vs {expected:?}");
     for (step, (a, e)) in actual.iter().zip(expected).enumerate() {
         assert!((a - e).abs() <= relative * e.abs(), "{what}: step {} loss {a} vs {e}", step + 1);
@@ -92,9 +92,9 @@ fn assert_losses_close(what: &str, actual: &[f64], expected: &[f64], relative: f
 /// reduction order: 1e-5 relative. Weights after 6 AdamW steps at lr 1e-4: a gradient
 /// component that differs in its last bits moves its weight by at most ~lr per step through
 /// AdamW's normalisation, so 6·lr bounds the difference; in practice it is far smaller.
-const LOSS_TOLERANCE: f64 = 1e-5;
-const LR: &str = "1e-4";
-const WEIGHT_TOLERANCE: f64 = 6.0 * 1e-4;
+pub(super) const LOSS_TOLERANCE: f64 = 1e-5;
+pub(super) const LR: &str = "1e-4";
+pub(super) const WEIGHT_TOLERANCE: f64 = 6.0 * 1e-4;
 
 #[test]
 fn two_ranks_equal_one_rank_and_zero2_equals_zero0_and_relaunch_resumes() {
@@ -139,6 +139,10 @@ fn two_ranks_equal_one_rank_and_zero2_equals_zero0_and_relaunch_resumes() {
     assert!(step2.join("optimizer-rank-00000-of-00002.safetensors").is_file());
     assert!(step2.join("optimizer-rank-00001-of-00002.safetensors").is_file());
     assert!(!step2.join("optimizer.safetensors").exists());
+    // Every file of the checkpoints written at 1 and 2 ranks, ZeRO-0 and ZeRO-2, is verified.
+    for run in [&single, &ddp, &sharded] {
+        super::long_runs::assert_each_damage_is_caught(run);
+    }
 
     // Killed after its step-4 checkpoint, relaunched: the uninterrupted run exactly.
     let killed = dir.path().join("killed");
@@ -162,7 +166,19 @@ fn two_ranks_equal_one_rank_and_zero2_equals_zero0_and_relaunch_resumes() {
     std::thread::sleep(Duration::from_secs(1));
     let copy = dir.path().join("killed-copy");
     copy_tree(&killed, &copy);
-    assert_success(&torchrun(2, &pretrain_args(&zero2, &shards, &killed, true), 29534).output().unwrap());
+    // Its newest checkpoint damaged in rank 1's optimizer shard: the 2 ranks, which share the
+    // check of the files, skip it and continue from the one before to the same end.
+    let newest = trainer::training::list_checkpoints(&killed).last().unwrap().1.clone();
+    let shard = newest.join("optimizer-rank-00001-of-00002.safetensors");
+    std::fs::OpenOptions::new().write(true).open(&shard).unwrap().set_len(100).unwrap();
+    let relaunched = torchrun(2, &pretrain_args(&zero2, &shards, &killed, true), 29534).output().unwrap();
+    assert_success(&relaunched);
+    let err = String::from_utf8_lossy(&relaunched.stderr);
+    let skipped = format!(
+        "skipping checkpoint {}: optimizer-rank-00001-of-00002.safetensors",
+        newest.file_name().unwrap().to_string_lossy()
+    );
+    assert!(err.contains(&skipped), "{err}");
     assert_eq!(losses(&killed), losses(&sharded), "relaunched 2-rank run must repeat the uninterrupted one");
     assert_eq!(max_weight_difference(&killed, &sharded, steps), 0.0);
 
@@ -194,20 +210,20 @@ fn descendants(pid: u32) -> Vec<u32> {
 /// Sends SIG`name` to each of `pids`, one positive process id at a time. Never a process group:
 /// Debian 12's procps `kill` misreads `-PGID` (`kill -0 -20108` makes the call `kill(-2, 0)`), and
 /// a group id starting with 1 becomes `kill(-1, …)`, every process the caller may signal.
-fn signal(name: &str, pids: &[u32]) {
+pub(super) fn signal(name: &str, pids: &[u32]) {
     for &pid in pids {
         assert!(pid > 1, "refusing to signal process {pid}");
         let _ = Command::new("kill").args([format!("-{name}"), pid.to_string()]).status().unwrap();
     }
 }
 
-fn copy_tree(from: &Path, to: &Path) {
+pub(super) fn copy_tree(from: &Path, to: &Path) {
     let status = Command::new("cp").arg("-a").arg(from).arg(to).status().unwrap();
     assert!(status.success());
 }
 
 /// Waits for `child` at most `limit`; kills it and fails when it is still running.
-fn wait_within(child: &mut Child, limit: Duration) -> (std::process::ExitStatus, String, Duration) {
+pub(super) fn wait_within(child: &mut Child, limit: Duration) -> (std::process::ExitStatus, String, Duration) {
     let started = Instant::now();
     loop {
         if let Some(status) = child.try_wait().unwrap() {
@@ -319,17 +335,7 @@ fn finetune_on_two_ranks_equals_one_and_logs_tensorboard_events() {
 
     // The run's event file, read by tensorboard's own reader: one scalar per step for each tag,
     // equal to metrics.jsonl, and the validation contact sheet (validate_every = 3).
-    let events = dir.path().join("events");
-    std::fs::create_dir_all(&events).unwrap();
-    for entry in std::fs::read_dir(&ranks).unwrap() {
-        let path = entry.unwrap().path();
-        if path.file_name().unwrap().to_string_lossy().starts_with("events.out.tfevents.") {
-            std::fs::copy(&path, events.join(path.file_name().unwrap())).unwrap();
-        }
-    }
-    let out = dir.path().join("events.json");
-    super::parity::run_python("read_tensorboard.py", &[events.as_os_str(), out.as_os_str()]);
-    let read: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let read = read_events(&ranks, dir.path());
     let metrics = read_metrics(&ranks).unwrap();
     let series = read["scalars"]["train/loss"].as_array().unwrap();
     assert_eq!(series.len(), metrics.len());
@@ -341,4 +347,20 @@ fn finetune_on_two_ranks_equals_one_and_logs_tensorboard_events() {
         assert_eq!(read["scalars"][tag].as_array().unwrap().len(), metrics.len(), "{tag}");
     }
     assert_eq!(read["images"]["validation/contact_sheet"].as_array().unwrap().len(), 1, "{read}");
+}
+
+/// What tensorboard's own reader finds in the event files of `run` (`scripts/read_tensorboard.py`:
+/// scalars and images by tag), with `scratch` for its input folder and output.
+pub(super) fn read_events(run: &Path, scratch: &Path) -> serde_json::Value {
+    let events = scratch.join("events");
+    std::fs::create_dir_all(&events).unwrap();
+    for entry in std::fs::read_dir(run).unwrap() {
+        let path = entry.unwrap().path();
+        if path.file_name().unwrap().to_string_lossy().starts_with("events.out.tfevents.") {
+            std::fs::copy(&path, events.join(path.file_name().unwrap())).unwrap();
+        }
+    }
+    let out = scratch.join("events.json");
+    super::parity::run_python("read_tensorboard.py", &[events.as_os_str(), out.as_os_str()]);
+    serde_json::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap()
 }

@@ -1,7 +1,8 @@
 //! `trainer nvs` end to end on a tiny model in the released checkpoint's layout (a transformer
 //! folder and a base model folder with `vae/` and `scheduler/`): two trajectories, one in the
-//! public `trajs/*.txt` format, finetuning, renders, samples, contact sheets and `nvs.json`; killed
-//! after finetuning and run again, it continues and gives the uninterrupted run's videos.
+//! public `trajs/*.txt` format, finetuning, renders, samples, contact sheets and `nvs.json`;
+//! preempted after finetuning (exit 75) and run again, it continues and gives the uninterrupted
+//! run's videos.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -121,7 +122,7 @@ fn nvs_finetunes_renders_and_samples_and_continues_after_a_kill() {
     }
     assert!(whole.join("finetune/checkpoints").is_dir());
 
-    // Killed once finetuning has finished, then run again with the same arguments.
+    // Preempted (SIGTERM) once finetuning has finished, then run again with the same arguments.
     let resumed = dir.path().join("resumed");
     let mut child = nvs(&args(&resumed)).stderr(std::process::Stdio::null()).spawn().unwrap();
     let deadline = std::time::Instant::now() + std::time::Duration::from_secs(600);
@@ -133,8 +134,13 @@ fn nvs_finetunes_renders_and_samples_and_continues_after_a_kill() {
         assert!(std::time::Instant::now() < deadline, "finetuning did not finish");
         std::thread::sleep(std::time::Duration::from_millis(20));
     }
-    child.kill().ok();
-    child.wait().unwrap();
+    let finished_first = child.try_wait().unwrap().is_some();
+    let signalled = Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap();
+    let status = child.wait().unwrap();
+    if !finished_first && signalled.success() {
+        // Stopped between trajectories, with what was done recorded.
+        assert_eq!(status.code(), Some(trainer::training::preempt::EXIT_PREEMPTED), "{status:?}");
+    }
     let again = nvs(&args(&resumed)).output().unwrap();
     assert_success(&again);
     let text = String::from_utf8_lossy(&again.stderr);

@@ -12,15 +12,21 @@ use super::parity::{read_tensors, repo_root, run_python};
 
 /// A shard of the pairs of a small synthetic video (96 x 64, 17 frames; clips of 9).
 pub(super) fn pairs(dir: &Path) -> PathBuf {
-    let scene = datagen::synth::SynthConfig { width: 96, height: 64, frames: 17, seed: 4, ..Default::default() };
+    video_pairs(dir, "synth", 17, 4, 2)
+}
+
+/// The pairs of a synthetic 96 x 64 video of `frames` frames drawn with `seed` (clips of 9
+/// frames every 4, `trajectories` each; dataset `dataset`), as a shard in `dir/pairs/`.
+pub(super) fn video_pairs(dir: &Path, dataset: &str, frames: u32, seed: u64, trajectories: u32) -> PathBuf {
+    let scene = datagen::synth::SynthConfig { width: 96, height: 64, frames, seed, ..Default::default() };
     datagen::synth::write_sequence(&scene, &dir.join("seq"), |_| {}).unwrap();
     let sequence = datagen::sequence::read_sequence(&dir.join("seq")).unwrap();
     let config = datagen::pairs::PairsConfig {
         clip: datagen::pairs::ClipConfig { length: 9, stride: 4, max_clips: 0 },
         ..Default::default()
     };
-    let request = datagen::pairs::TrajectoryRequest { sampled: 2, explicit: Vec::new() };
-    let records = datagen::pairs::generate_clips(&sequence, "synth", &config, &request, 1).unwrap();
+    let request = datagen::pairs::TrajectoryRequest { sampled: trajectories, explicit: Vec::new() };
+    let records = datagen::pairs::generate_clips(&sequence, dataset, &config, &request, 1).unwrap();
     let digest = schemas::InputDigest { source_path: "seq".to_string(), content_hash: String::new() };
     datagen::pairs::write_shard(&dir.join("pairs"), "seq", &records, digest).unwrap();
     dir.join("pairs")

@@ -62,7 +62,7 @@ TINY_COGNVS = dict(
 # The CogVideoX-2B structure (sin-cos positions, no rotary) at small widths.
 TINY_2B = dict(TINY_COGNVS, in_channels=16, use_rotary_positional_embeddings=False, use_learned_positional_embeddings=False)
 
-# The released CogNVS transformer config (../shared/reference/cognvs_transformer_config.json).
+# The released CogNVS transformer config (the checkpoint's config.json).
 COGNVS_5B = dict(
     num_attention_heads=48,
     in_channels=32,

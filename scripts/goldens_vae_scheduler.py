@@ -60,7 +60,7 @@ TILING = dict(
     tile_overlap_factor_width=1 / 3,
 )
 
-# The scheduler_config.json of THUDM/CogVideoX-5b-I2V (DESIGN.md section 6).
+# The scheduler_config.json of THUDM/CogVideoX-5b-I2V.
 SCHEDULER_5B = dict(
     beta_end=0.012,
     beta_schedule="scaled_linear",

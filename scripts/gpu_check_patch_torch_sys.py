@@ -1,5 +1,5 @@
 """Stubs the functions of torch-sys's generated C++ wrapper that a libtorch other than the one a
-tch release targets does not declare (issue 14 item 5: tch 0.26 against torch 2.11's headers).
+tch release targets does not declare (tch 0.26 against torch 2.11's headers).
 
 Usage: gpu_check_patch_torch_sys.py SRC_TORCH_SYS DST_DIR LIBTORCH
 

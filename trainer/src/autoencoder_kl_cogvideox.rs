@@ -2,7 +2,7 @@
 //! (`diffusers/models/autoencoders/autoencoder_kl_cogvideox.py`, with `CogVideoXDownsample3D` and
 //! `CogVideoXUpsample3D` from `downsampling.py` / `upsampling.py`), weight-compatible with it.
 //!
-//! Video `[B, 3, F, H, W]` in `[-1, 1]` ⇄ latent `[B, 16, 1 + (F − 1)/4, H/8, W/8]` (DESIGN.md §6).
+//! Video `[B, 3, F, H, W]` in `[-1, 1]` ⇄ latent `[B, 16, 1 + (F − 1)/4, H/8, W/8]`.
 //! Every convolution is causal in time: a frame only sees itself and earlier frames, the first frame
 //! being repeated as padding. That makes streaming possible: diffusers encodes a clip in temporal
 //! batches of 8 frames (the first batch takes the extra leading frame, 1 + 8k frames in all) and

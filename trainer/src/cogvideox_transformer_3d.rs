@@ -1,6 +1,6 @@
 //! The CogVideoX diffusion transformer: diffusers' `CogVideoXTransformer3DModel`
 //! (`diffusers/models/transformers/cogvideox_transformer_3d.py`), weight-compatible with it and
-//! with the released CogNVS checkpoint (DESIGN.md §6: 42 blocks of 48 heads × 64, 32 input
+//! with the released CogNVS checkpoint (its `config.json`: 42 blocks of 48 heads × 64, 32 input
 //! channels = 16 noisy + 16 condition latents, learned + 3D rotary positions).
 //!
 //! Latent video `[B, F, C, H, W]` is cut into `patch_size²` patches, joined behind the projected
@@ -23,7 +23,7 @@ use crate::embeddings::{
 use crate::error::{Error, Result};
 use crate::lora::LoraConfig;
 use crate::normalization::{AdaLayerNorm, CogVideoXLayerNormZero};
-use crate::weights::{LayerNorm, Linear, Vars};
+use crate::vars::{LayerNorm, Linear, Vars};
 
 /// The class name diffusers writes into the transformer's `config.json` (`_class_name`).
 pub const CLASS_NAME: &str = "CogVideoXTransformer3DModel";
@@ -153,7 +153,7 @@ impl DiffusersConfig for CogVideoXTransformer3DModelConfig {
 }
 
 impl CogVideoXTransformer3DModelConfig {
-    /// The released CogNVS transformer: `../shared/reference/cognvs_transformer_config.json`
+    /// The released CogNVS transformer (its checkpoint's `config.json`)
     /// (the CogVideoX-5B-I2V architecture: 42 × 48 heads × 64, learned + rotary positions) with
     /// 32 input channels.
     pub fn cognvs_5b() -> Self {

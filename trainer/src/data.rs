@@ -1,4 +1,4 @@
-//! Training batches from `schemas` shards (DESIGN §1, §5): each sample is one training pair —
+//! Training batches from `schemas` shards: each sample is one training pair —
 //! a window of a stored clip, one of its trajectories' conditioning (the masked source, or the
 //! stored depth-noise conditioning) and mask, and the clip's frames as the target — resized to
 //! cover the training resolution, centre-cropped and scaled to [-1, 1].

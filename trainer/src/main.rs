@@ -246,8 +246,8 @@ struct ModelArgs {
 }
 
 impl ModelArgs {
-    fn source(&self, checkpoint: PathBuf) -> trainer::sampling::ModelSource {
-        trainer::sampling::ModelSource {
+    fn source(&self, checkpoint: PathBuf) -> trainer::loaders::ModelSource {
+        trainer::loaders::ModelSource {
             checkpoint,
             base_model: self.base_model.clone(),
             vae: self.vae.clone(),
@@ -524,7 +524,7 @@ fn main() -> anyhow::Result<()> {
         Command::CommCheck(args) => run_comm_check(args),
         Command::CommCost(args) => run_comm_cost(args),
         Command::MergeLora(args) => {
-            let merged = trainer::lora::merge_lora(&args.base, &args.lora, &args.out)?;
+            let merged = trainer::loaders::lora::merge_lora(&args.base, &args.lora, &args.out)?;
             println!("merged {merged} adapted layers into {}", args.out.display());
             Ok(())
         }
@@ -820,8 +820,10 @@ fn run_sample(args: SampleArgs) -> anyhow::Result<()> {
         load: args.sampling.load(device),
         framing: args.sampling.framing(),
     };
+    let paths = request.model.resolve()?;
+    trainer::plan::check_sampling_fits(&trainer::plan::sampling_plan_for(&paths, request.load, &request.framing)?)?;
     let bar = progress_bar(request.steps as u64, "denoising");
-    let report = trainer::sampling::sample(&request, &mut |i, _| bar.set_position(i as u64))?;
+    let report = trainer::sampling::sample(&request, &paths, &mut |i, _| bar.set_position(i as u64))?;
     bar.finish_and_clear();
     if report.source_size != report.model_size {
         let ((w, h), (mw, mh)) = (report.source_size, report.model_size);

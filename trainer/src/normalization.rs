@@ -5,7 +5,7 @@
 use tch::Tensor;
 
 use crate::error::Result;
-use crate::weights::{LayerNorm, Linear, Vars};
+use crate::vars::{LayerNorm, Linear, Vars};
 
 /// The modulated (normalised, scaled and shifted) streams and their residual gates.
 #[derive(Debug)]

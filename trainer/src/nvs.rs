@@ -28,7 +28,8 @@ use serde::{Deserialize, Serialize};
 use tch::Device;
 
 use crate::error::{Error, Result};
-use crate::sampling::{CogNvsPipeline, Framing, LoadOptions, ModelSource};
+use crate::loaders::ModelSource;
+use crate::sampling::{CogNvsPipeline, Framing, LoadOptions};
 use crate::training::{FinetuneRequest, StepMetrics};
 
 /// Everything `trainer nvs` is asked to do.
@@ -304,7 +305,7 @@ pub fn run(
     } else {
         progress(Progress::Phase("sample", pending.len() as u64));
         let paths = model.resolve()?;
-        crate::plan::check_sampling_fits(&crate::sampling::sampling_plan(&paths, request.load, &request.framing)?)?;
+        crate::plan::check_sampling_fits(&crate::plan::sampling_plan_for(&paths, request.load, &request.framing)?)?;
         let pipeline = CogNvsPipeline::load(&paths, request.load)?;
         for i in pending {
             let name = record.outputs[i].name.clone();

@@ -1,4 +1,4 @@
-//! The memory plan of a training run (issue 14 §3): what one device holds for a training config
+//! The memory plan of a training run: what one device holds for a training config
 //! (parameters, gradients, master weights, AdamW moments, activations with and without
 //! checkpointing, the VAE's encode and decode peaks) before anything is allocated, so
 //! `trainer pretrain` and `trainer finetune` can refuse a run that cannot fit.
@@ -24,6 +24,7 @@ use tch::{Device, Kind};
 
 use crate::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoXConfig};
 use crate::cogvideox_transformer_3d::{CogVideoXTransformer3DModelConfig, variable_shapes};
+use crate::diffusers_config::DiffusersConfig;
 use crate::error::{Error, Result};
 use crate::lora::LoraConfig;
 use crate::training::PretrainConfig;
@@ -845,6 +846,34 @@ impl fmt::Display for SamplingPlan {
         }
         line(f, "total (predicted peak)", self.total, "")
     }
+}
+
+/// The memory plan of sampling with `paths` as `options` and `framing` say (the model's size and
+/// `framing.frames`), guided when a negative prompt is given; reads the configs only.
+pub fn sampling_plan_for(
+    paths: &crate::loaders::ModelPaths,
+    options: crate::sampling::LoadOptions,
+    framing: &crate::sampling::Framing,
+) -> Result<SamplingPlan> {
+    let config = CogVideoXTransformer3DModelConfig::from_json_file(&paths.transformer)?;
+    let vae_config = AutoencoderKLCogVideoXConfig::from_json_file(&paths.vae)?;
+    let spatial = vae_config.spatial_compression_ratio();
+    let (width, height) = framing
+        .size
+        .map_or(((config.sample_width * spatial) as u64, (config.sample_height * spatial) as u64), |(w, h)| {
+            (u64::from(w), u64::from(h))
+        });
+    let tiles = vae::TilingConfig::for_config(&vae_config);
+    let tiling = (options.vae_tiling && tiles.lands_on_latent_pixels(spatial)).then_some(&tiles);
+    sampling_plan(
+        &config,
+        &vae_config,
+        (framing.frames as u64, height, width),
+        options.precision.kind(options.device),
+        options.device,
+        tiling,
+        paths.negative_text_embedding.is_some(),
+    )
 }
 
 /// Checks a sampling plan against the free memory of its CUDA device (nothing elsewhere).

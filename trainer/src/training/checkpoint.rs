@@ -357,7 +357,12 @@ fn finish(
 ) -> Result<u64> {
     let written = match (&model.lora_vs, &model.lora) {
         (Some(lora_vs), Some(lora)) => {
-            vec![crate::lora::save(lora_vs, masters, lora.scale(), &temp.join(crate::lora::LORA_WEIGHTS_NAME))?]
+            vec![crate::loaders::lora::save(
+                lora_vs,
+                masters,
+                lora.scale(),
+                &temp.join(crate::loaders::lora::LORA_WEIGHTS_NAME),
+            )?]
         }
         _ => {
             let mut variables: BTreeMap<String, Tensor> = model.vs.variables().into_iter().collect();

@@ -4,7 +4,6 @@
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
-use tch::{Device, Kind};
 
 use crate::autoencoder_kl_cogvideox::AutoencoderKLCogVideoXConfig;
 use crate::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
@@ -12,6 +11,7 @@ use crate::data::DataConfig;
 use crate::diffusers_config;
 use crate::error::{Error, Result};
 use crate::lora::LoraConfig;
+pub use crate::precision::Precision;
 
 /// Which models to train and with what.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -139,33 +139,6 @@ pub struct LoopConfig {
     /// measurement runs (`scripts/gpu_check.sh`, benchmarks): nothing but `config.json` and the
     /// metrics is written, so a 5B run needs no disk for its 20–70 GB of weights. Valid: any.
     pub save_checkpoints: bool,
-}
-
-/// Training arithmetic.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "kebab-case")]
-pub enum Precision {
-    /// bf16 on CUDA, fp32 elsewhere (CPUs have no fast bf16 kernels).
-    #[default]
-    Auto,
-    /// Weights, activations and gradients in fp32.
-    Fp32,
-    /// Mixed precision: weights, activations and gradients in bf16 (half the memory, tensor-core
-    /// speed); fp32 master weights, optimizer moments, noise schedule and loss. Checkpoints hold
-    /// the fp32 master weights. bf16 keeps fp32's exponent range, so no loss scaling is needed
-    /// (fp16's overflows are what turn into NaN losses).
-    Bf16,
-}
-
-impl Precision {
-    /// The element type of the models' weights on `device`.
-    pub fn kind(self, device: Device) -> Kind {
-        match self {
-            Self::Auto if device.is_cuda() => Kind::BFloat16,
-            Self::Auto | Self::Fp32 => Kind::Float,
-            Self::Bf16 => Kind::BFloat16,
-        }
-    }
 }
 
 impl Default for LoopConfig {
@@ -458,7 +431,7 @@ impl PretrainConfig {
                 format!("{} must be in [0, {MAX_ABS_LOG_SIGMA}]", t.condition_noise_log_std),
             ));
         }
-        let timesteps = crate::scheduling_ddim::CogVideoXSchedulerConfig::cogvideox_5b().num_train_timesteps;
+        let timesteps = crate::scheduling_ddim_cogvideox::CogVideoXSchedulerConfig::cogvideox_5b().num_train_timesteps;
         if t.validation_steps == 0 || t.validation_steps as i64 > timesteps {
             return Err(bad(
                 "loop.validation_steps",
@@ -618,10 +591,10 @@ impl ModelConfig {
     }
 
     /// Refuses zeros as the text embedding of a transformer that takes T5-XXL text unless
-    /// `zero_text_embedding` says so (see [`crate::sampling::require_text_embedding`]).
+    /// `zero_text_embedding` says so (see [`crate::loaders::require_text_embedding`]).
     pub fn check_text_embedding(&self) -> Result<()> {
         let (transformer, _) = self.configs(false)?;
-        crate::sampling::require_text_embedding(
+        crate::loaders::require_text_embedding(
             &transformer,
             self.text_embedding.as_deref(),
             self.zero_text_embedding,
@@ -630,11 +603,11 @@ impl ModelConfig {
     }
 
     /// The noise schedule's config: the `scheduler` folder's, else CogVideoX-5B's.
-    pub fn scheduler_config(&self) -> Result<crate::scheduling_ddim::CogVideoXSchedulerConfig> {
+    pub fn scheduler_config(&self) -> Result<crate::scheduling_ddim_cogvideox::CogVideoXSchedulerConfig> {
         use crate::diffusers_config::DiffusersConfig;
         match &self.scheduler {
-            Some(path) => crate::scheduling_ddim::CogVideoXSchedulerConfig::from_json_file(path),
-            None => Ok(crate::scheduling_ddim::CogVideoXSchedulerConfig::cogvideox_5b()),
+            Some(path) => crate::scheduling_ddim_cogvideox::CogVideoXSchedulerConfig::from_json_file(path),
+            None => Ok(crate::scheduling_ddim_cogvideox::CogVideoXSchedulerConfig::cogvideox_5b()),
         }
     }
 }
@@ -770,6 +743,7 @@ fn toml_key_at(text: &str, start: usize, end: usize) -> (String, String) {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use tch::{Device, Kind};
 
     #[test]
     fn toml_and_json_error_positions_map_to_dotted_keys() {

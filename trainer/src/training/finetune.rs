@@ -1,4 +1,4 @@
-//! `trainer finetune`: test-time finetuning on one video (DESIGN §1).
+//! `trainer finetune`: test-time finetuning on one video.
 
 use std::path::PathBuf;
 
@@ -40,7 +40,7 @@ pub struct FinetuneRequest {
     pub resume: bool,
 }
 
-/// `trainer finetune`: test-time finetuning on one video (DESIGN §1). Its self-supervised pairs
+/// `trainer finetune`: test-time finetuning on one video. Its self-supervised pairs
 /// are built in-process with the `datagen` library (clips of the training length, back to back,
 /// `trajectories` sampled paths each) into `RUN/pairs/`, then the transformer of checkpoint
 /// `init` is trained on them for `steps` steps with the init run's settings (its `config.json`,
@@ -147,7 +147,7 @@ pub fn finetune_config(request: &FinetuneRequest) -> Result<(PretrainConfig, Str
             });
         }
     };
-    let source = crate::sampling::ModelSource {
+    let source = crate::loaders::ModelSource {
         checkpoint: init.clone(),
         base_model: request.base_model.clone(),
         vae: request.vae.clone(),

@@ -3,9 +3,9 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-use tch::{Device, Kind, Tensor};
+use tch::{Device, Kind, Tensor, nn};
 
-use super::CogNvsModel;
+use crate::autoencoder_kl_cogvideox::AutoencoderKLCogVideoX;
 use crate::data::{Batch, DataConfig};
 use crate::error::{Error, Result};
 
@@ -23,13 +23,13 @@ pub struct LatentCache {
 }
 
 impl LatentCache {
-    /// A cache in `dir` for `model`'s VAE and the data size.
-    pub fn open(dir: &Path, model: &CogNvsModel, data: &DataConfig) -> Result<Self> {
+    /// A cache in `dir` for the VAE `vae` (its weights in `vae_vs`) and the data size.
+    pub fn open(dir: &Path, vae: &AutoencoderKLCogVideoX, vae_vs: &nn::VarStore, data: &DataConfig) -> Result<Self> {
         std::fs::create_dir_all(dir).map_err(|source| Error::Io { path: dir.to_path_buf(), error: source })?;
         let mut hasher = blake3::Hasher::new();
         hasher.update(b"cognvs latent cache v1");
-        hasher.update(serde_json::to_string(model.vae.config()).expect("config serialises").as_bytes());
-        let mut variables: Vec<(String, Tensor)> = model.vae_vs.variables().into_iter().collect();
+        hasher.update(serde_json::to_string(vae.config()).expect("config serialises").as_bytes());
+        let mut variables: Vec<(String, Tensor)> = vae_vs.variables().into_iter().collect();
         variables.sort_by(|a, b| a.0.cmp(&b.0));
         for (name, tensor) in variables {
             hasher.update(name.as_bytes());
@@ -49,17 +49,17 @@ impl LatentCache {
         (self.dir.join(format!("{}.safetensors", &hash.to_hex()[..32])), seed)
     }
 
-    /// Sample `i` of `batch`: (posterior mean, log-variance, scaled conditioning latent), from the
-    /// cache or encoded and stored.
+    /// Sample `i` of `batch`: (posterior mean, log-variance, conditioning latent scaled and laid
+    /// out for the transformer by `scale_latent`), from the cache or encoded with `vae` on
+    /// `device` and stored.
     pub(super) fn get_or_encode(
         &self,
-        model: &CogNvsModel,
+        vae: &AutoencoderKLCogVideoX,
+        device: Device,
+        scale_latent: impl Fn(&Tensor) -> Result<Tensor>,
         batch: &Batch,
-        i: i64,
-        noise_log_mean: f64,
-        noise_log_std: f64,
+        (i, noise_log_mean, noise_log_std): (i64, f64, f64),
     ) -> Result<(Tensor, Tensor, Tensor)> {
-        let device = model.text.device();
         let (path, seed) = self.key(&batch.provenance[i as usize]);
         if let Ok(entries) = Tensor::read_safetensors(&path) {
             let map: BTreeMap<String, Tensor> = entries.into_iter().collect();
@@ -73,14 +73,14 @@ impl LatentCache {
         let sigma = (Tensor::f_randn([1], (Kind::Float, Device::Cpu))?.double_value(&[0]) * noise_log_std
             + noise_log_mean)
             .exp();
-        let noisy = condition.f_add(&condition.f_randn_like()?.f_mul_scalar(sigma)?)?.f_to_kind(model.kind)?;
-        let target = target.f_to_kind(model.kind)?;
+        let noisy = condition.f_add(&condition.f_randn_like()?.f_mul_scalar(sigma)?)?.f_to_kind(vae.kind())?;
+        let target = target.f_to_kind(vae.kind())?;
         let (posterior, cond) = tch::no_grad(|| -> Result<_> {
-            let posterior = model.vae.encode_posterior(&target)?;
-            let cond = model.vae.encode(&noisy)?;
+            let posterior = vae.encode_posterior(&target)?;
+            let cond = vae.encode(&noisy)?;
             Ok((posterior, cond))
         })?;
-        let cond = model.scale_latent(&cond)?;
+        let cond = scale_latent(&cond)?;
         let temp = path.with_extension(format!("tmp-{}", std::process::id()));
         Tensor::write_safetensors(
             &[("mean", &posterior.mean), ("logvar", &posterior.logvar), ("condition", &cond)],

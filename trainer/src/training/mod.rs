@@ -1,4 +1,4 @@
-//! Pretraining the CogNVS transformer on shard pairs (DESIGN §6): the objective, AdamW, the
+//! Pretraining the CogNVS transformer on shard pairs: the objective, AdamW, the
 //! learning-rate schedule, gradient clipping and accumulation, checkpoints that resume exactly,
 //! and the `trainer pretrain` loop.
 //!

@@ -1,4 +1,4 @@
-//! The trained and frozen models and the CogNVS objective (DESIGN §6): noise-augmented
+//! The trained and frozen models and the CogNVS objective (the public CogNVS training code): noise-augmented
 //! condition, v-prediction, x̂₀ loss weighted by 1/(1−ᾱ_t).
 
 use std::path::Path;
@@ -10,8 +10,9 @@ use crate::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoX};
 use crate::cogvideox_transformer_3d::{self as transformer, BlockTape, CogVideoXTransformer3DModel, TransformerInput};
 use crate::data::Batch;
 use crate::error::Result;
-use crate::lora::{LoraConfig, LoraFile};
-use crate::scheduling_ddim::NoiseSchedule;
+use crate::loaders::lora::LoraFile;
+use crate::lora::LoraConfig;
+use crate::scheduling_ddim_cogvideox::NoiseSchedule;
 use crate::weights;
 
 /// The trained transformer, the frozen VAE, the noise schedule and the text input.
@@ -75,7 +76,7 @@ impl CogNvsModel {
             weights::load(&vae_vs, Path::new(&config.vae))?;
         }
         vae_vs.freeze();
-        let text = crate::sampling::load_text_embedding(config.text_embedding.as_deref(), &transformer_config, device)?;
+        let text = crate::loaders::load_text_embedding(config.text_embedding.as_deref(), &transformer_config, device)?;
         let schedule = NoiseSchedule::new(&config.scheduler_config()?)?;
         Ok(Self {
             vs,
@@ -240,7 +241,9 @@ impl CogNvsModel {
                 let mut cond = Vec::new();
                 let mut posteriors = Vec::new();
                 for i in 0..b {
-                    let entry = cache.get_or_encode(self, batch, i, noise_log_mean, noise_log_std)?;
+                    let scale = |latent: &Tensor| self.scale_latent(latent);
+                    let entry =
+                        cache.get_or_encode(&self.vae, device, scale, batch, (i, noise_log_mean, noise_log_std))?;
                     posteriors.push(entry);
                 }
                 tch::manual_seed(resume_seed);
@@ -376,4 +379,15 @@ impl Picker {
     fn randint(&self, high: i64, b: i64) -> Result<Tensor> {
         self.keep(Tensor::f_randint(high, [b * self.world], (Kind::Int64, self.device))?)
     }
+}
+
+/// The seed of tch's generator for step `step` of a run seeded `seed` (also the validation
+/// pairs' sampling seeds, with `step` their index).
+pub(super) fn step_seed(seed: u64, step: u64) -> i64 {
+    let mut hasher = blake3::Hasher::new();
+    hasher.update(b"cognvs train step v1");
+    hasher.update(&seed.to_le_bytes());
+    hasher.update(&step.to_le_bytes());
+    let bytes = hasher.finalize();
+    i64::from_le_bytes(bytes.as_bytes()[..8].try_into().expect("8 bytes")) & i64::MAX
 }

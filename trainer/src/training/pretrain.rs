@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 use tch::{Device, Kind};
 
 use super::checkpoint::{list_checkpoints, save_checkpoint};
+use super::objective::step_seed;
 use super::parallel::StepOptimizer;
 use super::preempt::PreemptWatch;
 use super::run_lock::RunLock;
@@ -182,7 +183,7 @@ pub(super) fn train(
     if let Some((dir, saved)) = &latest {
         // A LoRA run's adapters resume from the optimizer file's exact values; its base is the
         // configured model, loaded above.
-        let lora_file = dir.join(crate::lora::LORA_WEIGHTS_NAME);
+        let lora_file = dir.join(crate::loaders::lora::LORA_WEIGHTS_NAME);
         match (model.lora_vs.is_some(), lora_file.is_file()) {
             (false, false) => {
                 weights::load(&model.vs, &dir.join("transformer"))?;
@@ -234,7 +235,7 @@ pub(super) fn train(
     let mut last_checkpoint = latest.map(|(d, _)| d);
     let accumulation = config.optim.grad_accumulation;
     let cache = match &config.train.latent_cache {
-        Some(dir) => Some(LatentCache::open(dir, &model, &config.data)?),
+        Some(dir) => Some(LatentCache::open(dir, &model.vae, &model.vae_vs, &config.data)?),
         None => None,
     };
     let validation = super::validation::Validation::new(config, held_out, device)?;
@@ -427,7 +428,7 @@ fn write_run_models(run: &Path, config: &PretrainConfig, model: &CogNvsModel) ->
     // A LoRA run's checkpoints hold only adapters: the base they sit on is kept once, unless it is
     // simply the configured model folder.
     let base_is_folder = Path::new(&config.model.transformer).is_dir() && config.model.transformer_lora.is_none();
-    let base_dir = run.join(crate::lora::BASE_TRANSFORMER_DIR);
+    let base_dir = run.join(crate::loaders::lora::BASE_TRANSFORMER_DIR);
     if model.lora_vs.is_some() && !base_is_folder && !base_dir.join("config.json").exists() {
         weights::save(
             &model.vs,
@@ -438,17 +439,6 @@ fn write_run_models(run: &Path, config: &PretrainConfig, model: &CogNvsModel) ->
         )?;
     }
     Ok(())
-}
-
-/// The seed of tch's generator for step `step` of a run seeded `seed` (also the validation
-/// pairs' sampling seeds, with `step` their index).
-pub(super) fn step_seed(seed: u64, step: u64) -> i64 {
-    let mut hasher = blake3::Hasher::new();
-    hasher.update(b"cognvs train step v1");
-    hasher.update(&seed.to_le_bytes());
-    hasher.update(&step.to_le_bytes());
-    let bytes = hasher.finalize();
-    i64::from_le_bytes(bytes.as_bytes()[..8].try_into().expect("8 bytes")) & i64::MAX
 }
 
 /// A line of `metrics.jsonl` that is not a step's: `{"step": N, "validation": {...}}`.

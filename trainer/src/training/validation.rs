@@ -177,7 +177,7 @@ impl Validation {
             let sheet = if rank == 0 {
                 let data = DataConfig { batch_size: 1, rank: 0, world_size: 1, ..config.data.clone() };
                 let batch = ShardLoader::open(shards, data, DataPosition::default())?.next_batch()?;
-                let seed = super::pretrain::step_seed(config.train.seed ^ VALIDATION_SEED, step);
+                let seed = super::objective::step_seed(config.train.seed ^ VALIDATION_SEED, step);
                 Some(sample_pair(model, &batch, seed, config.train.validation_steps)?.write(run, step, &batch)?)
             } else {
                 None
@@ -195,7 +195,7 @@ impl Validation {
             if i % world != rank {
                 continue;
             }
-            let seed = super::pretrain::step_seed(held.data.seed ^ VALIDATION_SEED, i as u64);
+            let seed = super::objective::step_seed(held.data.seed ^ VALIDATION_SEED, i as u64);
             let sampled = sample_pair(model, &batch, seed, config.train.validation_steps)?;
             sums.add(&sampled, held.lpips.as_ref(), model.text.device())?;
             if i == 0 {

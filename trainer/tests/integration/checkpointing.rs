@@ -93,7 +93,7 @@ fn checkpointed_lora_run_repeats_the_plain_lora_run() {
     let (plain, checkpointed) = (dir.path().join("plain"), dir.path().join("checkpointed"));
     pretrain(&config_with(dir.path(), steps, false, lora), &shards, &plain);
     pretrain(&config_with(dir.path(), steps, true, lora), &shards, &checkpointed);
-    assert_runs_agree(&plain, &checkpointed, steps, trainer::lora::LORA_WEIGHTS_NAME, "adapters");
+    assert_runs_agree(&plain, &checkpointed, steps, trainer::loaders::lora::LORA_WEIGHTS_NAME, "adapters");
 }
 
 #[test]
@@ -105,7 +105,7 @@ fn frozen_vae_and_text_embedding_hold_no_autograd_state() {
     let mut loader = ShardLoader::open(&[shards], config.data.clone(), DataPosition::default()).unwrap();
     let batch = loader.next_batch().unwrap();
     let cache_dir = dir.path().join("latents");
-    for cache in [None, Some(LatentCache::open(&cache_dir, &model, &config.data).unwrap())] {
+    for cache in [None, Some(LatentCache::open(&cache_dir, &model.vae, &model.vae_vs, &config.data).unwrap())] {
         let value = model
             .loss_backward(
                 &batch,

@@ -10,11 +10,11 @@ use trainer::tch::{Device, Kind, Tensor};
 
 use super::parity::{assert_close, read_tensors, run_python};
 
-/// Per-image LPIPS tolerance (issue 16).
+/// Per-image LPIPS tolerance.
 const LPIPS_TOL: f64 = 1e-5;
-/// Inception feature tolerance, relative to the largest feature (issue 16).
+/// Inception feature tolerance, relative to the largest feature.
 const FEATURE_TOL: f64 = 1e-4;
-/// FID / KID relative tolerance (issue 16).
+/// FID / KID relative tolerance.
 const SET_TOL: f64 = 1e-3;
 
 /// The goldens, generated once per test run (the script takes a minute or two on two cores)

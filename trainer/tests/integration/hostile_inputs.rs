@@ -1,4 +1,4 @@
-//! Hostile inputs to `trainer` (issue 15): every bad config value, shard folder, safetensors
+//! Hostile inputs to `trainer`: every bad config value, shard folder, safetensors
 //! file, dtype, config.json, frame size or count fails with one error naming the file and the
 //! key or tensor, before any model work and without writing anything; diffusers-accepted VAE
 //! configs and off-size conditionings are computed as diffusers / the training loader do.
@@ -341,7 +341,7 @@ fn integer_inputs_where_floats_are_expected_name_tensor_and_dtype() {
     Tensor::write_safetensors(&[("encoder_hidden_states", &Tensor::zeros([8, 16], (Kind::Int, Device::Cpu)))], &text)
         .unwrap();
     let err =
-        trainer::sampling::load_text_embedding(Some(&text), &CogVideoXTransformer3DModelConfig::tiny(), Device::Cpu)
+        trainer::loaders::load_text_embedding(Some(&text), &CogVideoXTransformer3DModelConfig::tiny(), Device::Cpu)
             .unwrap_err()
             .to_string();
     assert!(err.contains("encoder_hidden_states") && err.contains("Int"), "{err}");

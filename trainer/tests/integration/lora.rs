@@ -9,7 +9,8 @@ use std::process::Command;
 
 use tch::{Device, Kind, Tensor};
 use trainer::cogvideox_transformer_3d::{self as transformer, CogVideoXTransformer3DModelConfig, TransformerInput};
-use trainer::lora::{LORA_WEIGHTS_NAME, LoraConfig};
+use trainer::loaders::lora::LORA_WEIGHTS_NAME;
+use trainer::lora::LoraConfig;
 use trainer::training::read_metrics;
 
 use super::parity::{errors, read_tensors, repo_root, run_python};
@@ -176,7 +177,7 @@ fn lora_file_loads_in_diffusers_with_our_outputs_and_merge_round_trips() {
         }
     });
     let file = dir.path().join(LORA_WEIGHTS_NAME);
-    trainer::lora::save(&lora_vs, &BTreeMap::new(), lora.scale(), &file).unwrap();
+    trainer::loaders::lora::save(&lora_vs, &BTreeMap::new(), lora.scale(), &file).unwrap();
     let x = inputs(&dir.path().join("inputs.safetensors"));
     let ours = forward(&model, &x);
 

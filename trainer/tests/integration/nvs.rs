@@ -9,7 +9,7 @@ use std::process::{Command, Output};
 
 use trainer::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoXConfig};
 use trainer::cogvideox_transformer_3d::{self as transformer, CogVideoXTransformer3DModelConfig};
-use trainer::scheduling_ddim::CogVideoXSchedulerConfig;
+use trainer::scheduling_ddim_cogvideox::CogVideoXSchedulerConfig;
 use trainer::tch::{Device, Kind};
 use trainer::weights;
 

@@ -16,7 +16,7 @@ use trainer::training::PretrainConfig;
 use super::parity::repo_root;
 
 /// Published per-GPU memory of CogVideoX-5B at 49×480×720 with gradient checkpointing (the
-/// CogVideo finetune README, cogvideox-factory and finetrainers docs, as issue 14 quotes them):
+/// CogVideo finetune README, cogvideox-factory and finetrainers docs):
 /// LoRA rank 128 about 20–24 GB on one GPU; full SFT about 42 GB per GPU under ZeRO-2 on 8.
 const LORA_ANCHOR_GB: (f64, f64) = (20.0, 24.0);
 const FULL_ZERO2_ANCHOR_GB: f64 = 42.0;

@@ -49,7 +49,7 @@ fn encode_prompt_equals_the_cogvideox_prompt_encoder() {
                 text_embed_dim: 32,
                 ..CogVideoXTransformer3DModelConfig::tiny()
             };
-            let loaded = trainer::sampling::load_text_embedding(Some(&out), &config, Device::Cpu).unwrap();
+            let loaded = trainer::loaders::load_text_embedding(Some(&out), &config, Device::Cpu).unwrap();
             assert!(loaded.squeeze_dim(0).equal(theirs));
         }
     }

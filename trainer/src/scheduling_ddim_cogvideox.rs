@@ -1,6 +1,6 @@
 //! CogVideoX's DDIM scheduler (diffusers' `CogVideoXDDIMScheduler`,
 //! `diffusers/schedulers/scheduling_ddim_cogvideox.py`) and what it shares with the DPM scheduler
-//! (`scheduling_cogvideox_dpm.rs`): the `scheduler_config.json` both read, the noise schedule
+//! (`scheduling_dpm_cogvideox.rs`): the `scheduler_config.json` both read, the noise schedule
 //! ᾱ_t (with CogVideoX's SNR shift and the zero-terminal-SNR rescale), inference timesteps,
 //! `add_noise` and `get_velocity` (the training side: noising latents and the v-prediction target).
 //!
@@ -116,7 +116,7 @@ impl DiffusersConfig for CogVideoXSchedulerConfig {
 }
 
 impl CogVideoXSchedulerConfig {
-    /// `THUDM/CogVideoX-5b-I2V` `scheduler/scheduler_config.json` (DESIGN.md §6): scaled-linear
+    /// `THUDM/CogVideoX-5b-I2V` `scheduler/scheduler_config.json`: scaled-linear
     /// βs 0.00085→0.012, 1000 steps, v-prediction, zero terminal SNR, SNR shift 1.0, trailing.
     pub fn cogvideox_5b() -> Self {
         Self {

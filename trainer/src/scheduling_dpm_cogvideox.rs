@@ -2,7 +2,7 @@
 //! (`diffusers/schedulers/scheduling_dpm_cogvideox.py`), a stochastic DPM-Solver++(2M) in the
 //! log-SNR λ = log √(ᾱ/(1−ᾱ)): a first-order step from x̂₀, then second-order steps that
 //! extrapolate x̂₀ with the previous step's x̂₀. Every step injects fresh Gaussian noise scaled by
-//! √(1−ᾱ_prev)·√(1−e^{−2h}). The 5B pipelines sample with it for 50 steps (DESIGN.md §6).
+//! √(1−ᾱ_prev)·√(1−e^{−2h}). The 5B pipelines sample with it for 50 steps.
 //!
 //! Noise: diffusers draws one noise tensor on a first-order step and two on a second-order step
 //! (keeping the second). [`CogVideoXDPMScheduler::step`] draws the same way from tch's global
@@ -12,7 +12,9 @@
 use tch::Tensor;
 
 use crate::error::Result;
-use crate::scheduling_ddim::{CogVideoXSchedulerConfig, NoiseSchedule, SchedulerStepOutput, not_set, same_shape};
+use crate::scheduling_ddim_cogvideox::{
+    CogVideoXSchedulerConfig, NoiseSchedule, SchedulerStepOutput, not_set, same_shape,
+};
 
 /// diffusers' `CogVideoXDPMScheduler`.
 #[derive(Debug)]

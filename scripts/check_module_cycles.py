@@ -1,0 +1,183 @@
+#!/usr/bin/env python3
+"""Finds import cycles among the modules of Rust crates: exits 1 listing them, 0 when none.
+
+Usage: check_module_cycles.py CRATE_SRC_DIR...   (e.g. datagen/src trainer/src schemas/src)
+       check_module_cycles.py --self-test          (the checker on small crates it writes)
+
+A module is a source file (`a/b.rs` or `a/b/mod.rs` is module `a::b`; `lib.rs` and `main.rs` are
+the crate root). Module A depends on module B when A's code (comments and tests excluded) names a
+path into B: `crate::b::...`, `super::...`, or `self::...`, resolved to the deepest module the
+path reaches. A path that stops at a module's re-export (`pub use child::Item;` in a `mod.rs`) is
+followed to the child that defines the item, so siblings that use each other through their
+parent's re-exports are seen as what they are. A parent declaring or re-exporting its children is
+containment, not use, and is not an edge. Every strongly connected group of more than one module
+is a cycle.
+"""
+
+import re
+import sys
+from pathlib import Path
+
+PATH = re.compile(r"\b(crate|super|self)((?:::[A-Za-z_][A-Za-z0-9_]*)+|::\{)")
+USE_GROUP = re.compile(r"\buse\s+((?:crate|super|self)(?:::[A-Za-z_][A-Za-z0-9_]*)*)::\{([^;]*)\};", re.S)
+REEXPORT = re.compile(r"\bpub(?:\([a-z]+\))?\s+use\s+([a-z_][a-z0-9_]*)::(\{[^;]*\}|[A-Za-z_][A-Za-z0-9_]*(?:\s+as\s+\w+)?);", re.S)
+
+
+def strip(text: str) -> str:
+    """The code without comments, string literals and `#[cfg(test)]` modules."""
+    text = re.sub(r"//[^\n]*", "", text)
+    text = re.sub(r"/\*.*?\*/", "", text, flags=re.S)
+    text = re.sub(r'r#*"(?:.|\n)*?"#*', '""', text)
+    text = re.sub(r'"(?:\\.|[^"\\])*"', '""', text)
+    start = text.find("#[cfg(test)]")
+    return text if start < 0 else text[:start]
+
+
+def modules(src: Path) -> dict[tuple[str, ...], Path]:
+    found = {}
+    for path in src.rglob("*.rs"):
+        parts = list(path.relative_to(src).with_suffix("").parts)
+        if parts[-1] == "mod":
+            parts.pop()
+        if parts in (["lib"], ["main"]) or (parts and parts[0] in ("bin",)):
+            parts = []
+        found.setdefault(tuple(parts), path)
+    return found
+
+
+def reexports(code: str) -> dict[str, str]:
+    """Item name -> child module, from a module's `pub use child::...;` lines."""
+    items = {}
+    for child, body in REEXPORT.findall(code):
+        for item in re.findall(r"[A-Za-z_][A-Za-z0-9_]*(?:\s+as\s+[A-Za-z_]\w*)?", body.strip("{}")):
+            name = item.split(" as ")[-1].strip()
+            items[name] = child
+    return items
+
+
+def resolve(path: list[str], mods: dict, exports: dict) -> tuple[str, ...] | None:
+    """The deepest module `path` (absolute segments) reaches, following re-exports one level."""
+    best = None
+    for i in range(len(path) + 1):
+        head = tuple(path[:i])
+        if head in mods:
+            best = head
+            if i < len(path) and path[i] in exports.get(head, {}):
+                child = head + (exports[head][path[i]],)
+                if child in mods:
+                    return child
+        elif i > 0:
+            break
+    return best
+
+
+def edges_of(module: tuple[str, ...], code: str, mods: dict, exports: dict) -> set[tuple[str, ...]]:
+    here = list(module) if mods[module].name in ("mod.rs", "lib.rs", "main.rs") else list(module)
+    parent = list(module[:-1])
+
+    def absolute(root: str, rest: list[str]) -> list[str]:
+        return {"crate": [], "super": parent, "self": here}[root] + rest
+
+    targets = set()
+    for prefix, body in USE_GROUP.findall(code):
+        segments = prefix.split("::")
+        base = absolute(segments[0], segments[1:])
+        for item in re.findall(r"[A-Za-z_][A-Za-z0-9_:]*", body):
+            if item in ("self", "as"):
+                continue
+            target = resolve(base + item.split("::"), mods, exports)
+            if target is not None:
+                targets.add(target)
+    for root, rest in PATH.findall(code):
+        if rest == "::{":
+            continue
+        target = resolve(absolute(root, rest.strip(":").split("::")), mods, exports)
+        if target is not None:
+            targets.add(target)
+    # A module using its own items, or a parent its children, is not a dependency.
+    return {t for t in targets if t != module and t[: len(module)] != module}
+
+
+def cycles(graph: dict) -> list[list]:
+    index, low, stack, on, out = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            group = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                group.append(w)
+                if w == v:
+                    break
+            if len(group) > 1:
+                out.append(sorted(group))
+
+    sys.setrecursionlimit(10_000)
+    for v in graph:
+        if v not in index:
+            visit(v)
+    return out
+
+
+def check(src: Path) -> list[str]:
+    mods = modules(src)
+    codes = {m: strip(p.read_text()) for m, p in mods.items()}
+    exports = {m: reexports(c) for m, c in codes.items()}
+    graph = {m: edges_of(m, c, mods, exports) for m, c in codes.items()}
+    problems = []
+    for group in cycles(graph):
+        names = ["::".join(m) or "crate" for m in group]
+        uses = [f"{'::'.join(a) or 'crate'} -> {'::'.join(b) or 'crate'}" for a in group for b in graph[a] if b in group]
+        problems.append(f"{src}: import cycle among {', '.join(names)} ({'; '.join(uses)})")
+    return problems
+
+
+def self_test() -> None:
+    """A cycle through a parent's re-export, a direct one and a one-way use: the first two found,
+    the third not."""
+    import tempfile
+    crates = {
+        "reexport": {"lib.rs": "pub mod a;\npub mod b;", "a/mod.rs": "mod x;\npub use x::Thing;",
+                     "a/x.rs": "use crate::b::helper;\npub struct Thing;", "b.rs": "use crate::a::Thing;\npub fn helper() {}"},
+        "direct": {"lib.rs": "mod a;\nmod b;", "a.rs": "fn f() { crate::b::g() }", "b.rs": "use super::a;"},
+        "acyclic": {"lib.rs": "mod a;\nmod b;", "a.rs": "use crate::b::g;", "b.rs": "// crate::a::f in a comment\n"
+                    "#[cfg(test)]\nmod tests { use crate::a::f; }"},
+    }
+    with tempfile.TemporaryDirectory() as root:
+        found = {}
+        for name, files in crates.items():
+            for rel, text in files.items():
+                path = Path(root, name, rel)
+                path.parent.mkdir(parents=True, exist_ok=True)
+                path.write_text(text)
+            found[name] = check(Path(root, name))
+    assert found["reexport"] and "a::x" in found["reexport"][0] and " b" in found["reexport"][0], found
+    assert found["direct"], found
+    assert not found["acyclic"], found
+    print("self-test: cycles through re-exports and direct ones found, none where there is none")
+
+
+def main() -> None:
+    if sys.argv[1:] == ["--self-test"]:
+        self_test()
+        return
+    problems = [p for arg in sys.argv[1:] for p in check(Path(arg))]
+    for p in problems:
+        print(p)
+    if problems:
+        sys.exit(1)
+    print(f"no import cycles in {', '.join(sys.argv[1:])}")
+
+
+if __name__ == "__main__":
+    main()

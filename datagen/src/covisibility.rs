@@ -1,9 +1,9 @@
-//! Exact co-visibility (DESIGN §4): a source pixel with surface point X is co-visible from a
-//! novel camera iff X lies in front of it, projects inside its image, and the segment from the
-//! novel camera's centre to X crosses no triangle of the frame's depth mesh before X (up to a
-//! relative epsilon; the triangles having X as a corner are its own surface and never occlude
-//! it). One mesh per frame serves every trajectory; pixels are independent, so the mask is
-//! bit-identical whatever the thread count.
+//! Exact co-visibility: a source pixel with surface point X is co-visible from a novel camera iff X
+//! lies in front of it, projects inside its image, and the segment from the novel camera's centre
+//! to X crosses no triangle of the frame's depth mesh before X (up to a relative epsilon; the
+//! triangles having X as a corner are its own surface and never occlude it). One mesh per frame
+//! serves every trajectory; pixels are independent, so the mask is bit-identical whatever the
+//! thread count.
 
 use serde::{Deserialize, Serialize};
 

@@ -1,6 +1,6 @@
-//! Novel-view rendering (DESIGN §4): one ray per novel pixel into the frame's depth mesh (skirts
-//! ignored), the source colour at the first hit by bilinear interpolation; no hit is a hole
-//! (black in the image, 255 in the hole mask). This is the conditioning at inference time.
+//! Novel-view rendering: one ray per novel pixel into the frame's depth mesh (skirts ignored), the
+//! source colour at the first hit by bilinear interpolation; no hit is a hole (black in the image,
+//! 255 in the hole mask). This is the conditioning at inference time.
 
 use glam::DVec2;
 use image::{GrayImage, Rgb, RgbImage};
@@ -35,13 +35,12 @@ pub fn render_novel_view(
 ) -> (RgbImage, GrayImage) {
     let (width, height) = (novel.width as usize, novel.height as usize);
     let eye = novel.center();
-    let view = mesh.view(novel);
+    let hits = mesh.view(novel).surface_hits();
     let colours: Vec<Option<Rgb<u8>>> = (0..width * height)
         .into_par_iter()
         .map(|i| {
             let direction = novel.pixel_ray((i % width) as f64, (i / width) as f64).normalize();
-            let distance = view.first_surface_hit(direction)?;
-            let (pixel, _) = source.project(eye + direction * distance)?;
+            let (pixel, _) = source.project(eye + direction * hits[i]?)?;
             Some(bilinear(frame, pixel))
         })
         .collect();

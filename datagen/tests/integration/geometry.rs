@@ -137,10 +137,10 @@ fn with_accelerator(accelerator: Accelerator) -> CovisibilityConfig {
     CovisibilityConfig { mesh: MeshConfig { accelerator, ..MeshConfig::default() }, ..CovisibilityConfig::default() }
 }
 
-/// Every query path (per-view bins, single-ray pyramid, obvhs BVH) equals a brute-force loop over
-/// every triangle, skirts included: for the visibility segment of every pixel and the render ray
-/// of every novel pixel, from orbits left and right, above, and close to the surface (where
-/// triangles reach the novel camera's image plane and take the unbinned path).
+/// Every query path (the image grids' batches and single rays, the obvhs BVH) equals a brute-force
+/// loop over every triangle, skirts included: for the visibility segment of every pixel and the
+/// render ray of every novel pixel, from orbits left and right, above, and close to the surface
+/// (where triangles reach the novel camera's image plane and visit every pixel).
 #[test]
 fn every_accelerator_equals_brute_force_pixel_for_pixel() {
     let (scene, rendered) = synth(2);
@@ -192,7 +192,7 @@ fn every_accelerator_equals_brute_force_pixel_for_pixel() {
         assert!(blocked > 100, "the view changes must hide something ({blocked})");
         if accelerator == Accelerator::ImageGrids {
             assert!(unbinned > 0, "the close view must reach the image plane");
-            // More tiles than quads: magnified boxes were cut into several tiles.
+            // More (quad, pixel) pairs than quads: magnified quads cover several pixels.
             assert!(most_tiles > 64 * 48, "the close view must magnify quads over several bins ({most_tiles})");
         }
     }
@@ -296,12 +296,12 @@ fn skipped_quad_blocks_hide_nothing_brute_force_would_find() {
     assert!(skipped > 0 && tested > 0, "blocks skipped {skipped}, tested {tested}");
 }
 
-/// The co-visibility batch works on bands of 16 pixel rows (the projections, point-bin entries and
-/// block flags of a band are made together): images whose height is no multiple of a band, down
-/// to a single row or column, give masks equal to brute force. The surface is corrugated, so that
-/// from the turned cameras its ridges hide its own valleys (which only the block flags catch: the
-/// hidden points are the blocks' own), on the right; a plane whose blocks the batch skips on the
-/// left; a square floating in front across rows 12–20; a few holes (no depth) in one corner.
+/// The co-visibility batch works on bands of 16 pixel rows and blocks of 8×8 quads: images whose
+/// height or width is no multiple of either, down to a single row or column, give masks equal to
+/// brute force. The surface is corrugated, so that from the turned cameras its ridges hide its own
+/// valleys (points near the hiding quads, which a skipped block must not miss), on the right; a
+/// plane whose blocks the batch skips on the left; a square floating in front across rows 12–20;
+/// a few holes (no depth) in one corner.
 #[test]
 fn masks_of_images_cut_into_partial_bands_equal_brute_force() {
     let config = CovisibilityConfig::default();
@@ -338,7 +338,7 @@ fn masks_of_images_cut_into_partial_bands_equal_brute_force() {
     assert!(skipped > 0, "some blocks must be skipped, or the block proof goes untested");
 }
 
-/// The per-view bins and the obvhs BVH give the same masks and renders at full resolution on a
+/// The image grids and the obvhs BVH give the same masks and renders at full resolution on a
 /// Blender fixture, with both of its ground-truth novel trajectories.
 #[test]
 fn image_grids_and_obvhs_bvh_agree_on_a_fixture() {

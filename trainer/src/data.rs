@@ -47,7 +47,9 @@ pub struct DataConfig {
     pub height: u32,
     /// Training width in pixels. Valid: as `height`.
     pub width: u32,
-    /// Samples per batch (per rank). Valid: 1 to [`MAX_BATCH_SIZE`], and one batch's decoded
+    /// Samples per batch. In a training config's `[data]` table the global batch, which the
+    /// trainer splits evenly over the ranks; the loader a rank opens is given its share (the
+    /// global batch / world size). Valid: 1 to [`MAX_BATCH_SIZE`], and one batch's decoded
     /// tensors within [`MAX_BATCH_BYTES`].
     pub batch_size: usize,
     /// Seed of the order, trajectory and window choices. Valid: any.

@@ -221,8 +221,9 @@ impl<'de> Deserialize<'de> for CheckpointEvery {
 pub struct ValidationConfig {
     /// Shard folders of held-out pairs (never trained on). Valid: folders of finished shards.
     pub shards: Vec<PathBuf>,
-    /// Fraction of the training shards' clips held out by clip id (a hash of the id, so the same
-    /// clips whatever the seed, the shard order or the world size) and never trained on.
+    /// Fraction of the training shards' videos held out, with all their clips, and never trained
+    /// on (a hash of `{dataset}/{source_id}`, so the same videos whatever the seed, the shard order
+    /// or the world size).
     /// Valid: in [0, 1); at least one of `shards` and `holdout_fraction` given.
     pub holdout_fraction: f64,
     /// Held-out pairs sampled at each validation (fewer when fewer clips are held out); with

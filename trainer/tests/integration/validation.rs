@@ -1,5 +1,5 @@
-//! Held-out validation while training: clips held out of the training shards by id are never in
-//! a training batch, validation shards that are also training shards are refused, and a run
+//! Held-out validation while training: videos held out of the training shards are never in a
+//! training batch, none of their clips, validation shards that are also training shards are refused, and a run
 //! logs PSNR, SSIM and LPIPS (whole frames and co-visible pixels) of a fixed set of held-out
 //! pairs to `metrics.jsonl` and TensorBoard; on 2 ranks the pairs are shared out and the means
 //! are those of 1 rank.
@@ -18,12 +18,25 @@ fn validation_shards(dir: &Path) -> PathBuf {
     super::pretrain::video_pairs(&dir.join("held-out"), "heldout", 13, 9, 1)
 }
 
-/// The smallest fraction (in steps of 0.05) that holds out exactly one of `ids`.
-fn fraction_holding_out_one(ids: &[String]) -> f64 {
+/// The smallest fraction (in steps of 0.05) that holds out exactly one of the videos of `ids`.
+fn fraction_holding_out_one_video(ids: &[String]) -> f64 {
+    let video = |id: &String| id.rsplit_once('/').unwrap().0.to_string();
     (1..20)
         .map(|k| f64::from(k) * 0.05)
-        .find(|&f| ids.iter().filter(|id| is_held_out(id, f)).count() == 1)
-        .expect("some fraction holds out exactly one clip")
+        .find(|&f| {
+            let held: std::collections::BTreeSet<String> =
+                ids.iter().filter(|id| is_held_out(id, f)).map(video).collect();
+            held.len() == 1
+        })
+        .expect("some fraction holds out exactly one video")
+}
+
+/// `pretrain_args` with a second shard folder after the first.
+fn pretrain_args_two(config: &Path, shards: [&Path; 2], out: &Path) -> Vec<std::ffi::OsString> {
+    let mut args = pretrain_args(config, shards[0], out, false);
+    let at = args.iter().position(|a| a == "--shards").unwrap() + 2;
+    args.insert(at, shards[1].into());
+    args
 }
 
 fn validation_config(dir: &Path, name: &str, section: &str) -> PathBuf {
@@ -37,14 +50,19 @@ fn validation_config(dir: &Path, name: &str, section: &str) -> PathBuf {
 }
 
 #[test]
-fn held_out_clips_are_never_trained_on_and_a_run_measures_them() {
+fn held_out_videos_are_never_trained_on_and_a_run_measures_them() {
     let dir = tempfile::tempdir().unwrap();
+    // Two training videos: 3 clips of dataset `synth`, 2 of dataset `second`.
     let shards = super::pretrain::pairs(dir.path());
+    let second = super::pretrain::video_pairs(&dir.path().join("second"), "second", 13, 7, 1);
     let held_out_shards = validation_shards(dir.path());
-    let ids = schemas::clip_ids(&shards.join("seq.parquet")).unwrap();
-    assert_eq!(ids.len(), 3);
-    let fraction = fraction_holding_out_one(&ids);
-    let held_id = ids.iter().find(|id| is_held_out(id, fraction)).unwrap().clone();
+    let ids: Vec<String> =
+        [&shards, &second].iter().flat_map(|s| schemas::clip_ids(&s.join("seq.parquet")).unwrap()).collect();
+    assert_eq!(ids.len(), 5);
+    let fraction = fraction_holding_out_one_video(&ids);
+    let held_ids: Vec<&String> = ids.iter().filter(|id| is_held_out(id, fraction)).collect();
+    let held_video = held_ids[0].rsplit_once('/').unwrap().0;
+    assert!(held_ids.len() >= 2, "a video is held out with all its clips: {held_ids:?}");
     let lpips = super::eval_parity::goldens().join("lpips_alex.safetensors");
     let section = format!(
         "[validation]\nshards = [{:?}]\nholdout_fraction = {fraction}\npairs = 3\nlpips_weights = {:?}\n",
@@ -55,29 +73,32 @@ fn held_out_clips_are_never_trained_on_and_a_run_measures_them() {
 
     // The training clips leave the held-out one out, over whole epochs of batches.
     let config = PretrainConfig::from_toml_file(&config_path).unwrap();
-    let (training, held) = split_training_clips(&config, std::slice::from_ref(&shards)).unwrap();
-    assert_eq!((training.len(), held.as_ref().map(|h| h.len())), (2, Some(1 + 2)));
+    let training_shards = [shards.clone(), second.clone()];
+    let (training, held) = split_training_clips(&config, &training_shards).unwrap();
+    let trained = ids.len() - held_ids.len();
+    assert_eq!((training.len(), held.as_ref().map(|h| h.len())), (trained, Some(held_ids.len() + 2)));
     let data = DataConfig { batch_size: 1, ..config.data.clone() };
     let mut loader = ShardLoader::new(std::sync::Arc::new(training), data, DataPosition::default()).unwrap();
-    for _ in 0..6 {
+    for _ in 0..3 * trained {
         let batch = loader.next_batch().unwrap();
-        assert!(!batch.provenance[0].starts_with(&format!("{held_id}#")), "{held_id} was trained on");
+        assert!(!batch.provenance[0].starts_with(&format!("{held_video}/")), "{held_video} was trained on");
     }
     // Validation shards that are training shards would be trained on: refused.
     let mut overlapping = config.clone();
     overlapping.validation.as_mut().unwrap().shards = vec![shards.clone()];
-    let refused = split_training_clips(&overlapping, std::slice::from_ref(&shards)).unwrap_err().to_string();
+    let refused = split_training_clips(&overlapping, &training_shards).unwrap_err().to_string();
     assert!(refused.contains("validation.shards") && refused.contains("training shard"), "{refused}");
 
     // One rank: a validation line at steps 2 and 4, every metric present and in range.
     let run = dir.path().join("one");
     let output = std::process::Command::new(env!("CARGO_BIN_EXE_trainer"))
-        .args(pretrain_args(&config_path, &shards, &run, false))
+        .args(pretrain_args_two(&config_path, [&shards, &second], &run))
         .output()
         .unwrap();
     assert_success(&output);
     let err = String::from_utf8_lossy(&output.stderr);
-    assert!(err.contains("training on 2 clips; 3 held out for validation"), "{err}");
+    let counts = format!("training on {trained} clips; {} held out for validation", held_ids.len() + 2);
+    assert!(err.contains(&counts), "{err}");
     let measured = read_validation(&run).unwrap();
     assert_eq!(measured.iter().map(|(step, _)| *step).collect::<Vec<_>>(), vec![2, 4]);
     for (step, m) in &measured {
@@ -108,7 +129,7 @@ fn held_out_clips_are_never_trained_on_and_a_run_measures_them() {
     // Two ranks share the pairs (rank 0 two, rank 1 one) and report the means over all three:
     // those of one rank, up to the weights' fp32 reduction-order differences.
     let ranks = dir.path().join("two");
-    assert_success(&torchrun(2, &pretrain_args(&config_path, &shards, &ranks, false), 29581).output().unwrap());
+    assert_success(&torchrun(2, &pretrain_args_two(&config_path, [&shards, &second], &ranks), 29581).output().unwrap());
     let shared = read_validation(&ranks).unwrap();
     assert_eq!(shared.len(), measured.len());
     for ((step, a), (_, b)) in shared.iter().zip(&measured) {

@@ -5,6 +5,7 @@
 //! Modules are named after the method's components; the `datagen` binary is a thin layer over them.
 
 pub mod camera;
+pub mod clip;
 pub mod config_file;
 pub mod contact_sheet;
 pub mod corpus;

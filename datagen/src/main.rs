@@ -368,7 +368,7 @@ fn trajectories(command: TrajectoriesCommand) -> anyhow::Result<()> {
         TrajectoriesCommand::Collect(args) => {
             let summary = match (&args.config, &args.seq_dir) {
                 (Some(config), _) => {
-                    datagen::trajectory_bank::collect_from_corpus(&BuildConfig::from_toml_file(config)?)?
+                    datagen::corpus::harvest::collect_from_corpus(&BuildConfig::from_toml_file(config)?)?
                 }
                 (None, Some(seq_dir)) => {
                     let config = match &args.pairs_config {

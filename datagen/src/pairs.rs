@@ -14,6 +14,7 @@ use schemas::{ClipRecord, InputDigest, ShardStats, ShardWriter, ShardWriterOptio
 use serde::{Deserialize, Serialize};
 
 use crate::camera::{PinholeCamera, mat3_to_row_major, mat4_to_row_major};
+use crate::clip::ClipConfig;
 use crate::config_file::{Checked, Validate, check_count};
 use crate::covisibility::CovisibilityConfig;
 use crate::depth_exr::encode_depth_exr;
@@ -24,55 +25,12 @@ use crate::static_background::{StackingConfig, StaticBackground};
 use crate::trajectory::{NovelTrajectory, Sampler, TrajectoryConfig};
 use crate::trajectory_bank::TrajectoryBank;
 
-/// Paper value: clips of 49 frames (DESIGN §1).
-pub const PAPER_CLIP_FRAMES: u32 = 49;
 /// Paper value: N = 2 trajectories per video during pretraining (DESIGN §1).
 pub const PAPER_TRAJECTORIES: u32 = 2;
 
 /// Most trajectories per clip: every one adds a mask per frame to the clip's record, and the
 /// paper uses at most 9 (DESIGN §1); this bounds a record's size, not the method.
 pub const MAX_TRAJECTORIES: u32 = 256;
-
-/// How a video is cut into clips.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct ClipConfig {
-    /// Frames per clip; shorter videos are kept whole as one clip. Valid: at least 1.
-    pub length: u32,
-    /// Frames between the starts of consecutive clips (equal to `length`: back to back).
-    /// Valid: at least 1.
-    pub stride: u32,
-    /// At most this many clips per video (0: all). Valid: any.
-    pub max_clips: u32,
-}
-
-impl Validate for ClipConfig {
-    fn validate(&self) -> Checked {
-        check_count("length", self.length, 1, u64::MAX)?;
-        check_count("stride", self.stride, 1, u64::MAX)
-    }
-}
-
-impl Default for ClipConfig {
-    fn default() -> Self {
-        Self { length: PAPER_CLIP_FRAMES, stride: PAPER_CLIP_FRAMES, max_clips: 0 }
-    }
-}
-
-impl ClipConfig {
-    /// Start frames of the clips of a video of `frames` frames, and the clip length used.
-    pub fn windows(&self, frames: u32) -> Vec<(u32, u32)> {
-        if frames <= self.length {
-            return vec![(0, frames)];
-        }
-        let mut starts: Vec<(u32, u32)> =
-            (0..=frames - self.length).step_by(self.stride.max(1) as usize).map(|s| (s, self.length)).collect();
-        if self.max_clips > 0 {
-            starts.truncate(self.max_clips as usize);
-        }
-        starts
-    }
-}
 
 /// Everything `datagen pairs` can be configured with (a TOML file via `--config`). Every field
 /// of every section has a documented valid range, checked when the file is loaded and by each

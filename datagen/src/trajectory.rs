@@ -1,4 +1,4 @@
-//! Novel camera paths (DESIGN §1, §4). The pivot distance R is the depth at the optical-centre
+//! Novel camera paths (DESIGN §1, §4). The pivot distance R ([`pivot_distance`]) is the depth at the optical-centre
 //! pixel of the clip's first frame (× a scale). Frame t's novel camera is the source camera of
 //! frame t orbited about the point at distance R on *its own* optical axis by azimuth φ_t and
 //! elevation θ_t, moved radially by Δr_t·R, and looking at that point: the source motion is kept
@@ -27,6 +27,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::camera::{PinholeCamera, checked_pose};
+use crate::clip::pivot_distance;
 use crate::config_file::{Checked, KeyError, Validate, check_count, check_float};
 use crate::depth_exr::DepthMap;
 use crate::error::{Error, Result};
@@ -163,32 +164,6 @@ pub struct SampledTrajectory {
     pub world_from_camera: Vec<DMat4>,
     /// Candidates rejected before this one.
     pub rejected_samples: u32,
-}
-
-/// Half-size of the window around the optical centre whose median valid depth gives R.
-const PIVOT_WINDOW: i64 = 2;
-
-/// R: the median valid depth in a small window around the first frame's principal point (the
-/// whole frame's median if that window has none), × `scale`.
-pub fn pivot_distance(depth: &DepthMap, camera: &PinholeCamera, scale: f64) -> f64 {
-    let (cx, cy) = (camera.intrinsics.z_axis.x.round() as i64, camera.intrinsics.z_axis.y.round() as i64);
-    let valid = |d: f32| d.is_finite() && d > 0.0;
-    let mut window: Vec<f32> = Vec::new();
-    for v in cy - PIVOT_WINDOW..=cy + PIVOT_WINDOW {
-        for u in cx - PIVOT_WINDOW..=cx + PIVOT_WINDOW {
-            if u >= 0 && v >= 0 && (u as usize) < depth.width && (v as usize) < depth.height {
-                let d = depth.values[v as usize * depth.width + u as usize];
-                if valid(d) {
-                    window.push(d);
-                }
-            }
-        }
-    }
-    if window.is_empty() {
-        window = depth.values.iter().copied().filter(|&d| valid(d)).collect();
-    }
-    window.sort_by(f32::total_cmp);
-    scale * f64::from(window.get(window.len() / 2).copied().unwrap_or(1.0))
 }
 
 /// The novel pose for one frame: `source` orbited about the point at `pivot` on its optical axis.

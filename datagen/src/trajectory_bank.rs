@@ -21,11 +21,9 @@ use glam::{DMat3, DMat4, DQuat, DVec3};
 use schemas::BankEntry;
 
 use crate::camera::{mat4_from_row_major, mat4_to_row_major};
-use crate::corpus::build::BuildConfig;
+use crate::clip::{ClipConfig, pivot_distance};
 use crate::error::{Error, Result};
-use crate::pairs::ClipConfig;
 use crate::sequence::Sequence;
-use crate::trajectory::pivot_distance;
 
 /// A window whose camera turns less than this in total (degrees) and moves less than
 /// [`MIN_PATH_LENGTH`] is static: below the frame-to-frame rotation noise of monocular SLAM
@@ -36,7 +34,7 @@ pub const MIN_ROTATION_DEG: f64 = 0.5;
 /// pixel per hundred of focal length, i.e. nothing a novel view would show.
 pub const MIN_PATH_LENGTH: f64 = 0.01;
 
-/// What [`collect_from_sequence`] and [`collect_from_corpus`] found.
+/// What [`collect_from_sequence`] and [`crate::corpus::harvest::collect_from_corpus`] found.
 #[derive(Debug, Clone, Default)]
 pub struct CollectSummary {
     /// The bank's entries, in input then window order.
@@ -175,30 +173,6 @@ pub fn collect_from_sequence(
             Err(Skip::Degenerate) => summary.degenerate_windows += 1,
         }
     }
-}
-
-/// Harvests the bank of a whole corpus config (`datagen build`'s TOML): every video its sources
-/// crawl to, cut into the windows of its `[pairs.clip]`, with its `[pairs.trajectory]`
-/// `pivot_scale`. An input that cannot be read is recorded in `failed_inputs` and skipped.
-pub fn collect_from_corpus(config: &BuildConfig) -> Result<CollectSummary> {
-    let mut summary = CollectSummary::default();
-    for entry in crate::corpus::crawl::crawl_all(&config.sources)? {
-        if let Some(reason) = &entry.crawl_error {
-            summary.failed_inputs.push((entry.key(), reason.clone()));
-            continue;
-        }
-        match crate::corpus::input::load_entry(&entry) {
-            Ok(sequence) => collect_from_sequence(
-                &sequence,
-                entry.dataset.name(),
-                &config.pairs.clip,
-                config.pairs.trajectory.pivot_scale,
-                &mut summary,
-            ),
-            Err(error) => summary.failed_inputs.push((entry.key(), error.to_string())),
-        }
-    }
-    Ok(summary)
 }
 
 /// A loaded, checked trajectory bank.

@@ -4,6 +4,7 @@
 pub mod annotations;
 pub mod build;
 pub mod crawl;
+pub mod harvest;
 pub mod input;
 pub mod partition;
 pub mod rle;

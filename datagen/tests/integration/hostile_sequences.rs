@@ -6,9 +6,10 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use datagen::camera::{mat3_to_row_major, mat4_to_row_major};
+use datagen::clip::pivot_distance;
 use datagen::sequence::{Sequence, read_frames, read_sequence};
 use datagen::synth::{SynthConfig, write_sequence};
-use datagen::trajectory::{orbit, pivot_distance, read_trajectory_file};
+use datagen::trajectory::{orbit, read_trajectory_file};
 use serde_json::{Value, json};
 
 /// Frames of the synthetic sequences: enough for interpolation, small enough to be fast.

@@ -3,7 +3,8 @@
 
 use std::path::{Path, PathBuf};
 
-use datagen::pairs::{ClipConfig, PairsConfig, TrajectoryRequest, generate_clips};
+use datagen::clip::ClipConfig;
+use datagen::pairs::{PairsConfig, TrajectoryRequest, generate_clips};
 use datagen::sequence::{Sequence, read_sequence};
 use datagen::trajectory::{NovelTrajectory, Sampler, TrajectoryConfig, sample_novel_trajectory};
 use datagen::trajectory_bank::{CollectSummary, TrajectoryBank, collect_from_sequence};
@@ -51,7 +52,7 @@ fn collect_stores_motion_relative_to_the_first_camera_in_pivot_units_and_skips_s
     let entry = &summary.entries[0];
     assert_eq!(entry.entry_id, format!("synth/{}/0", sequence.source_id));
     assert_eq!((entry.window_start, entry.num_frames()), (0, 4));
-    let pivot = datagen::trajectory::pivot_distance(&sequence.depth[0], &sequence.cameras[0], 1.0);
+    let pivot = datagen::clip::pivot_distance(&sequence.depth[0], &sequence.cameras[0], 1.0);
     assert!((entry.pivot_distance - pivot).abs() < 1e-12);
     assert!(datagen::camera::mat4_from_row_major(&entry.relative_pose[0]).abs_diff_eq(DMat4::IDENTITY, 1e-12));
     let first = sequence.cameras[0].world_from_camera;

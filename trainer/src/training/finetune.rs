@@ -86,7 +86,7 @@ pub fn finetune_on(
         let sequence = datagen::sequence::read_sequence(sequence_dir)?;
         let frames = config.data.frames as u32;
         let pairs_config = datagen::pairs::PairsConfig {
-            clip: datagen::pairs::ClipConfig { length: frames, stride: frames, max_clips: 0 },
+            clip: datagen::clip::ClipConfig { length: frames, stride: frames, max_clips: 0 },
             ..Default::default()
         };
         let request = datagen::pairs::TrajectoryRequest { sampled: trajectories, explicit: Vec::new() };

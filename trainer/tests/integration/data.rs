@@ -14,7 +14,7 @@ fn shards() -> &'static Path {
     DIR.get_or_init(|| {
         let dir = tempfile::tempdir().unwrap();
         let pairs = datagen::pairs::PairsConfig {
-            clip: datagen::pairs::ClipConfig { length: 5, stride: 4, max_clips: 0 },
+            clip: datagen::clip::ClipConfig { length: 5, stride: 4, max_clips: 0 },
             ..Default::default()
         };
         let request = datagen::pairs::TrajectoryRequest { sampled: 2, explicit: Vec::new() };

@@ -22,7 +22,7 @@ pub(super) fn video_pairs(dir: &Path, dataset: &str, frames: u32, seed: u64, tra
     datagen::synth::write_sequence(&scene, &dir.join("seq"), |_| {}).unwrap();
     let sequence = datagen::sequence::read_sequence(&dir.join("seq")).unwrap();
     let config = datagen::pairs::PairsConfig {
-        clip: datagen::pairs::ClipConfig { length: 9, stride: 4, max_clips: 0 },
+        clip: datagen::clip::ClipConfig { length: 9, stride: 4, max_clips: 0 },
         ..Default::default()
     };
     let request = datagen::pairs::TrajectoryRequest { sampled: trajectories, explicit: Vec::new() };

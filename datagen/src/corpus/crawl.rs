@@ -19,8 +19,8 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use super::annotations::TrackBox;
 use crate::error::{Error, Result};
+use crate::io::annotations::TrackBox;
 
 /// The dataset layouts the crawler knows.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]

@@ -1,13 +1,13 @@
 //! The trajectory bank of a whole corpus: every video a corpus config's sources crawl to is read
 //! as the build reads it and cut into clip windows, and each window's camera motion becomes a bank
-//! entry ([`crate::trajectory_bank::collect_from_sequence`]). `datagen trajectories collect
+//! entry ([`crate::pairs::trajectory_bank::collect_from_sequence`]). `datagen trajectories collect
 //! --config corpus.toml` runs it.
 
 use super::build::BuildConfig;
 use super::crawl::crawl_all;
 use super::input::load_entry;
 use crate::error::Result;
-use crate::trajectory_bank::{CollectSummary, collect_from_sequence};
+use crate::pairs::trajectory_bank::{CollectSummary, collect_from_sequence};
 
 /// Harvests the bank of a whole corpus config (`datagen build`'s TOML): every video its sources
 /// crawl to, cut into the windows of its `[pairs.clip]`, with its `[pairs.trajectory]`

@@ -1,16 +1,17 @@
-//! Novel camera paths (DESIGN §1, §4). The pivot distance R ([`pivot_distance`]) is the depth at the optical-centre
-//! pixel of the clip's first frame (× a scale). Frame t's novel camera is the source camera of
-//! frame t orbited about the point at distance R on *its own* optical axis by azimuth φ_t and
-//! elevation θ_t, moved radially by Δr_t·R, and looking at that point: the source motion is kept
-//! and the offset is smooth. φ, θ, Δr each have four control values (start and end uniform in the
-//! configured range, two intermediate values between them) joined by a natural cubic spline (C2).
+//! Novel camera paths (DESIGN §1, §4). The pivot distance R ([`pivot_distance`]) is the depth at
+//! the optical-centre pixel of the clip's first frame (× a scale). Frame t's novel camera is the
+//! source camera of frame t orbited about the point at distance R on *its own* optical axis by
+//! azimuth φ_t and elevation θ_t, moved radially by Δr_t·R, and looking at that point: the source
+//! motion is kept and the offset is smooth. φ, θ, Δr each have four control values (start and end
+//! uniform in the configured range, two intermediate values between them) joined by a natural cubic
+//! spline (C2).
 //!
 //! Orientation: in source-camera coordinates (x right, y down, z forward) the novel camera is
 //! rotated by `R_y(φ) · R_x(−θ)`, so positive elevation raises the camera and positive azimuth
 //! moves it towards −x.
 //!
 //! With `sampler = "bank"` (or `"mixed"`), a trajectory is instead a real camera motion from a
-//! trajectory bank composed with the source path about the pivot ([`crate::trajectory_bank`]),
+//! trajectory bank composed with the source path about the pivot ([`super::trajectory_bank`]),
 //! randomly mirrored left/right and rotated about the viewing axis.
 //!
 //! Sampling is deterministic per (seed, source id, clip start, trajectory index). A candidate
@@ -26,11 +27,11 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::camera::{PinholeCamera, checked_pose};
-use crate::clip::pivot_distance;
 use crate::config_file::{Checked, KeyError, Validate, check_count, check_float};
-use crate::depth_exr::DepthMap;
 use crate::error::{Error, Result};
+use crate::geometry::camera::{PinholeCamera, checked_pose};
+use crate::io::depth_exr::DepthMap;
+use crate::pairs::clip::pivot_distance;
 
 /// Ranges of the spherical offsets. Every field is checked when a config is loaded and when
 /// [`sample_trajectory`] is called ([`Validate`]).
@@ -386,7 +387,7 @@ pub fn sample_novel_trajectory(
     cameras: &[PinholeCamera],
     first_depth: &DepthMap,
     config: &TrajectoryConfig,
-    bank: Option<&crate::trajectory_bank::TrajectoryBank>,
+    bank: Option<&crate::pairs::trajectory_bank::TrajectoryBank>,
     seed: u64,
     source_id: &str,
     clip_start: u32,
@@ -503,10 +504,11 @@ enum JsonPoses {
 }
 
 /// One pose of a JSON trajectory: a 4×4 matrix as nested rows or 16 row-major values
-/// ([`crate::camera::json_matrix`]), checked by [`checked_pose`].
+/// ([`crate::geometry::camera::json_matrix`]), checked by [`checked_pose`].
 fn json_matrix(path: &Path, index: usize, value: &serde_json::Value) -> Result<DMat4> {
     let field = format!("world_from_camera[{index}]");
-    let values = crate::camera::json_matrix(value, 4, 4).map_err(|reason| Error::invalid(path, &field, reason))?;
+    let values =
+        crate::geometry::camera::json_matrix(value, 4, 4).map_err(|reason| Error::invalid(path, &field, reason))?;
     checked_pose(path, &field, &values)
 }
 
@@ -572,8 +574,8 @@ pub fn read_trajectory_file(
     let poses: Vec<DMat4> = match extension.as_str() {
         "npy" => {
             // The shape is checked from the header, before the values are read.
-            use crate::npy::Axis;
-            let array = crate::npy::read_npy_f64_shaped(path, &[Axis::Any, Axis::Is(4), Axis::Is(4)])?;
+            use crate::io::npy::Axis;
+            let array = crate::io::npy::read_npy_f64_shaped(path, &[Axis::Any, Axis::Is(4), Axis::Is(4)])?;
             if array.shape[0] != frames {
                 return Err(wrong_count(array.shape[0]));
             }
@@ -617,7 +619,11 @@ pub fn read_trajectory_file(
                 .map(|i| {
                     let pose =
                         orbit(&cameras[i].world_from_camera, pivot, at(&azimuth, i), at(&elevation, i), at(&radius, i));
-                    checked_pose(path, &format!("world_from_camera[{i}]"), &crate::camera::mat4_to_row_major(&pose))
+                    checked_pose(
+                        path,
+                        &format!("world_from_camera[{i}]"),
+                        &crate::geometry::camera::mat4_to_row_major(&pose),
+                    )
                 })
                 .collect::<Result<_>>()?
         }

@@ -13,17 +13,17 @@ use rayon::prelude::*;
 use schemas::{ClipRecord, InputDigest, ShardStats, ShardWriter, ShardWriterOptions, TrajectoryKind, TrajectoryRecord};
 use serde::{Deserialize, Serialize};
 
-use crate::camera::{PinholeCamera, mat3_to_row_major, mat4_to_row_major};
-use crate::clip::ClipConfig;
 use crate::config_file::{Checked, Validate, check_count};
-use crate::covisibility::CovisibilityConfig;
-use crate::depth_exr::encode_depth_exr;
-use crate::depth_noise::{DepthNoiseConfig, NoiseKey, SourceFrame};
 use crate::error::{Error, Result};
-use crate::sequence::Sequence;
-use crate::static_background::{StackingConfig, StaticBackground};
-use crate::trajectory::{NovelTrajectory, Sampler, TrajectoryConfig};
-use crate::trajectory_bank::TrajectoryBank;
+use crate::geometry::camera::{PinholeCamera, mat3_to_row_major, mat4_to_row_major};
+use crate::geometry::covisibility::CovisibilityConfig;
+use crate::io::depth_exr::encode_depth_exr;
+use crate::io::sequence::Sequence;
+use crate::pairs::clip::ClipConfig;
+use crate::pairs::depth_noise::{DepthNoiseConfig, NoiseKey, SourceFrame};
+use crate::pairs::static_background::{StackingConfig, StaticBackground};
+use crate::pairs::trajectory::{NovelTrajectory, Sampler, TrajectoryConfig};
+use crate::pairs::trajectory_bank::TrajectoryBank;
 
 /// Paper value: N = 2 trajectories per video during pretraining (DESIGN §1).
 pub const PAPER_TRAJECTORIES: u32 = 2;
@@ -87,8 +87,12 @@ pub fn trajectory_request(sequence: &Sequence, files: &[PathBuf], count: Option<
     let explicit = files
         .iter()
         .map(|path| {
-            let poses =
-                crate::trajectory::read_trajectory_file(path, sequence.len(), &sequence.cameras, &sequence.depth[0])?;
+            let poses = crate::pairs::trajectory::read_trajectory_file(
+                path,
+                sequence.len(),
+                &sequence.cameras,
+                &sequence.depth[0],
+            )?;
             Ok((path.clone(), poses))
         })
         .collect::<Result<Vec<_>>>()?;
@@ -237,12 +241,12 @@ fn generate_clip(
     // Paths that reach their camera position by crossing the surface are rejected with a cheap
     // test against each frame's depth map, so no frame's mesh has to be kept for sampling.
     let crossing = |i: usize, a: glam::DVec3, b: glam::DVec3| {
-        crate::trajectory::crosses_depth_surface(&sequence.depth[start as usize + i], &cameras[i], a, b)
+        crate::pairs::trajectory::crosses_depth_surface(&sequence.depth[start as usize + i], &cameras[i], a, b)
     };
 
     let mut planned = Vec::new();
     for index in 0..request.sampled {
-        let novel = crate::trajectory::sample_novel_trajectory(
+        let novel = crate::pairs::trajectory::sample_novel_trajectory(
             cameras,
             &sequence.depth[start as usize],
             &config.trajectory,
@@ -301,7 +305,8 @@ fn generate_clip(
         .map(|i| -> Result<_> {
             let source = &sequence.cameras[i];
             let clock = Instant::now();
-            let mesh = &crate::depth_mesh::DepthMesh::new(&sequence.depth[i], source, &config.covisibility.mesh);
+            let mesh =
+                &crate::geometry::depth_mesh::DepthMesh::new(&sequence.depth[i], source, &config.covisibility.mesh);
             let mesh_seconds = clock.elapsed().as_secs_f64();
             let (mut ray_seconds, mut encode_seconds) = (0.0, 0.0);
             let dynamic = sequence.dynamic_masks.as_ref().map(|m| &m[i]);
@@ -311,7 +316,8 @@ fn generate_clip(
                 .map(|t| {
                     let novel = PinholeCamera { world_from_camera: t.poses[i - start as usize], ..*source };
                     let clock = Instant::now();
-                    let mut mask = crate::covisibility::covisibility_mask(mesh, source, &novel, &config.covisibility);
+                    let mut mask =
+                        crate::geometry::covisibility::covisibility_mask(mesh, source, &novel, &config.covisibility);
                     ray_seconds += clock.elapsed().as_secs_f64();
                     let clock = Instant::now();
                     let condition = noise.map(|dynamic| {
@@ -322,7 +328,7 @@ fn generate_clip(
                             trajectory: t.index,
                             frame: i as u32,
                         };
-                        let offsets = crate::depth_noise::offsets(
+                        let offsets = crate::pairs::depth_noise::offsets(
                             &config.depth_noise,
                             &sequence.depth[i],
                             sequence.second_depth.as_ref().map(|d| &d[i]),
@@ -335,7 +341,8 @@ fn generate_clip(
                             dynamic,
                             camera: source,
                         };
-                        let noisy = crate::depth_noise::render_back(frame, |p| mesh.point(p), &mask, &offsets, &novel);
+                        let noisy =
+                            crate::pairs::depth_noise::render_back(frame, |p| mesh.point(p), &mask, &offsets, &novel);
                         mask = noisy.mask;
                         let differs = noisy.condition != masked_frame(&sequence.frames[i], &mask);
                         (png(&noisy.condition, FilterType::Paeth), differs)
@@ -437,13 +444,13 @@ pub fn write_shard(
 /// the novel camera, holes black.
 pub fn render_novel(
     frame: &RgbImage,
-    depth: &crate::depth_exr::DepthMap,
+    depth: &crate::io::depth_exr::DepthMap,
     source: &PinholeCamera,
     novel: &PinholeCamera,
     config: &CovisibilityConfig,
 ) -> RgbImage {
-    let mesh = crate::depth_mesh::DepthMesh::new(depth, source, &config.mesh);
-    crate::render::render_novel_view(&mesh, frame, source, novel).0
+    let mesh = crate::geometry::depth_mesh::DepthMesh::new(depth, source, &config.mesh);
+    crate::geometry::render::render_novel_view(&mesh, frame, source, novel).0
 }
 
 /// What [`render_sequence`] produced.
@@ -468,7 +475,7 @@ pub fn render_sequence(
     stacking: bool,
 ) -> Result<RenderSummary> {
     config.validate()?;
-    let poses = crate::trajectory::read_trajectory_file(
+    let poses = crate::pairs::trajectory::read_trajectory_file(
         trajectory_file,
         sequence.len(),
         &sequence.cameras,
@@ -503,7 +510,7 @@ pub fn render_sequence(
     let frames: Vec<RgbImage> = rendered.into_iter().map(|r| r.0).collect();
     if width % 2 == 0 && height % 2 == 0 {
         let fps = if sequence.fps > 0.0 { sequence.fps } else { DEFAULT_RENDER_FPS };
-        crate::video::encode_video(&out.join("render.mp4"), &frames, fps)?;
+        crate::io::video::encode_video(&out.join("render.mp4"), &frames, fps)?;
     }
     Ok(summary)
 }
@@ -516,8 +523,8 @@ pub fn render_frame(
     config: &CovisibilityConfig,
 ) -> (RgbImage, image::GrayImage) {
     let source = &sequence.cameras[i];
-    let mesh = crate::depth_mesh::DepthMesh::new(&sequence.depth[i], source, &config.mesh);
-    crate::render::render_novel_view(&mesh, &sequence.frames[i], source, novel)
+    let mesh = crate::geometry::depth_mesh::DepthMesh::new(&sequence.depth[i], source, &config.mesh);
+    crate::geometry::render::render_novel_view(&mesh, &sequence.frames[i], source, novel)
 }
 
 /// Frame rate of `render.mp4` when the input's is unknown (image-folder inputs).

@@ -4,9 +4,9 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::camera::PinholeCamera;
 use crate::config_file::{Checked, Validate, check_count};
-use crate::depth_exr::DepthMap;
+use crate::geometry::camera::PinholeCamera;
+use crate::io::depth_exr::DepthMap;
 
 /// Paper value: clips of 49 frames (DESIGN §1).
 pub const PAPER_CLIP_FRAMES: u32 = 49;

@@ -20,10 +20,10 @@ use std::sync::{Arc, Mutex, OnceLock};
 use glam::{DMat3, DMat4, DQuat, DVec3};
 use schemas::BankEntry;
 
-use crate::camera::{mat4_from_row_major, mat4_to_row_major};
-use crate::clip::{ClipConfig, pivot_distance};
 use crate::error::{Error, Result};
-use crate::sequence::Sequence;
+use crate::geometry::camera::{mat4_from_row_major, mat4_to_row_major};
+use crate::io::sequence::Sequence;
+use crate::pairs::clip::{ClipConfig, pivot_distance};
 
 /// A window whose camera turns less than this in total (degrees) and moves less than
 /// [`MIN_PATH_LENGTH`] is static: below the frame-to-frame rotation noise of monocular SLAM

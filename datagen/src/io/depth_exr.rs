@@ -18,7 +18,7 @@ use flate2::Compression as ZlibLevel;
 use flate2::write::ZlibEncoder;
 
 use crate::error::{Error, Result};
-use crate::npy::MAX_SIDE_PX;
+use crate::io::npy::MAX_SIDE_PX;
 
 /// Name of the depth channel written; also preferred when reading a multi-channel file.
 pub const DEPTH_CHANNEL: &str = "Z";

@@ -1,6 +1,6 @@
 //! `datagen`: turns videos plus their 3D reconstructions into self-supervised CogNVS training
-//! pairs (DESIGN §1, §4): sampled novel camera paths, exact co-visibility masks from depth-mesh
-//! BVH occlusion tests, novel-view renders, and sharded Parquet output (`schemas`).
+//! pairs: sampled novel camera paths, exact co-visibility masks from occlusion tests against each
+//! frame's depth map lifted to a mesh, novel-view renders, and sharded Parquet output (`schemas`).
 //!
 //! The modules are grouped by layer, from the bottom: [`error`] and [`config_file`]; [`io`] (file
 //! formats and sequence folders); [`geometry`] (cameras, depth meshes, co-visibility, rendering);

@@ -12,12 +12,10 @@ use datagen::synth::{SynthConfig, write_sequence};
 use schemas::InputStatus;
 
 // Every frame allocates and drops tens of MB of meshes and bins; glibc returns such blocks to
-// the kernel and faults them back in each time (≈15 % of `pairs`' CPU), mimalloc reuses them.
-// Its `no_thp` feature keeps it from asking for transparent huge pages: each fresh 2 MB page is
-// cleared whole when first touched, also where only part of it is used (the encoders' growing
-// output buffers). On the benchmark clip of `scripts/bench_pairs_vs.sh` this lowers the peak RSS
-// of `datagen pairs` from ~600 to ~510 MB; wall time fell from 4.97 to 3.90 s (medians of 5
-// interleaved runs) in one comparison and moved within noise in another, under heavier load.
+// the kernel and faults them back in each time (a visible share of `pairs`' CPU), mimalloc reuses
+// them. Its `no_thp` feature keeps it from asking for transparent huge pages: each fresh 2 MB page
+// is cleared whole when first touched, also where only part of it is used (the encoders' growing
+// output buffers). `scripts/bench_pairs_vs.sh` measures the peak RSS and wall time it saves.
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
@@ -302,7 +300,7 @@ fn pairs(args: PairsArgs) -> anyhow::Result<()> {
         }
     }
     // Tens of MB of encoded frames in hundreds of buffers: the process's exit gives them back
-    // at once, faster than freeing them one by one (~20 ms on the benchmark job).
+    // at once, faster than freeing them one by one.
     std::mem::forget(records);
     Ok(())
 }

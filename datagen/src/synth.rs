@@ -1,5 +1,5 @@
 //! `datagen synth`: a seeded, analytic dynamic scene ray traced with obvhs, written as a sequence
-//! folder in the cog-nvs layout (DESIGN §3) with exact ground truth.
+//! folder in the cog-nvs layout ([`crate::io::sequence`]) with exact ground truth.
 //!
 //! The scene is a room (checkered floor, striped walls, open top) with static boxes and moving
 //! spheres and boxes, seen by a moving camera. Everything is a triangle mesh, so the same geometry
@@ -54,7 +54,7 @@ pub struct SynthConfig {
 }
 
 /// Widest and tallest frame: 8192 is the wide side of DCI 8K, the largest frame H.264's top
-/// level (6.2) encodes; far above the paper's 720×480 (DESIGN §1).
+/// level (6.2) encodes; far above the CogNVS paper's 720×480.
 pub const MAX_SIDE: u32 = 8192;
 /// Most pixels of a whole scene (frames × width × height): the writer holds every frame's
 /// colour, depth and ids (8 bytes a pixel) until the video is encoded, so this bounds it to

@@ -1,4 +1,4 @@
-//! The resumable corpus build (DESIGN §5): crawl the configured sources, keep this worker's share
+//! The resumable corpus build: crawl the configured sources, keep this worker's share
 //! of inputs, turn each into clips with an [`InputProcessor`], pack the clips into shards of a
 //! target size, and record every input's outcome.
 //!

@@ -1,6 +1,6 @@
 //! `datagen inspect DIR --report OUT.html`: one self-contained HTML page a person reads at a
-//! glance (issue 18): totals and per-dataset counts, failures by reason from the corpus status
-//! tables, histograms (inline SVG) of the co-visible fraction and of the trajectory parameters
+//! glance: totals and per-dataset counts, failures by reason from the corpus status tables,
+//! histograms (inline SVG) of the co-visible fraction and of the trajectory parameters
 //! ([`crate::pairs::trajectory::PathParameters`]), and a grid of contact-sheet thumbnails of sampled
 //! pairs (PNG data URIs) linked to their exports. A script on the page marks it ready in the DOM
 //! once it has loaded (`data-report-ready`), which a headless browser test reads back.

@@ -1,5 +1,5 @@
-//! Reading one sequence folder (a video plus its reconstruction) in any of the three layouts of
-//! DESIGN §3, into frames, frame-resolution depth, per-frame cameras and optional dynamic masks:
+//! Reading one sequence folder (a video plus its reconstruction) in any of three layouts, into
+//! frames, frame-resolution depth, per-frame cameras and optional dynamic masks:
 //!
 //! - **cog-nvs**: `gt_rgb.mp4` + `cam_info/megasam_depth.npy` (N,H,W), optional
 //!   `cam_info/megasam_intrinsics.npy` (3,3) and `cam_info/megasam_c2ws.npy` (N,4,4). Depth at

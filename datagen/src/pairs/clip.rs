@@ -8,7 +8,7 @@ use crate::config_file::{Checked, Validate, check_count};
 use crate::geometry::camera::PinholeCamera;
 use crate::io::depth_exr::DepthMap;
 
-/// Paper value: clips of 49 frames (DESIGN §1).
+/// Paper value: the CogNVS paper trains on clips of 49 frames.
 pub const PAPER_CLIP_FRAMES: u32 = 49;
 
 /// How a video is cut into clips.

@@ -1,4 +1,4 @@
-//! Depth noise on dynamic objects (DESIGN §4), for training robustness: reconstructions of moving
+//! Depth noise on dynamic objects, for training robustness: reconstructions of moving
 //! objects are the least accurate part of a video's geometry, and at inference the conditioning
 //! render shows the resulting smearing at object edges. Training pairs imitate it.
 //!

@@ -1,4 +1,4 @@
-//! Self-supervised training pairs for one sequence (DESIGN §1, §4, §5): cut the video into clip
+//! Self-supervised training pairs for one sequence: cut the video into clip
 //! windows, give each clip N novel trajectories (sampled deterministically, or given by the
 //! user), compute each frame's exact co-visibility mask from one depth mesh shared by all
 //! trajectories, and pack clip + trajectories into shard records.
@@ -25,11 +25,12 @@ use crate::pairs::static_background::{StackingConfig, StaticBackground};
 use crate::pairs::trajectory::{NovelTrajectory, Sampler, TrajectoryConfig};
 use crate::pairs::trajectory_bank::TrajectoryBank;
 
-/// Paper value: N = 2 trajectories per video during pretraining (DESIGN §1).
+/// Paper value: the CogNVS paper pretrains with N = 2 trajectories per video.
 pub const PAPER_TRAJECTORIES: u32 = 2;
 
 /// Most trajectories per clip: every one adds a mask per frame to the clip's record, and the
-/// paper uses at most 9 (DESIGN §1); this bounds a record's size, not the method.
+/// CogNVS paper uses at most 9 (test-time finetuning on Kubric-4D and ParDom-4D); this bounds a
+/// record's size, not the method.
 pub const MAX_TRAJECTORIES: u32 = 256;
 
 /// Everything `datagen pairs` can be configured with (a TOML file via `--config`). Every field
@@ -105,9 +106,9 @@ pub fn trajectory_request(sequence: &Sequence, files: &[PathBuf], count: Option<
 }
 
 /// PNG bytes of an image, fast deflate and one fixed filter instead of the default per-row choice
-/// among all five. Measured on the benchmark clip's frames and masks (png 0.18, fast deflate):
-/// Paeth encodes colour frames 7 % faster than the adaptive choice and 0.3 % smaller; Up encodes
-/// masks three times faster for 0.4 KB more a mask (4.5 KB against 4.1 KB).
+/// among all five: on the benchmark clip's frames and masks (png 0.18, fast deflate), Paeth encodes
+/// colour frames faster than the adaptive choice and no larger, and Up encodes masks several times
+/// faster for slightly larger files.
 fn png<P: image::PixelWithColorType>(image: &image::ImageBuffer<P, Vec<P::Subpixel>>, filter: FilterType) -> Vec<u8>
 where
     [P::Subpixel]: image::EncodableLayout,

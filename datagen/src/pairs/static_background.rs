@@ -1,4 +1,4 @@
-//! Static-background stacking (DESIGN §4), for renders of videos longer than one frame: the
+//! Static-background stacking, for renders of videos longer than one frame: the
 //! static (non-dynamic) surface points of many frames are fused into one coloured world-space
 //! point set, deduplicated on a voxel grid, and rendered into each novel frame to fill the holes
 //! of that frame's own render: background hidden behind a moving object or outside the frame's

@@ -1,10 +1,9 @@
-//! Novel camera paths (DESIGN §1, §4). The pivot distance R ([`pivot_distance`]) is the depth at
-//! the optical-centre pixel of the clip's first frame (× a scale). Frame t's novel camera is the
-//! source camera of frame t orbited about the point at distance R on *its own* optical axis by
-//! azimuth φ_t and elevation θ_t, moved radially by Δr_t·R, and looking at that point: the source
-//! motion is kept and the offset is smooth. φ, θ, Δr each have four control values (start and end
-//! uniform in the configured range, two intermediate values between them) joined by a natural cubic
-//! spline (C2).
+//! Novel camera paths. The pivot distance R ([`pivot_distance`]) is the depth at the optical-centre
+//! pixel of the clip's first frame (× a scale). Frame t's novel camera is the source camera of
+//! frame t orbited about the point at distance R on *its own* optical axis by azimuth φ_t and
+//! elevation θ_t, moved radially by Δr_t·R, and looking at that point: the source motion is kept
+//! and the offset is smooth. φ, θ, Δr each have four control values (start and end uniform in the
+//! configured range, two intermediate values between them) joined by a natural cubic spline (C2).
 //!
 //! Orientation: in source-camera coordinates (x right, y down, z forward) the novel camera is
 //! rotated by `R_y(φ) · R_x(−θ)`, so positive elevation raises the camera and positive azimuth
@@ -71,7 +70,7 @@ pub struct TrajectoryConfig {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Sampler {
-    /// Spherical offsets about the pivot (the paper's sampler, DESIGN §4).
+    /// Spherical offsets about the pivot (the paper's sampler).
     #[default]
     Spherical,
     /// Real camera motion from a trajectory bank.

@@ -1,8 +1,8 @@
-//! The trajectory bank (issue 18): the data-driven sampler the CogNVS paper names as its
-//! generator's missing piece ("sample from a set of real-world trajectories observed in the
-//! training set"). Collection harvests the source cameras' own motion over each clip window of
-//! every reconstruction: per frame the pose relative to the window's first camera, translation
-//! in units of the window's pivot distance R (DESIGN §4, [`pivot_distance`]) so paths from scenes
+//! The trajectory bank, the data of the sampler the CogNVS paper names as its generator's missing
+//! piece ("sample from a set of real-world trajectories observed in the training set"). Collection
+//! harvests the source cameras' own motion over each clip window of a reconstruction (a whole
+//! corpus: [`crate::corpus::harvest`]): per frame the pose relative to the window's first camera,
+//! translation in units of the window's pivot distance R ([`pivot_distance`]) so paths from scenes
 //! of different scale compare, plus provenance and summary statistics. Static windows (no motion)
 //! and degenerate ones (non-finite poses, no valid depth for R) are skipped and counted.
 //!
@@ -11,7 +11,8 @@
 //! `p = (0, 0, R)` the clip's pivot on the source camera's optical axis (so the motion's turns
 //! become orbits about the pivot, as the spherical sampler's are, and keep the scene in view),
 //! M_t's translation scaled by the clip's R, and C a left/right mirror and/or a rotation about
-//! the viewing axis. The entry is resampled in time to the clip's length.
+//! the viewing axis. The entry is resampled in time to the clip's length. Which entry, mirror and
+//! roll a clip gets is drawn by [`crate::pairs::trajectory::sample_novel_trajectory`].
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};

@@ -1,4 +1,4 @@
-//! Hostile sequence inputs (issue 15, classes 4–6 and 8): every documented camera and trajectory
+//! Hostile sequence inputs: every documented camera and trajectory
 //! form parses; mixed frame sizes, non-rigid poses, bad K, ambiguous image dtypes and transposed
 //! depth are errors whose first line names the file and the field or line.
 

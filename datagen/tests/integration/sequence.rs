@@ -1,5 +1,5 @@
-//! Sequence readers: the three layouts of DESIGN §3 read the same content, resolution changes
-//! scale K correctly, and bad input fails naming the file and field.
+//! Sequence readers: the three layouts (cog-nvs, MegaSAM, generic) read the same content,
+//! resolution changes scale K correctly, and bad input fails naming the file and field.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;

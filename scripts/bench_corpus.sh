@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Corpus throughput benchmark (issue 4 §8): `datagen build` on a generated corpus of synthetic
+# Corpus throughput benchmark: `datagen build` on a generated corpus of synthetic
 # videos in every dataset layout (SA-V mp4 + RLE masklets, TAO JPEGs + boxes, YouTube-VOS and
 # DAVIS JPEGs + id PNGs, cog-nvs sequence folders), 2 sampled trajectories per clip, clips of 49
 # frames. Prints pairs/s, MB/s written, peak RSS and where the time went.

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Multi-process training on this CPU (issue 13's benchmark): step time of the mid-size config
+# Multi-process training on this CPU: step time of the mid-size config
 # (scripts/bench_train.sh's: 8 blocks, 12 heads x 64, tiny VAE, 9 frames at 64x80) at global
 # batch 2 on 1 rank (2 threads) and on 2 ranks x 1 thread (Gloo, ZeRO-0 and ZeRO-2) — the same
 # arithmetic, so the difference is the cost of synchronization — with each rank's peak RSS; the

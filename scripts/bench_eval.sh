@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Feature-extraction speed of `trainer eval` against the Python packages (issue 16 §6), same
+# Feature-extraction speed of `trainer eval` against the Python packages, same
 # thread count, side by side: LPIPS (AlexNet, lpips package) on frame pairs and clean-fid "clean"
 # Inception features (PIL resize to 299 + FID Inception), on FRAMES frames of 384×576 (the GCD
 # protocol size). Weights are the random ones of scripts/goldens_eval.py (speed does not depend

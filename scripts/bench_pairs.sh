@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Benchmark of `datagen pairs` end to end (issue 3 §7): a 49-frame 480×720 synthetic sequence
+# Benchmark of `datagen pairs` end to end: a 49-frame 480×720 synthetic sequence
 # (configs/synth_paper_size.toml), 2 sampled trajectories, video decode through shard write.
 # Prints every run's wall time, peak RSS and phase split, then the median wall time and the
 # largest peak RSS. Usage: scripts/bench_pairs.sh [RUNS (default 5)] [THREADS (default: all)]

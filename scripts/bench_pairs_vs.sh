@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Side-by-side benchmark of `datagen pairs` (issue 17 §1): the working tree against commit REV on
+# Side-by-side benchmark of `datagen pairs`: the working tree against commit REV on
 # the job of scripts/bench_pairs.sh (configs/synth_paper_size.toml: 49 frames at 480×720, 2
 # sampled trajectories, video decode through shard write). REV is built from `git archive REV`
 # under target/bench_vs/REV with its own CARGO_TARGET_DIR, the working tree's datagen (release)

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The memory plan against measurement (issue 14 §3): for the tiny preset and the mid-size
+# The memory plan against measurement: for the tiny preset and the mid-size
 # transformer of scripts/bench_train.sh (8 blocks, 12 heads x 64, 226 text tokens of width 4096,
 # tiny VAE, batch 1 of 9 frames at 64x80), with and without activation checkpointing, prints
 # `trainer plan --device cpu`'s predicted peak next to the peak RSS `/usr/bin/time -f %M` measures

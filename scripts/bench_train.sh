@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Training step time and peak RSS of `trainer pretrain` on this CPU (issue 6 §7): the tiny preset
+# Training step time and peak RSS of `trainer pretrain` on this CPU: the tiny preset
 # and a mid-size transformer (8 blocks, 12 heads x 64, 226 text tokens of width 4096) with the
 # tiny VAE, batch 1 of 9 frames at 64x80 from synthetic pairs. Prints the median step time over
 # the steps after warm-up and the process's peak RSS, for the mid size also with activation

@@ -23,12 +23,28 @@ USE_GROUP = re.compile(r"\buse\s+((?:crate|super|self)(?:::[A-Za-z_][A-Za-z0-9_]
 REEXPORT = re.compile(r"\bpub(?:\([a-z]+\))?\s+use\s+([a-z_][a-z0-9_]*)::(\{[^;]*\}|[A-Za-z_][A-Za-z0-9_]*(?:\s+as\s+\w+)?);", re.S)
 
 
+# Comments, string and character literals and lifetimes, matched left to right in one pass, so
+# that a `//` inside a string, a `"` character literal or a string continued over lines with a
+# trailing backslash cannot make the rest of a file look like a string (hiding its paths).
+TOKEN = re.compile(
+    r"//[^\n]*|/\*.*?\*/"  # comments
+    r'|b?r(#*)".*?"\1'  # raw strings
+    r'|b?"(?:\\.|[^"\\])*"'  # strings (`.` spans lines: a backslash may end one)
+    r"|b?'(?:\\.|[^'\\\n])'"  # character literals
+    r"|'[A-Za-z_]\w*",  # lifetimes and labels, which have no closing quote
+    re.S,
+)
+
+
 def strip(text: str) -> str:
     """The code without comments, string literals and `#[cfg(test)]` modules."""
-    text = re.sub(r"//[^\n]*", "", text)
-    text = re.sub(r"/\*.*?\*/", "", text, flags=re.S)
-    text = re.sub(r'r#*"(?:.|\n)*?"#*', '""', text)
-    text = re.sub(r'"(?:\\.|[^"\\])*"', '""', text)
+    def blank(token: re.Match) -> str:
+        kind = token.group(0)
+        if kind.startswith("/"):
+            return ""
+        return "''" if kind.lstrip("b").startswith("'") and kind.endswith("'") else '""' if '"' in kind else kind
+
+    text = TOKEN.sub(blank, text)
     start = text.find("#[cfg(test)]")
     return text if start < 0 else text[:start]
 
@@ -143,13 +159,15 @@ def check(src: Path) -> list[str]:
 
 
 def self_test() -> None:
-    """A cycle through a parent's re-export, a direct one and a one-way use: the first two found,
-    the third not."""
+    """A cycle through a parent's re-export, a direct one, one after string and character literals
+    that fooled a line-by-line stripper, and a one-way use: the first three found, the last not."""
     import tempfile
     crates = {
         "reexport": {"lib.rs": "pub mod a;\npub mod b;", "a/mod.rs": "mod x;\npub use x::Thing;",
                      "a/x.rs": "use crate::b::helper;\npub struct Thing;", "b.rs": "use crate::a::Thing;\npub fn helper() {}"},
         "direct": {"lib.rs": "mod a;\nmod b;", "a.rs": "fn f() { crate::b::g() }", "b.rs": "use super::a;"},
+        "literals": {"lib.rs": "mod a;\nmod b;", "b.rs": "use super::a;",
+                     "a.rs": "fn f() { let s = \"x \\\n y\"; crate::b::g(); let q = '\"'; let l: &'static str = \"//\"; }"},
         "acyclic": {"lib.rs": "mod a;\nmod b;", "a.rs": "use crate::b::g;", "b.rs": "// crate::a::f in a comment\n"
                     "#[cfg(test)]\nmod tests { use crate::a::f; }"},
     }
@@ -163,8 +181,9 @@ def self_test() -> None:
             found[name] = check(Path(root, name))
     assert found["reexport"] and "a::x" in found["reexport"][0] and " b" in found["reexport"][0], found
     assert found["direct"], found
+    assert found["literals"], found
     assert not found["acyclic"], found
-    print("self-test: cycles through re-exports and direct ones found, none where there is none")
+    print("self-test: cycles through re-exports, direct ones and ones after literals found, none where there is none")
 
 
 def main() -> None:

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Evidence that the trajectory bank changes the data (issue 18, item 3): builds a synthetic corpus
+# Evidence that the trajectory bank changes the data: builds a synthetic corpus
 # (`datagen synth-corpus`), harvests its cameras' own motion into a trajectory bank
 # (`datagen trajectories collect`), builds the corpus twice, with the paper's spherical sampler and
 # with `sampler = "bank"`, and prints the distributions of the trajectory parameters (azimuth and

@@ -7,17 +7,15 @@ use clap::{Args, Parser, Subcommand};
 use datagen::config_file::Validate;
 use datagen::corpus::build::{BuildConfig, Progress};
 use datagen::corpus::partition::Worker;
-use datagen::pairs::PairsConfig;
+use datagen::pairs::generator::PairsConfig;
 use datagen::synth::{SynthConfig, write_sequence};
 use schemas::InputStatus;
 
 // Every frame allocates and drops tens of MB of meshes and bins; glibc returns such blocks to
-// the kernel and faults them back in each time (≈15 % of `pairs`' CPU), mimalloc reuses them.
-// Its `no_thp` feature keeps it from asking for transparent huge pages: each fresh 2 MB page is
-// cleared whole when first touched, also where only part of it is used (the encoders' growing
-// output buffers). On the benchmark clip of `scripts/bench_pairs_vs.sh` this lowers the peak RSS
-// of `datagen pairs` from ~600 to ~510 MB; wall time fell from 4.97 to 3.90 s (medians of 5
-// interleaved runs) in one comparison and moved within noise in another, under heavier load.
+// the kernel and faults them back in each time (a visible share of `pairs`' CPU), mimalloc reuses
+// them. Its `no_thp` feature keeps it from asking for transparent huge pages: each fresh 2 MB page
+// is cleared whole when first touched, also where only part of it is used (the encoders' growing
+// output buffers). `scripts/bench_pairs_vs.sh` measures the peak RSS and wall time it saves.
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
@@ -244,7 +242,7 @@ fn pairs(args: PairsArgs) -> anyhow::Result<()> {
     let started = std::time::Instant::now();
     // The input's content hash (for the stats marker) is taken while the sequence is read.
     let (sequence, content_hash) = rayon::join(
-        || datagen::sequence::read_sequence(&args.seq_dir),
+        || datagen::io::sequence::read_sequence(&args.seq_dir),
         || datagen::corpus::build::hash_tree(&args.seq_dir),
     );
     let mut sequence = sequence?;
@@ -258,17 +256,17 @@ fn pairs(args: PairsArgs) -> anyhow::Result<()> {
         eprintln!("note: {} has no dynamic-object masks; depth noise changes nothing", args.seq_dir.display());
     }
     let read_seconds = started.elapsed().as_secs_f64();
-    let request = datagen::pairs::trajectory_request(&sequence, &args.trajectory_files, args.trajectories)?;
+    let request = datagen::pairs::generator::trajectory_request(&sequence, &args.trajectory_files, args.trajectories)?;
     if request.sampled == 0 && request.explicit.is_empty() {
         anyhow::bail!("parameter `trajectories`: 0 trajectories requested and no --trajectory file given");
     }
     let (records, times) =
-        datagen::pairs::generate_clips_timed(&sequence, &args.dataset, &config, &request, args.seed)?;
+        datagen::pairs::generator::generate_clips_timed(&sequence, &args.dataset, &config, &request, args.seed)?;
     // The decoded frames and depth are not needed for writing: their memory goes first.
     let source_id = std::mem::take(&mut sequence.source_id);
     drop(sequence);
     let clock = std::time::Instant::now();
-    let (path, stats) = datagen::pairs::write_shard(&args.out, &source_id, &records, input)?;
+    let (path, stats) = datagen::pairs::generator::write_shard(&args.out, &source_id, &records, input)?;
     if args.timings {
         eprintln!(
             "timings (wall s; phases in brackets run concurrently and overlap): [read+decode, hash] \
@@ -302,7 +300,7 @@ fn pairs(args: PairsArgs) -> anyhow::Result<()> {
         }
     }
     // Tens of MB of encoded frames in hundreds of buffers: the process's exit gives them back
-    // at once, faster than freeing them one by one (~20 ms on the benchmark job).
+    // at once, faster than freeing them one by one.
     std::mem::forget(records);
     Ok(())
 }
@@ -312,9 +310,14 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
         Some(path) => PairsConfig::from_toml_file(path)?,
         None => PairsConfig::default(),
     };
-    let sequence = datagen::sequence::read_sequence(&args.seq_dir)?;
-    let summary =
-        datagen::pairs::render_sequence(&sequence, &args.trajectory, &args.out, &config, args.stack_background)?;
+    let sequence = datagen::io::sequence::read_sequence(&args.seq_dir)?;
+    let summary = datagen::pairs::generator::render_sequence(
+        &sequence,
+        &args.trajectory,
+        &args.out,
+        &config,
+        args.stack_background,
+    )?;
     println!("wrote {} frames to {} (render.mp4, frames/, holes/)", summary.frames, args.out.display());
     let pixels = (summary.frames as f64 * f64::from(sequence.size().0) * f64::from(sequence.size().1)).max(1.0);
     print!("  holes: {:.2} % of pixels", 100.0 * summary.holes as f64 / pixels);
@@ -329,27 +332,27 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
 }
 
 fn inspect(args: InspectArgs) -> anyhow::Result<()> {
-    print!("{}", datagen::inspect::report(&args.path)?);
+    print!("{}", datagen::inspect::shards::report(&args.path)?);
     if let (Some(export), LayoutArg::CogNvs) = (&args.export, args.layout) {
-        let folders = datagen::inspect::export_cog_nvs(&args.path, export)?;
+        let folders = datagen::inspect::shards::export_cog_nvs(&args.path, export)?;
         println!("exported {} clips in the cog-nvs layout to {}", folders.len(), export.display());
     } else if let Some(export) = &args.export {
-        let render = datagen::inspect::ExportRender {
+        let render = datagen::inspect::shards::ExportRender {
             covisibility: Default::default(),
             stacking: args.stack_background.then(Default::default),
         };
-        let folders = datagen::inspect::export(&args.path, export, Some(&render))?;
+        let folders = datagen::inspect::shards::export(&args.path, export, Some(&render))?;
         println!("exported {} pairs to {}", folders.len(), export.display());
         if let Some(first) = folders.first() {
             println!("  look at: {}", first.join("contact_sheet.png").display());
         }
     }
     if let Some(out) = &args.report {
-        let options = datagen::report::ReportOptions {
+        let options = datagen::inspect::report::ReportOptions {
             export_dir: args.export.clone().filter(|_| args.layout == LayoutArg::Pairs),
             ..Default::default()
         };
-        let summary = datagen::report::write_report(&args.path, out, &options)?;
+        let summary = datagen::inspect::report::write_report(&args.path, out, &options)?;
         println!(
             "wrote {} ({} shards, {} clips, {} pairs, {} thumbnails, {} failed or skipped inputs)",
             out.display(),
@@ -368,16 +371,16 @@ fn trajectories(command: TrajectoriesCommand) -> anyhow::Result<()> {
         TrajectoriesCommand::Collect(args) => {
             let summary = match (&args.config, &args.seq_dir) {
                 (Some(config), _) => {
-                    datagen::trajectory_bank::collect_from_corpus(&BuildConfig::from_toml_file(config)?)?
+                    datagen::corpus::harvest::collect_from_corpus(&BuildConfig::from_toml_file(config)?)?
                 }
                 (None, Some(seq_dir)) => {
                     let config = match &args.pairs_config {
                         Some(path) => PairsConfig::from_toml_file(path)?,
                         None => PairsConfig::default(),
                     };
-                    let sequence = datagen::sequence::read_sequence(seq_dir)?;
-                    let mut summary = datagen::trajectory_bank::CollectSummary::default();
-                    datagen::trajectory_bank::collect_from_sequence(
+                    let sequence = datagen::io::sequence::read_sequence(seq_dir)?;
+                    let mut summary = datagen::pairs::trajectory_bank::CollectSummary::default();
+                    datagen::pairs::trajectory_bank::collect_from_sequence(
                         &sequence,
                         &args.dataset,
                         &config.clip,
@@ -420,7 +423,7 @@ fn trajectories(command: TrajectoriesCommand) -> anyhow::Result<()> {
                     _ => anyhow::bail!("parameter `corpora`: `{pair}` is not LABEL=DIR"),
                 })
                 .collect::<anyhow::Result<Vec<_>>>()?;
-            print!("{}", datagen::report::compare_corpora(&corpora, args.plots.as_deref())?);
+            print!("{}", datagen::inspect::report::compare_corpora(&corpora, args.plots.as_deref())?);
             if let Some(plots) = &args.plots {
                 println!("plots in {}", plots.display());
             }

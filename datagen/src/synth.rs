@@ -1,5 +1,5 @@
 //! `datagen synth`: a seeded, analytic dynamic scene ray traced with obvhs, written as a sequence
-//! folder in the cog-nvs layout (DESIGN §3) with exact ground truth.
+//! folder in the cog-nvs layout ([`crate::io::sequence`]) with exact ground truth.
 //!
 //! The scene is a room (checkered floor, striped walls, open top) with static boxes and moving
 //! spheres and boxes, seen by a moving camera. Everything is a triangle mesh, so the same geometry
@@ -54,7 +54,7 @@ pub struct SynthConfig {
 }
 
 /// Widest and tallest frame: 8192 is the wide side of DCI 8K, the largest frame H.264's top
-/// level (6.2) encodes; far above the paper's 720×480 (DESIGN §1).
+/// level (6.2) encodes; far above the CogNVS paper's 720×480.
 pub const MAX_SIDE: u32 = 8192;
 /// Most pixels of a whole scene (frames × width × height): the writer holds every frame's
 /// colour, depth and ids (8 bytes a pixel) until the video is encoded, so this bounds it to
@@ -533,7 +533,7 @@ pub fn ground_truth_covisibility(
             if in_novel.z <= 0.0 {
                 return false;
             }
-            let pixel = crate::camera::pixel_of(novel_intrinsics, in_novel);
+            let pixel = crate::geometry::camera::pixel_of(novel_intrinsics, in_novel);
             let inside = pixel.x > -0.5 && pixel.x < width - 0.5 && pixel.y > -0.5 && pixel.y < height - 0.5;
             inside && geometry.is_visible(point, eye)
         })
@@ -575,20 +575,20 @@ pub fn write_sequence(config: &SynthConfig, out: &Path, mut progress: impl FnMut
         if sheet_frames(config.frames).contains(&frame) {
             sheet_rows.push(vec![
                 rendered.rgb.clone(),
-                crate::contact_sheet::colorize_depth(&rendered.depth, width, height),
-                crate::contact_sheet::colorize_ids(&rendered.mask_ids),
+                crate::inspect::contact_sheet::colorize_depth(&rendered.depth, width, height),
+                crate::inspect::contact_sheet::colorize_ids(&rendered.mask_ids),
             ]);
         }
         rgb_frames.push(rendered.rgb);
         progress(frame + 1);
     }
     let cam = out.join("cam_info");
-    crate::npy::write_npy(&cam.join("megasam_depth.npy"), &[frames, height, width], &depth)?;
+    crate::io::npy::write_npy(&cam.join("megasam_depth.npy"), &[frames, height, width], &depth)?;
     let k: Vec<f32> = config.intrinsics().transpose().to_cols_array().iter().map(|&v| v as f32).collect();
-    crate::npy::write_npy(&cam.join("megasam_intrinsics.npy"), &[3, 3], &k)?;
-    crate::npy::write_npy(&cam.join("megasam_c2ws.npy"), &[frames, 4, 4], &poses)?;
-    crate::npy::write_npy(&out.join("masks_ids.npy"), &[frames, height, width], &ids)?;
-    crate::video::encode_video(&out.join("gt_rgb.mp4"), &rgb_frames, config.fps)?;
+    crate::io::npy::write_npy(&cam.join("megasam_intrinsics.npy"), &[3, 3], &k)?;
+    crate::io::npy::write_npy(&cam.join("megasam_c2ws.npy"), &[frames, 4, 4], &poses)?;
+    crate::io::npy::write_npy(&out.join("masks_ids.npy"), &[frames, height, width], &ids)?;
+    crate::io::video::encode_video(&out.join("gt_rgb.mp4"), &rgb_frames, config.fps)?;
     let meta = serde_json::json!({
         "generator": format!("datagen {}", env!("CARGO_PKG_VERSION")),
         "config": config,
@@ -598,7 +598,7 @@ pub fn write_sequence(config: &SynthConfig, out: &Path, mut progress: impl FnMut
     std::fs::write(&meta_path, serde_json::to_vec_pretty(&meta).expect("json"))
         .map_err(|e| Error::io(&meta_path, e))?;
     let contact_sheet = out.join("contact_sheet.png");
-    crate::contact_sheet::write_contact_sheet(&contact_sheet, &sheet_rows)?;
+    crate::inspect::contact_sheet::write_contact_sheet(&contact_sheet, &sheet_rows)?;
     Ok(SynthOutput { dir: out.to_owned(), contact_sheet })
 }
 

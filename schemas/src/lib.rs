@@ -1,4 +1,4 @@
-//! `schemas`: the contract between `datagen` and `trainer` (DESIGN §5). It defines the Arrow
+//! `schemas`: the contract between `datagen` and `trainer`. It defines the Arrow
 //! schema of a training-pair shard, its Rust record types, atomic shard writing with a stats
 //! marker, and reading with schema-version checks. The field-by-field reference in
 //! `schemas/SCHEMA.md` is generated from the schema by [`reference_markdown`] and kept in sync by a
@@ -52,8 +52,9 @@ pub fn reference_markdown() -> String {
          `bank` and `mixed` trajectory samplers. One Parquet file, one row per clip window of a source video's\n\
          own camera path; the key-value metadata holds `{SCHEMA_NAME_KEY}` = `{BANK_SCHEMA_NAME}` and\n\
          `{SCHEMA_VERSION_KEY}` = `{BANK_SCHEMA_VERSION}`. Translations are in units of the window's pivot distance R\n\
-         (DESIGN §4), so paths from scenes of different scale compare. Static windows (no motion) and\n\
-         degenerate ones (non-finite poses, no valid depth) are not stored.\n\n\
+         (the depth at the first frame's principal point × `pivot_scale`), so paths from scenes of different\n\
+         scale compare. Static windows (no motion) and degenerate ones (non-finite poses, no valid depth) are\n\
+         not stored.\n\n\
          | column | type | nullable | meaning |\n|---|---|---|---|\n"
     ));
     for field in bank_schema().fields() {

@@ -1,4 +1,4 @@
-//! The training-pair shard schema (DESIGN §5): one Parquet row per source clip, holding the clip's
+//! The training-pair shard schema: one Parquet row per source clip, holding the clip's
 //! frames, depth and cameras once, and a list of trajectories, each with its novel cameras,
 //! sampling parameters and lossless co-visibility masks.
 //!
@@ -32,7 +32,7 @@ pub const DOC_KEY: &str = "doc";
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum TrajectoryKind {
-    /// Sampled by the generator from spherical offsets (DESIGN §4).
+    /// Sampled by the generator from spherical offsets about the pivot (the paper's sampler).
     Sampled,
     /// Given by the user as per-frame cameras or a `trajs/*.txt` file.
     Explicit,

@@ -1,4 +1,4 @@
-//! Writing and reading shard files (DESIGN §5): a shard is one self-contained Parquet file of the
+//! Writing and reading shard files: a shard is one self-contained Parquet file of the
 //! [`pair_schema`], written under a temporary name and renamed into place; it counts as finished
 //! only once its stats marker (`<shard>.stats.json`), written last, exists.
 

@@ -1,4 +1,4 @@
-//! The per-input status table of a corpus build (DESIGN §5): one row per input and attempt, with
+//! The per-input status table of a corpus build: one row per input and attempt, with
 //! `ok`, `skipped` or `failed` and the reason, as a Parquet file that pyarrow and DuckDB read
 //! directly. Written atomically (temporary name + rename), like shards.
 

@@ -1,4 +1,4 @@
-//! The trajectory bank table (issue 18, DESIGN §4): real camera motion harvested from the source
+//! The trajectory bank table: real camera motion harvested from the source
 //! cameras of a corpus, one Parquet row per clip window, for the data-driven trajectory sampler.
 //! Each row holds, per frame, the pose relative to the window's first camera with translation in
 //! units of the window's pivot distance R (so paths from scenes of any scale compare), its

@@ -21,7 +21,7 @@ where
 mod shards_in_python {
     //! A shard built from a synthetic scene opens unchanged in pyarrow, DuckDB and HF `datasets`.
     use super::*;
-    use datagen::depth_exr::{DepthMap, encode_depth_exr};
+    use datagen::io::depth_exr::{DepthMap, encode_depth_exr};
     use datagen::synth::{SynthConfig, SynthScene};
     use schemas::{ClipRecord, ShardWriter, ShardWriterOptions, TrajectoryKind, TrajectoryRecord};
 
@@ -148,7 +148,7 @@ print(json.dumps(out))
         writer.write(&record).unwrap();
         writer.finish().unwrap();
         let read = schemas::read_shard(&shard).unwrap().remove(0);
-        let depth = datagen::depth_exr::decode_depth_exr(&read.depth[1], "shard depth[1]").unwrap();
+        let depth = datagen::io::depth_exr::decode_depth_exr(&read.depth[1], "shard depth[1]").unwrap();
         let scene =
             SynthScene::new(&SynthConfig { width: 48, height: 32, frames: 2, ..SynthConfig::default() }).unwrap();
         assert_eq!(depth.values, scene.render_frame(1).depth);

@@ -195,7 +195,7 @@ pub fn run(
         },
     };
     // Inputs are checked, and their digests taken, before any work.
-    let sequence = datagen::sequence::read_sequence(&request.sequence)?;
+    let sequence = datagen::io::sequence::read_sequence(&request.sequence)?;
     let inputs = input_digests(request)?;
     if !record.inputs.is_empty() && record.inputs != inputs {
         return Err(Error::InvalidArgument {
@@ -208,7 +208,7 @@ pub fn run(
         });
     }
     for path in &request.trajectories {
-        datagen::trajectory::read_trajectory_file(path, sequence.len(), &sequence.cameras, &sequence.depth[0])?;
+        datagen::pairs::trajectory::read_trajectory_file(path, sequence.len(), &sequence.cameras, &sequence.depth[0])?;
     }
     record.inputs = inputs;
     std::fs::create_dir_all(&request.out).map_err(|e| Error::Io { path: request.out.clone(), error: e })?;
@@ -269,7 +269,7 @@ pub fn run(
 
     // 2. Renders.
     let stack = request.stack_background.unwrap_or(sequence.len() > request.framing.frames);
-    let pairs_config = datagen::pairs::PairsConfig::default();
+    let pairs_config = datagen::pairs::generator::PairsConfig::default();
     let to_render: Vec<usize> =
         (0..names.len()).filter(|&i| !record.outputs.iter().any(|o| o.name == names[i])).collect();
     if to_render.is_empty() {
@@ -279,7 +279,7 @@ pub fn run(
     }
     for &i in &to_render {
         let folder = request.out.join("renders").join(&names[i]);
-        datagen::pairs::render_sequence(&sequence, &request.trajectories[i], &folder, &pairs_config, stack)?;
+        datagen::pairs::generator::render_sequence(&sequence, &request.trajectories[i], &folder, &pairs_config, stack)?;
         record.outputs.push(Output {
             name: names[i].clone(),
             render: relative(&folder, &request.out),
@@ -406,7 +406,7 @@ fn contact_sheet(source: &[RgbImage], render: &[RgbImage], result: &[RgbImage]) 
         .map(|k| k * (count - 1) / (ROWS.min(count) - 1).max(1))
         .map(|i| vec![fit(&source[i]), fit(&render[i]), result[i].clone()])
         .collect();
-    datagen::contact_sheet::contact_sheet(&rows)
+    datagen::inspect::contact_sheet::contact_sheet(&rows)
 }
 
 /// Trajectory names (file stems), which must be distinct.

@@ -597,7 +597,7 @@ pub fn write_frames(out: &Path, images: &[RgbImage], fps: f64) -> Result<()> {
         std::fs::create_dir_all(folder).map_err(|source| Error::Io { path: folder.to_path_buf(), error: source })?;
     }
     if is_video {
-        datagen::video::encode_video(out, images, fps)?;
+        datagen::io::video::encode_video(out, images, fps)?;
         return Ok(());
     }
     for (i, image) in images.iter().enumerate() {

@@ -1,4 +1,4 @@
-//! The resumable corpus build (DESIGN §5): crawl the configured sources, keep this worker's share
+//! The resumable corpus build: crawl the configured sources, keep this worker's share
 //! of inputs, turn each into clips with an [`InputProcessor`], pack the clips into shards of a
 //! target size, and record every input's outcome.
 //!
@@ -81,16 +81,16 @@ pub struct BuildConfig {
     #[serde(default)]
     pub seed: u64,
     /// Sampled trajectories per clip (the paper's pretraining N = 2). Valid: 1 to
-    /// [`crate::pairs::MAX_TRAJECTORIES`].
+    /// [`crate::pairs::generator::MAX_TRAJECTORIES`].
     #[serde(default = "default_trajectories")]
     pub trajectories: u32,
     /// Clip windows, trajectory ranges, occlusion test (every field checked at load).
     #[serde(default)]
-    pub pairs: crate::pairs::PairsConfig,
+    pub pairs: crate::pairs::generator::PairsConfig,
 }
 
 fn default_trajectories() -> u32 {
-    crate::pairs::PAPER_TRAJECTORIES
+    crate::pairs::generator::PAPER_TRAJECTORIES
 }
 
 impl BuildConfig {
@@ -110,7 +110,7 @@ impl Validate for BuildConfig {
             source.validate().map_err(|e| e.under(&format!("sources[{i}]")))?;
         }
         self.output.validate().map_err(|e| e.under("output"))?;
-        check_count("trajectories", self.trajectories, 1, crate::pairs::MAX_TRAJECTORIES.into())?;
+        check_count("trajectories", self.trajectories, 1, crate::pairs::generator::MAX_TRAJECTORIES.into())?;
         self.pairs.validate().map_err(|e| e.under("pairs"))
     }
 }

@@ -1,4 +1,4 @@
-//! Finding the videos of a dataset tree (DESIGN §3): SA-V, TAO, YouTube-VOS, DAVIS 2017, and a
+//! Finding the videos of a dataset tree: SA-V, TAO, YouTube-VOS, DAVIS 2017, and a
 //! plain tree of sequence folders, each with where its frames, dynamic-object annotations and
 //! reconstruction are. Listing is deterministic (sorted by key) and reads no pixels.
 //!
@@ -19,8 +19,8 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use super::annotations::TrackBox;
 use crate::error::{Error, Result};
+use crate::io::annotations::TrackBox;
 
 /// The dataset layouts the crawler knows.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
@@ -523,7 +523,8 @@ fn tao_frame_folders(source: &SourceConfig, split: &str) -> Result<Vec<VideoEntr
     Ok(entries)
 }
 
-/// Whether `dir` looks like a sequence folder (DESIGN §3: cog-nvs, MegaSAM or generic layout).
+/// Whether `dir` looks like a sequence folder in the cog-nvs, MegaSAM or generic layout
+/// ([`crate::io::sequence`]).
 pub fn is_sequence_folder(dir: &Path) -> bool {
     dir.join("gt_rgb.mp4").is_file()
         || dir.join("cam_info").is_dir()

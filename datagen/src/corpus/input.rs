@@ -12,14 +12,14 @@ use std::time::Instant;
 use image::GrayImage;
 use rayon::prelude::*;
 
-use super::annotations::{
-    box_frame_masks, fill_between_annotations, load_sav_annotation, read_id_png, sav_frame_masks,
-};
 use super::build::{BuildConfig, InputProcessor, Outcome};
 use super::crawl::{FrameSource, MaskSource, VideoEntry};
 use crate::error::{Error, Result};
-use crate::pairs::{PhaseTimes, TrajectoryRequest, generate_clips_timed};
-use crate::sequence::{Sequence, read_frames, read_sequence, read_with_frames};
+use crate::io::annotations::{
+    box_frame_masks, fill_between_annotations, load_sav_annotation, read_id_png, sav_frame_masks,
+};
+use crate::io::sequence::{Sequence, read_frames, read_sequence, read_with_frames};
+use crate::pairs::generator::{PhaseTimes, TrajectoryRequest, generate_clips_timed};
 
 /// Loads everything the pair generator needs for one crawled video.
 pub fn load_entry(entry: &VideoEntry) -> Result<Sequence> {
@@ -37,7 +37,7 @@ pub fn load_entry(entry: &VideoEntry) -> Result<Sequence> {
             return Ok(sequence);
         }
         FrameSource::Video(path) => {
-            let video = crate::video::decode_video(path)?;
+            let video = crate::io::video::decode_video(path)?;
             read_with_frames(&entry.video_id, reconstruction, video.fps, video.frames, path)?
         }
         FrameSource::Images(paths) => {

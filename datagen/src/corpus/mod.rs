@@ -1,11 +1,13 @@
-//! Corpus building (DESIGN §3, §5): crawling dataset trees, turning their annotations into
-//! dynamic-object masks, and splitting the inputs across workers.
+//! Corpus building: finding the videos of dataset trees ([`crawl`]), reading each with its
+//! reconstruction and annotation masks ([`input`]), splitting the inputs across workers
+//! ([`partition`]), the resumable build ([`build`]), checking its output ([`validate`]), synthetic
+//! corpora in every layout ([`synthetic`]), and the trajectory bank of a whole corpus
+//! ([`harvest`]).
 
-pub mod annotations;
 pub mod build;
 pub mod crawl;
+pub mod harvest;
 pub mod input;
 pub mod partition;
-pub mod rle;
 pub mod synthetic;
 pub mod validate;

@@ -11,8 +11,8 @@ use std::path::{Path, PathBuf};
 
 use image::GrayImage;
 
-use super::rle::{encode_counts, mask_runs};
 use crate::error::{Error, Result};
+use crate::io::rle::{encode_counts, mask_runs};
 use crate::synth::{SynthConfig, write_sequence};
 
 /// SA-V annotates every 4th frame (6 fps of 24 fps video).
@@ -177,13 +177,13 @@ fn read_masks(scene: &Path) -> Result<Vec<GrayImage>> {
     let mut paths: Vec<PathBuf> =
         std::fs::read_dir(&dir).map_err(|e| Error::io(&dir, e))?.filter_map(|e| e.ok().map(|e| e.path())).collect();
     paths.sort();
-    paths.iter().map(|p| super::annotations::read_id_png(p)).collect()
+    paths.iter().map(|p| crate::io::annotations::read_id_png(p)).collect()
 }
 
 /// The scene's PNG frames as JPEGs named by `name(frame)`; returns the frame count.
 fn write_jpegs(scene: &Path, dir: &Path, name: impl Fn(usize) -> String) -> Result<usize> {
     mkdir(dir)?;
-    let frames = crate::sequence::read_frames(&sorted_files(&scene.join("frames"))?)?;
+    let frames = crate::io::sequence::read_frames(&sorted_files(&scene.join("frames"))?)?;
     for (f, frame) in frames.iter().enumerate() {
         let path = dir.join(name(f));
         let file = std::fs::File::create(&path).map_err(|e| Error::io(&path, e))?;

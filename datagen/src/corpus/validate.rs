@@ -192,7 +192,8 @@ fn check_clip_content(record: &schemas::ClipRecord) -> Vec<String> {
     for (i, depth) in record.depth.iter().enumerate() {
         // The header's size is compared with the clip's before any pixel is decoded.
         let context = format!("depth[{i}]");
-        if let Err(error) = crate::depth_exr::decode_depth_exr_of_size(depth, &context, width as usize, height as usize)
+        if let Err(error) =
+            crate::io::depth_exr::decode_depth_exr_of_size(depth, &context, width as usize, height as usize)
         {
             problems.push(error.to_string());
         }

@@ -3,7 +3,7 @@
 use std::path::Path;
 use std::process::Command;
 
-use datagen::corpus::annotations::{SAV_ANNOTATION_STRIDE, load_sav_annotation, sav_frame_masks};
+use datagen::io::annotations::{SAV_ANNOTATION_STRIDE, load_sav_annotation, sav_frame_masks};
 
 fn venv_python() -> std::path::PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../.venv/bin/python")
@@ -44,7 +44,7 @@ np.save(sys.argv[2], truth)
     let annotation = load_sav_annotation(&json).unwrap();
     let masks = sav_frame_masks(&annotation, 16, &json).unwrap();
     assert_eq!(masks.len(), 16);
-    let truth = datagen::npy::read_npy_f64(&truth).unwrap();
+    let truth = datagen::io::npy::read_npy_f64(&truth).unwrap();
     let frame_pixels = 37 * 53;
     for step in 0..4 {
         let expected: Vec<u8> =

@@ -120,12 +120,12 @@ fn planted_bad_inputs_are_recorded_and_good_ones_produce_pairs() {
     std::fs::remove_dir_all(root.join("recon/sav_000002")).unwrap();
     // 3: NaN-only depth.
     let depth = root.join("recon/sav_000003/cam_info/megasam_depth.npy");
-    let values = datagen::npy::read_npy_f32(&depth).unwrap();
-    datagen::npy::write_npy(&depth, &values.shape, &vec![f32::NAN; values.data.len()]).unwrap();
+    let values = datagen::io::npy::read_npy_f32(&depth).unwrap();
+    datagen::io::npy::write_npy(&depth, &values.shape, &vec![f32::NAN; values.data.len()]).unwrap();
     // 4: frame-count mismatch.
     let depth = root.join("recon/sav_000004/cam_info/megasam_depth.npy");
-    let values = datagen::npy::read_npy_f32(&depth).unwrap();
-    datagen::npy::write_npy(&depth, &[7, 32, 48], &values.data[..7 * 32 * 48]).unwrap();
+    let values = datagen::io::npy::read_npy_f32(&depth).unwrap();
+    datagen::io::npy::write_npy(&depth, &[7, 32, 48], &values.data[..7 * 32 * 48]).unwrap();
     // 5: corrupt RLE.
     std::fs::write(
         sav.join("sav_000005_manual.json"),

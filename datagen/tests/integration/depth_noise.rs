@@ -2,9 +2,9 @@
 //! path; on, masks and conditioning change only on and near dynamic objects, deterministically,
 //! with the parametric model and with a measured second depth.
 
-use datagen::depth_noise::DepthNoiseConfig;
-use datagen::pairs::{PairsConfig, TrajectoryRequest, generate_clips};
-use datagen::sequence::{Sequence, read_sequence};
+use datagen::io::sequence::{Sequence, read_sequence};
+use datagen::pairs::depth_noise::DepthNoiseConfig;
+use datagen::pairs::generator::{PairsConfig, TrajectoryRequest, generate_clips};
 use datagen::synth::{SynthConfig, write_sequence};
 use image::{GrayImage, RgbImage};
 use schemas::ClipRecord;
@@ -123,7 +123,10 @@ fn noise_changes_masks_and_conditioning_only_near_dynamic_objects() {
         sequence
             .depth
             .iter()
-            .map(|d| datagen::depth_exr::DepthMap { values: d.values.iter().map(|v| v * 1.05).collect(), ..d.clone() })
+            .map(|d| datagen::io::depth_exr::DepthMap {
+                values: d.values.iter().map(|v| v * 1.05).collect(),
+                ..d.clone()
+            })
             .collect(),
     );
     let noisy = clips(&measured, DepthNoiseConfig { enabled: true, ..Default::default() });

@@ -6,9 +6,9 @@ use std::process::Command;
 
 use datagen::config_file::{Validate, load_toml};
 use datagen::corpus::build::BuildConfig;
-use datagen::pairs::{PairsConfig, TrajectoryRequest, generate_clips};
+use datagen::pairs::generator::{PairsConfig, TrajectoryRequest, generate_clips};
+use datagen::pairs::trajectory::TrajectoryConfig;
 use datagen::synth::{SynthConfig, SynthScene, write_sequence};
-use datagen::trajectory::TrajectoryConfig;
 
 fn datagen() -> Command {
     Command::new(env!("CARGO_BIN_EXE_datagen"))
@@ -92,10 +92,10 @@ fn shipped_configs_and_defaults_pass() {
     SynthConfig::default().validate().unwrap();
 }
 
-fn tiny_sequence(dir: &Path) -> datagen::sequence::Sequence {
+fn tiny_sequence(dir: &Path) -> datagen::io::sequence::Sequence {
     let config = SynthConfig { width: 48, height: 32, frames: 3, ..SynthConfig::default() };
     write_sequence(&config, dir, |_| {}).unwrap();
-    datagen::sequence::read_sequence(dir).unwrap()
+    datagen::io::sequence::read_sequence(dir).unwrap()
 }
 
 /// A config built in code gets the same checks from the library functions that take it: a
@@ -126,9 +126,17 @@ fn library_entry_points_reject_bad_configs_built_in_code() {
     assert!(first_line(&error).contains("`trajectories`"), "{error}");
 
     let config = TrajectoryConfig { elevation_deg: f64::INFINITY, ..TrajectoryConfig::paper() };
-    let error =
-        datagen::trajectory::sample_trajectory(&sequence.cameras, &sequence.depth[0], &config, 0, "s", 0, 0, None)
-            .unwrap_err();
+    let error = datagen::pairs::trajectory::sample_trajectory(
+        &sequence.cameras,
+        &sequence.depth[0],
+        &config,
+        0,
+        "s",
+        0,
+        0,
+        None,
+    )
+    .unwrap_err();
     assert!(first_line(&error).contains("`trajectory.elevation_deg`"), "{error}");
 }
 

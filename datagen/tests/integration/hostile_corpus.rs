@@ -1,4 +1,4 @@
-//! Hostile corpus builds (issue 15, class 7): clashing ids, a malformed split file, a template
+//! Hostile corpus builds: clashing ids, a malformed split file, a template
 //! typo, fixed inputs retried, a second build on a locked folder, planted orphans, empty folders.
 
 use std::collections::BTreeSet;

@@ -3,8 +3,8 @@
 use std::io::Write;
 use std::path::Path;
 
-use datagen::depth_exr::{DepthMap, decode_depth_exr, encode_depth_exr};
-use datagen::sequence::{read_exr_folder, read_sequence};
+use datagen::io::depth_exr::{DepthMap, decode_depth_exr, encode_depth_exr};
+use datagen::io::sequence::{read_exr_folder, read_sequence};
 
 /// Frames, height and width of the small MegaSAM archive the npz cases start from.
 const FRAMES: usize = 2;
@@ -45,7 +45,7 @@ fn npy_floats_of_either_byte_order_read_the_same_across_blocks() {
         let mut bytes = npy_header(descr, &[values.len() as u64]);
         bytes.extend_from_slice(&data);
         std::fs::write(&path, bytes).unwrap();
-        let read = datagen::npy::read_npy_f64(&path).unwrap();
+        let read = datagen::io::npy::read_npy_f64(&path).unwrap();
         assert_eq!((read.shape.as_slice(), &read.data), (&[values.len()][..], expected), "{descr}");
     }
 }
@@ -274,7 +274,7 @@ fn truncated_npy_names_the_file_not_a_field_from_its_stem() {
     let path = dir.path().join("megasam_depth.npy");
     let bytes = npy_f32(&[3, 48, 64], &vec![1.0; 3 * 48 * 64]);
     std::fs::write(&path, &bytes[..bytes.len() / 2]).unwrap();
-    let error = datagen::npy::read_npy_f64(&path).unwrap_err().to_string();
+    let error = datagen::io::npy::read_npy_f64(&path).unwrap_err().to_string();
     assert_names(&error, &["megasam_depth.npy: ", "truncated", "[3, 48, 64]"]);
     assert!(!error.contains("field `megasam_depth`"), "{error}");
 }
@@ -285,16 +285,16 @@ fn npy_header_claiming_gigabytes_fails_without_allocating_them() {
     let path = dir.path().join("bomb.npy");
     // 2^40 values in a 128-byte file, and a format 2.0 header that claims 4 GiB of text.
     std::fs::write(&path, npy_header("<f8", &[1 << 20, 1 << 20])).unwrap();
-    let error = datagen::npy::read_npy_f64(&path).unwrap_err().to_string();
+    let error = datagen::io::npy::read_npy_f64(&path).unwrap_err().to_string();
     assert_names(&error, &["bomb.npy", "1048576"]);
     let mut long_text = b"\x93NUMPY\x02\x00".to_vec();
     long_text.extend_from_slice(&u32::MAX.to_le_bytes());
     std::fs::write(&path, long_text).unwrap();
-    let error = datagen::npy::read_npy_f64(&path).unwrap_err().to_string();
+    let error = datagen::io::npy::read_npy_f64(&path).unwrap_err().to_string();
     assert_names(&error, &["bomb.npy", "header"]);
     // An empty array whose other extents overflow every product of them.
     std::fs::write(&path, npy_header("<f4", &[1 << 40, 1 << 40, 0])).unwrap();
-    let error = datagen::npy::read_npy_f64(&path).unwrap_err().to_string();
+    let error = datagen::io::npy::read_npy_f64(&path).unwrap_err().to_string();
     assert_names(&error, &["bomb.npy", "1099511627776"]);
 }
 

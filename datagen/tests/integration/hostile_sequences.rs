@@ -1,14 +1,15 @@
-//! Hostile sequence inputs (issue 15, classes 4–6 and 8): every documented camera and trajectory
+//! Hostile sequence inputs: every documented camera and trajectory
 //! form parses; mixed frame sizes, non-rigid poses, bad K, ambiguous image dtypes and transposed
 //! depth are errors whose first line names the file and the field or line.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use datagen::camera::{mat3_to_row_major, mat4_to_row_major};
-use datagen::sequence::{Sequence, read_frames, read_sequence};
+use datagen::geometry::camera::{mat3_to_row_major, mat4_to_row_major};
+use datagen::io::sequence::{Sequence, read_frames, read_sequence};
+use datagen::pairs::clip::pivot_distance;
+use datagen::pairs::trajectory::{orbit, read_trajectory_file};
 use datagen::synth::{SynthConfig, write_sequence};
-use datagen::trajectory::{orbit, pivot_distance, read_trajectory_file};
 use serde_json::{Value, json};
 
 /// Frames of the synthetic sequences: enough for interpolation, small enough to be fast.
@@ -32,7 +33,7 @@ fn generic(dir: &Path) -> (PathBuf, Sequence) {
     std::fs::create_dir_all(out.join("depth")).unwrap();
     for i in 0..FRAMES {
         std::fs::copy(seq.join(format!("frames/{i:05}.png")), out.join(format!("frames/{i:05}.png"))).unwrap();
-        let exr = datagen::depth_exr::encode_depth_exr(&reference.depth[i]).unwrap();
+        let exr = datagen::io::depth_exr::encode_depth_exr(&reference.depth[i]).unwrap();
         std::fs::write(out.join(format!("depth/{i:05}.exr")), exr).unwrap();
     }
     write_cameras(&out, json!({"intrinsics": flat_k(&reference), "world_from_camera": nested_poses(&reference)}));
@@ -152,7 +153,7 @@ fn trajectory_files_of_every_documented_form_parse() {
 
     let npy = dir.path().join("poses.npy");
     let flat: Vec<f64> = pose_rows(&sequence).concat();
-    datagen::npy::write_npy(&npy, &[FRAMES, 4, 4], &flat).unwrap();
+    datagen::io::npy::write_npy(&npy, &[FRAMES, 4, 4], &flat).unwrap();
     same(read(&npy), ".npy (N,4,4)");
     for (name, value) in [
         ("nested.json", nested_poses(&sequence)),
@@ -217,7 +218,7 @@ fn trajectory_poses_get_the_sequence_pose_checks() {
     let mut rows = pose_rows(&sequence);
     rows[2][14] = 0.25; // a projective last row [0, 0, 0.25, 1]
     let npy = dir.path().join("projective.npy");
-    datagen::npy::write_npy(&npy, &[FRAMES, 4, 4], &rows.concat()).unwrap();
+    datagen::io::npy::write_npy(&npy, &[FRAMES, 4, 4], &rows.concat()).unwrap();
     first_line_names(&read(&npy), &["projective.npy", "world_from_camera[2]", "last row"]);
 
     let json_path = dir.path().join("projective.json");
@@ -242,11 +243,11 @@ fn intrinsics_need_a_pinhole_last_row_and_no_skew() {
     let dir = tempfile::tempdir().unwrap();
     let seq = synth(dir.path());
     let k_path = seq.join("cam_info/megasam_intrinsics.npy");
-    let k = datagen::npy::read_npy_f64(&k_path).unwrap();
+    let k = datagen::io::npy::read_npy_f64(&k_path).unwrap();
     let write = |index: usize, value: f64| {
         let mut data = k.data.clone();
         data[index] = value;
-        datagen::npy::write_npy(&k_path, &[3, 3], &data).unwrap();
+        datagen::io::npy::write_npy(&k_path, &[3, 3], &data).unwrap();
     };
     write(6, 0.5);
     first_line_names(&error_of(&seq), &["megasam_intrinsics.npy", "intrinsics", "last row"]);
@@ -294,25 +295,25 @@ fn depth_stored_transposed_is_an_error_naming_both_shapes() {
     let dir = tempfile::tempdir().unwrap();
     let seq = synth(dir.path());
     let depth_path = seq.join("cam_info/megasam_depth.npy");
-    let depth = datagen::npy::read_npy_f32(&depth_path).unwrap();
+    let depth = datagen::io::npy::read_npy_f32(&depth_path).unwrap();
     // (N, W, H): each map transposed.
     let transposed: Vec<f32> = (0..FRAMES)
         .flat_map(|f| (0..64).flat_map(move |u| (0..48).map(move |v| (f, v, u))))
         .map(|(f, v, u)| depth.data[f * 48 * 64 + v * 64 + u])
         .collect();
-    datagen::npy::write_npy(&depth_path, &[FRAMES, 64, 48], &transposed).unwrap();
+    datagen::io::npy::write_npy(&depth_path, &[FRAMES, 64, 48], &transposed).unwrap();
     let error = error_of(&seq);
     first_line_names(&error, &["megasam_depth.npy", "depth", "64x48", "48x64", "transposed"]);
 
     // The same rule for a second depth source; a legal other resolution still reads.
-    datagen::npy::write_npy(&depth_path, &depth.shape, &depth.data).unwrap();
+    datagen::io::npy::write_npy(&depth_path, &depth.shape, &depth.data).unwrap();
     let mut sequence = read_sequence(&seq).unwrap();
     let second = dir.path().join("second.npy");
-    datagen::npy::write_npy(&second, &[FRAMES, 64, 48], &transposed).unwrap();
+    datagen::io::npy::write_npy(&second, &[FRAMES, 64, 48], &transposed).unwrap();
     let error = sequence.load_second_depth(&second).unwrap_err().to_string();
     first_line_names(&error, &["second.npy", "depth", "transposed"]);
     let square: Vec<f32> = vec![2.0; FRAMES * 40 * 40];
-    datagen::npy::write_npy(&second, &[FRAMES, 40, 40], &square).unwrap();
+    datagen::io::npy::write_npy(&second, &[FRAMES, 40, 40], &square).unwrap();
     sequence.load_second_depth(&second).unwrap();
 }
 

@@ -1,6 +1,6 @@
 //! `inspect`: statistics of a shard and the per-pair export (folders, masks, meta, contact sheet).
 
-use datagen::inspect::{export, report};
+use datagen::inspect::shards::{export, report};
 use schemas::{ClipRecord, ShardWriter, ShardWriterOptions};
 
 fn shard_with_one_clip(dir: &std::path::Path) -> (std::path::PathBuf, ClipRecord) {
@@ -47,12 +47,12 @@ fn export_writes_every_frame_mask_meta_and_sheet() {
 fn clips_decode_back_to_their_sequence_and_export_renders_with_stacking() {
     let dir = tempfile::tempdir().unwrap();
     let seq_dir = crate::sequence::synth_sequence(dir.path(), 6);
-    let sequence = datagen::sequence::read_sequence(&seq_dir).unwrap();
-    let request = datagen::pairs::TrajectoryRequest { sampled: 1, explicit: Vec::new() };
-    let config = datagen::pairs::PairsConfig::default();
-    let records = datagen::pairs::generate_clips(&sequence, "synth", &config, &request, 3).unwrap();
+    let sequence = datagen::io::sequence::read_sequence(&seq_dir).unwrap();
+    let request = datagen::pairs::generator::TrajectoryRequest { sampled: 1, explicit: Vec::new() };
+    let config = datagen::pairs::generator::PairsConfig::default();
+    let records = datagen::pairs::generator::generate_clips(&sequence, "synth", &config, &request, 3).unwrap();
     // Lossless round trip: PNG frames and masks, EXR depth, cameras.
-    let decoded = datagen::sequence::Sequence::from_clip(&records[0]).unwrap();
+    let decoded = datagen::io::sequence::Sequence::from_clip(&records[0]).unwrap();
     assert_eq!(decoded.frames, sequence.frames);
     assert_eq!(decoded.dynamic_masks, sequence.dynamic_masks);
     for (a, b) in decoded.depth.iter().zip(&sequence.depth) {
@@ -64,14 +64,14 @@ fn clips_decode_back_to_their_sequence_and_export_renders_with_stacking() {
                 && a.intrinsics.abs_diff_eq(b.intrinsics, 1e-12)
         );
     }
-    let (shard, _) = datagen::pairs::write_shard(
+    let (shard, _) = datagen::pairs::generator::write_shard(
         &dir.path().join("pairs"),
         "synth",
         &records,
         schemas::InputDigest { source_path: "synth".into(), content_hash: String::new() },
     )
     .unwrap();
-    let options = datagen::inspect::ExportRender { stacking: Some(Default::default()), ..Default::default() };
+    let options = datagen::inspect::shards::ExportRender { stacking: Some(Default::default()), ..Default::default() };
     let folders = export(&shard, &dir.path().join("export"), Some(&options)).unwrap();
     let meta: serde_json::Value =
         serde_json::from_slice(&std::fs::read(folders[0].join("meta.json")).unwrap()).unwrap();

@@ -1,9 +1,9 @@
 //! The render batch of the image grids (every novel pixel's first surface hit) equals a loop over
 //! every triangle, as the co-visibility batch does in `geometry`.
 
-use datagen::camera::PinholeCamera;
-use datagen::depth_exr::DepthMap;
-use datagen::depth_mesh::{DepthMesh, MeshConfig};
+use datagen::geometry::camera::PinholeCamera;
+use datagen::geometry::depth_mesh::{DepthMesh, MeshConfig};
+use datagen::io::depth_exr::DepthMap;
 use datagen::synth::{SynthConfig, SynthScene, look_at};
 use glam::{DMat3, DMat4, DVec3};
 

@@ -31,7 +31,7 @@ fn fixtures_through_pairs_with_ground_truth_trajectories() {
         assert_eq!(record.trajectories.len(), 2, "explicit trajectories only");
         let (mut tp, mut fp, mut fn_, mut all) = (0u64, 0u64, 0u64, 0u64);
         for (k, trajectory) in record.trajectories.iter().enumerate() {
-            let truth = datagen::npy::read_npy_f64(&seq.join(format!("gt/covis_{k}.npy"))).unwrap();
+            let truth = datagen::io::npy::read_npy_f64(&seq.join(format!("gt/covis_{k}.npy"))).unwrap();
             let plane = truth.data.len() / record.num_frames();
             for (frame, png) in trajectory.covisible_mask.iter().enumerate() {
                 for (p, &t) in mask_bits(png).into_iter().zip(&truth.data[frame * plane..(frame + 1) * plane]) {
@@ -58,14 +58,14 @@ fn fixtures_through_pairs_with_ground_truth_trajectories() {
 #[test]
 fn trajectory_rejections_on_the_fixtures_are_reported() {
     for scene in ["scene_101", "scene_102"] {
-        let sequence = datagen::sequence::read_sequence(&fixtures().join(scene)).unwrap();
+        let sequence = datagen::io::sequence::read_sequence(&fixtures().join(scene)).unwrap();
         let crossing = |i: usize, a: glam::DVec3, b: glam::DVec3| {
-            datagen::trajectory::crosses_depth_surface(&sequence.depth[i], &sequence.cameras[i], a, b)
+            datagen::pairs::trajectory::crosses_depth_surface(&sequence.depth[i], &sequence.cameras[i], a, b)
         };
-        let trajectory_config = datagen::trajectory::TrajectoryConfig::paper();
+        let trajectory_config = datagen::pairs::trajectory::TrajectoryConfig::paper();
         let (mut rejected, samples) = (0, 40);
         for index in 0..samples {
-            let sampled = datagen::trajectory::sample_trajectory(
+            let sampled = datagen::pairs::trajectory::sample_trajectory(
                 &sequence.cameras,
                 &sequence.depth[0],
                 &trajectory_config,
@@ -121,7 +121,7 @@ fn pairs_are_deterministic_and_trajectory_flags_select_as_documented() {
     // An explicit trajectory alone, then together with --trajectories 1.
     let poses: Vec<f64> = ra.trajectories[1].world_from_camera.iter().flatten().copied().collect();
     let file = dir.path().join("t.npy");
-    datagen::npy::write_npy(&file, &[5, 4, 4], &poses).unwrap();
+    datagen::io::npy::write_npy(&file, &[5, 4, 4], &poses).unwrap();
     let explicit = read(&run("d", &["--trajectory", s(&file)]));
     assert_eq!(explicit.trajectories.len(), 1);
     assert_eq!(explicit.trajectories[0].kind, schemas::TrajectoryKind::Explicit);
@@ -151,15 +151,15 @@ fn render_writes_video_frames_and_holes() {
     let dir = tempfile::tempdir().unwrap();
     let seq = synth_sequence(dir.path(), 3);
     // The source poses shifted sideways by 0.3 in world x.
-    let source = datagen::npy::read_npy_f64(&seq.join("cam_info/megasam_c2ws.npy")).unwrap();
+    let source = datagen::io::npy::read_npy_f64(&seq.join("cam_info/megasam_c2ws.npy")).unwrap();
     let shifted: Vec<f64> =
         source.data.iter().enumerate().map(|(i, &v)| if i % 16 == 3 { v + 0.3 } else { v }).collect();
     let file = dir.path().join("traj.npy");
-    datagen::npy::write_npy(&file, &[3, 4, 4], &shifted).unwrap();
+    datagen::io::npy::write_npy(&file, &[3, 4, 4], &shifted).unwrap();
     let out = dir.path().join("render");
     let output = datagen(&["render", s(&seq), "--trajectory", s(&file), "--out", s(&out)]);
     assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
-    assert_eq!(datagen::video::decode_video(&out.join("render.mp4")).unwrap().frames.len(), 3);
+    assert_eq!(datagen::io::video::decode_video(&out.join("render.mp4")).unwrap().frames.len(), 3);
     let holes = image::open(out.join("holes/00001.png")).unwrap().to_luma8();
     let hole_fraction = holes.pixels().filter(|p| p.0[0] == 255).count() as f64 / (64.0 * 48.0);
     assert!(hole_fraction > 0.0 && hole_fraction < 0.5, "a sideways step opens some holes: {hole_fraction}");
@@ -210,27 +210,28 @@ fn bad_input_exits_non_zero_naming_file_and_field_and_writes_nothing() {
     fails_cleanly(&seq, &out, &[], &["megasam_c2ws.npy", "megasam_c2ws"]);
 
     let seq = copy("count_mismatch");
-    let poses = datagen::npy::read_npy_f64(&npy(&seq, "megasam_c2ws.npy")).unwrap();
-    datagen::npy::write_npy(&npy(&seq, "megasam_c2ws.npy"), &[2, 4, 4], &poses.data[..32]).unwrap();
+    let poses = datagen::io::npy::read_npy_f64(&npy(&seq, "megasam_c2ws.npy")).unwrap();
+    datagen::io::npy::write_npy(&npy(&seq, "megasam_c2ws.npy"), &[2, 4, 4], &poses.data[..32]).unwrap();
     fails_cleanly(&seq, &out, &[], &["megasam_c2ws.npy", "world_from_camera", "2 poses for 3 frames"]);
 
     let seq = copy("nan_pose");
     let mut bad = poses.data.clone();
     bad[5] = f64::NAN;
-    datagen::npy::write_npy(&npy(&seq, "megasam_c2ws.npy"), &[3, 4, 4], &bad).unwrap();
+    datagen::io::npy::write_npy(&npy(&seq, "megasam_c2ws.npy"), &[3, 4, 4], &bad).unwrap();
     fails_cleanly(&seq, &out, &[], &["megasam_c2ws.npy", "world_from_camera[0]"]);
 
     let seq = copy("dead_depth");
-    let depth = datagen::npy::read_npy_f32(&npy(&seq, "megasam_depth.npy")).unwrap();
-    datagen::npy::write_npy(&npy(&seq, "megasam_depth.npy"), &depth.shape, &vec![f32::NAN; depth.data.len()]).unwrap();
+    let depth = datagen::io::npy::read_npy_f32(&npy(&seq, "megasam_depth.npy")).unwrap();
+    datagen::io::npy::write_npy(&npy(&seq, "megasam_depth.npy"), &depth.shape, &vec![f32::NAN; depth.data.len()])
+        .unwrap();
     fails_cleanly(&seq, &out, &[], &["megasam_depth.npy", "depth[0]"]);
 
     let seq = copy("zero_size");
-    datagen::npy::write_npy(&npy(&seq, "megasam_depth.npy"), &[3, 0, 64], &Vec::<f32>::new()).unwrap();
+    datagen::io::npy::write_npy(&npy(&seq, "megasam_depth.npy"), &[3, 0, 64], &Vec::<f32>::new()).unwrap();
     fails_cleanly(&seq, &out, &[], &["megasam_depth.npy", "zero-size"]);
 
     let trajectory = dir.path().join("short.npy");
-    datagen::npy::write_npy(&trajectory, &[2, 4, 4], &poses.data[..32]).unwrap();
+    datagen::io::npy::write_npy(&trajectory, &[2, 4, 4], &poses.data[..32]).unwrap();
     fails_cleanly(
         &good,
         &out,

@@ -107,7 +107,7 @@ fn digests(shard: &Path) -> [String; 3] {
             rest.update(image::load_from_memory(png).unwrap().to_rgb8().as_raw());
         }
         for exr in &record.depth {
-            let depth = datagen::depth_exr::decode_depth_exr(exr, "depth").unwrap();
+            let depth = datagen::io::depth_exr::decode_depth_exr(exr, "depth").unwrap();
             rest.update(&depth.values.iter().flat_map(|v| v.to_le_bytes()).collect::<Vec<u8>>());
         }
         for png in record.dynamic_mask.iter().flatten() {

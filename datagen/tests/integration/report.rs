@@ -4,15 +4,15 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use datagen::pairs::{PairsConfig, TrajectoryRequest, generate_clips};
+use datagen::pairs::generator::{PairsConfig, TrajectoryRequest, generate_clips};
 use schemas::{ClipRecord, InputStatus, StatusRecord};
 
 /// A shard of one synthetic clip of `frames` frames with `trajectories` sampled pairs, in `dir`.
 fn shard(dir: &Path, frames: u32, trajectories: u32) -> (PathBuf, Vec<ClipRecord>) {
-    let sequence = datagen::sequence::read_sequence(&crate::sequence::synth_sequence(dir, frames)).unwrap();
+    let sequence = datagen::io::sequence::read_sequence(&crate::sequence::synth_sequence(dir, frames)).unwrap();
     let request = TrajectoryRequest { sampled: trajectories, explicit: Vec::new() };
     let records = generate_clips(&sequence, "synth", &PairsConfig::default(), &request, 4).unwrap();
-    let (path, _) = datagen::pairs::write_shard(
+    let (path, _) = datagen::pairs::generator::write_shard(
         &dir.join("corpus"),
         "synth",
         &records,
@@ -27,7 +27,7 @@ fn cog_nvs_export_decodes_to_the_stored_frames_under_the_public_names() {
     let dir = tempfile::tempdir().unwrap();
     let (path, records) = shard(dir.path(), 6, 2);
     let out = dir.path().join("cog-nvs");
-    let folders = datagen::inspect::export_cog_nvs(&path, &out).unwrap();
+    let folders = datagen::inspect::shards::export_cog_nvs(&path, &out).unwrap();
     assert_eq!(folders, vec![out.join(records[0].clip_id.replace('/', "__"))]);
     let mut names: Vec<String> = std::fs::read_dir(&folders[0])
         .unwrap()
@@ -44,14 +44,14 @@ fn cog_nvs_export_decodes_to_the_stored_frames_under_the_public_names() {
             / a.as_raw().len() as f64
     };
     const MAX_MEAN_ERROR: f64 = 6.0;
-    let gt = datagen::video::decode_video(&folders[0].join("gt_rgb.mp4")).unwrap();
+    let gt = datagen::io::video::decode_video(&folders[0].join("gt_rgb.mp4")).unwrap();
     assert_eq!(gt.frames.len(), targets.len());
     assert!((gt.fps - record.fps).abs() < 1e-3, "{} fps, clip {}", gt.fps, record.fps);
     for (i, (a, b)) in gt.frames.iter().zip(&targets).enumerate() {
         assert!(mean_error(a, b) < MAX_MEAN_ERROR, "gt frame {i}: {}", mean_error(a, b));
     }
     for (k, trajectory) in record.trajectories.iter().enumerate() {
-        let render = datagen::video::decode_video(&folders[0].join(format!("train_render{}.mp4", k + 1))).unwrap();
+        let render = datagen::io::video::decode_video(&folders[0].join(format!("train_render{}.mp4", k + 1))).unwrap();
         assert_eq!(render.frames.len(), targets.len());
         for (i, frame) in render.frames.iter().enumerate() {
             let mask = image::load_from_memory(&trajectory.covisible_mask[i]).unwrap().to_luma8();
@@ -62,8 +62,8 @@ fn cog_nvs_export_decodes_to_the_stored_frames_under_the_public_names() {
         }
     }
     // The two conditioning videos differ: they are two trajectories' masks, in order.
-    let first = datagen::video::decode_video(&folders[0].join("train_render1.mp4")).unwrap();
-    let second = datagen::video::decode_video(&folders[0].join("train_render2.mp4")).unwrap();
+    let first = datagen::io::video::decode_video(&folders[0].join("train_render1.mp4")).unwrap();
+    let second = datagen::io::video::decode_video(&folders[0].join("train_render2.mp4")).unwrap();
     assert_ne!(first.frames, second.frames);
 }
 
@@ -71,10 +71,10 @@ fn cog_nvs_export_decodes_to_the_stored_frames_under_the_public_names() {
 fn exported_contact_sheets_have_a_header_and_frame_labels() {
     let dir = tempfile::tempdir().unwrap();
     let (path, records) = shard(dir.path(), 4, 1);
-    let folders = datagen::inspect::export(&path, &dir.path().join("export"), None).unwrap();
+    let folders = datagen::inspect::shards::export(&path, &dir.path().join("export"), None).unwrap();
     let sheet = image::open(folders[0].join("contact_sheet.png")).unwrap().to_rgb8();
     let (width, height) = (records[0].width, records[0].height);
-    let plain = datagen::contact_sheet::contact_sheet(&vec![vec![image::RgbImage::new(width, height); 3]; 4]);
+    let plain = datagen::inspect::contact_sheet::contact_sheet(&vec![vec![image::RgbImage::new(width, height); 3]; 4]);
     assert!(sheet.width() > plain.width() && sheet.height() > plain.height(), "room for header and labels");
     // Header text (light pixels) in the band above the first row.
     let header = image::imageops::crop_imm(&sheet, 0, 0, sheet.width(), sheet.height() - plain.height()).to_image();
@@ -114,16 +114,16 @@ fn report_renders_in_headless_chromium_with_every_section() {
     ];
     schemas::write_status_table(&corpus.join("status/status-w000-000000.parquet"), &rows).unwrap();
     let export = dir.path().join("export");
-    datagen::inspect::export(&path, &export, None).unwrap();
+    datagen::inspect::shards::export(&path, &export, None).unwrap();
     let out = dir.path().join("report/index.html");
-    let options = datagen::report::ReportOptions { export_dir: Some(export.clone()), ..Default::default() };
-    let summary = datagen::report::write_report(corpus, &out, &options).unwrap();
+    let options = datagen::inspect::report::ReportOptions { export_dir: Some(export.clone()), ..Default::default() };
+    let summary = datagen::inspect::report::write_report(corpus, &out, &options).unwrap();
     assert_eq!((summary.clips, summary.pairs, summary.thumbnails, summary.failures), (1, 2, 1, 2));
     let html = std::fs::read_to_string(&out).unwrap();
     assert!(!html.contains("src=\"file:") && !html.contains("<link"), "self-contained: images are data URIs");
     assert!(html.contains(&format!(
         "{}/contact_sheet.png",
-        datagen::inspect::pair_id(&records[0], &records[0].trajectories[0])
+        datagen::inspect::shards::pair_id(&records[0], &records[0].trajectories[0])
     )));
 
     let profile = tempfile::tempdir().unwrap();

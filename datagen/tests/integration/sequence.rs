@@ -1,10 +1,10 @@
-//! Sequence readers: the three layouts of DESIGN §3 read the same content, resolution changes
-//! scale K correctly, and bad input fails naming the file and field.
+//! Sequence readers: the three layouts (cog-nvs, MegaSAM, generic) read the same content,
+//! resolution changes scale K correctly, and bad input fails naming the file and field.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use datagen::sequence::read_sequence;
+use datagen::io::sequence::read_sequence;
 use datagen::synth::{SynthConfig, write_sequence};
 
 pub fn fixtures() -> PathBuf {
@@ -28,9 +28,9 @@ fn blender_fixture_reads_with_exact_depth_and_cameras() {
     let dir = fixtures().join("scene_101");
     let sequence = read_sequence(&dir).unwrap();
     assert_eq!((sequence.len(), sequence.size()), (25, (360, 240)));
-    let depth = datagen::npy::read_npy_f32(&dir.join("cam_info/megasam_depth.npy")).unwrap();
+    let depth = datagen::io::npy::read_npy_f32(&dir.join("cam_info/megasam_depth.npy")).unwrap();
     assert_eq!(sequence.depth[3].values, depth.data[3 * 360 * 240..4 * 360 * 240]);
-    let k = datagen::npy::read_npy_f64(&dir.join("cam_info/megasam_intrinsics.npy")).unwrap();
+    let k = datagen::io::npy::read_npy_f64(&dir.join("cam_info/megasam_intrinsics.npy")).unwrap();
     assert!((sequence.cameras[0].intrinsics.z_axis.x - k.data[2]).abs() < 1e-9);
     assert!((sequence.fps - 24.0).abs() < 1e-6);
 }
@@ -41,15 +41,15 @@ fn depth_at_half_resolution_is_resampled_and_k_scaled() {
     let seq = synth_sequence(dir.path(), 2);
     let full = read_sequence(&seq).unwrap();
     // Replace depth and K with half-resolution versions (every other pixel, K of the half image).
-    let depth = datagen::npy::read_npy_f32(&seq.join("cam_info/megasam_depth.npy")).unwrap();
+    let depth = datagen::io::npy::read_npy_f32(&seq.join("cam_info/megasam_depth.npy")).unwrap();
     let half: Vec<f32> = (0..2)
         .flat_map(|f| (0..24).flat_map(move |v| (0..32).map(move |u| (f, v, u))))
         .map(|(f, v, u)| depth.data[f * 48 * 64 + (2 * v) * 64 + 2 * u])
         .collect();
-    datagen::npy::write_npy(&seq.join("cam_info/megasam_depth.npy"), &[2, 24, 32], &half).unwrap();
+    datagen::io::npy::write_npy(&seq.join("cam_info/megasam_depth.npy"), &[2, 24, 32], &half).unwrap();
     let k = full.cameras[0].resized(32, 24).intrinsics;
-    let k_rows: Vec<f32> = datagen::camera::mat3_to_row_major(&k).iter().map(|&v| v as f32).collect();
-    datagen::npy::write_npy(&seq.join("cam_info/megasam_intrinsics.npy"), &[3, 3], &k_rows).unwrap();
+    let k_rows: Vec<f32> = datagen::geometry::camera::mat3_to_row_major(&k).iter().map(|&v| v as f32).collect();
+    datagen::io::npy::write_npy(&seq.join("cam_info/megasam_intrinsics.npy"), &[3, 3], &k_rows).unwrap();
     let read = read_sequence(&seq).unwrap();
     assert_eq!((read.depth[0].width, read.depth[0].height), (64, 48));
     assert!(
@@ -95,12 +95,12 @@ np.savez(out + "/scene_sgd_cvd_hr.npz", images=images, depths=depth,
     let mut poses = Vec::new();
     for i in 0..3 {
         std::fs::copy(seq.join(format!("frames/{i:05}.png")), generic.join(format!("frames/{i:05}.png"))).unwrap();
-        let exr = datagen::depth_exr::encode_depth_exr(&reference.depth[i]).unwrap();
+        let exr = datagen::io::depth_exr::encode_depth_exr(&reference.depth[i]).unwrap();
         std::fs::write(generic.join(format!("depth/{i:05}.exr")), exr).unwrap();
-        let rows = datagen::camera::mat4_to_row_major(&reference.cameras[i].world_from_camera);
+        let rows = datagen::geometry::camera::mat4_to_row_major(&reference.cameras[i].world_from_camera);
         poses.push(rows.chunks(4).map(|r| r.to_vec()).collect::<Vec<_>>());
     }
-    let k = datagen::camera::mat3_to_row_major(&reference.cameras[0].intrinsics);
+    let k = datagen::geometry::camera::mat3_to_row_major(&reference.cameras[0].intrinsics);
     let json = serde_json::json!({"intrinsics": k.to_vec(), "world_from_camera": poses});
     std::fs::write(generic.join("cameras.json"), json.to_string()).unwrap();
     let read = read_sequence(&generic).unwrap();
@@ -118,11 +118,11 @@ fn bad_sequences_fail_naming_file_and_field() {
     let dir = tempfile::tempdir().unwrap();
     let seq = synth_sequence(dir.path(), 3);
     let cam = seq.join("cam_info");
-    let depth = datagen::npy::read_npy_f32(&cam.join("megasam_depth.npy")).unwrap();
-    let poses = datagen::npy::read_npy_f32(&cam.join("megasam_c2ws.npy")).unwrap();
+    let depth = datagen::io::npy::read_npy_f32(&cam.join("megasam_depth.npy")).unwrap();
+    let poses = datagen::io::npy::read_npy_f32(&cam.join("megasam_c2ws.npy")).unwrap();
     let restore = || {
-        datagen::npy::write_npy(&cam.join("megasam_depth.npy"), &depth.shape, &depth.data).unwrap();
-        datagen::npy::write_npy(&cam.join("megasam_c2ws.npy"), &poses.shape, &poses.data).unwrap();
+        datagen::io::npy::write_npy(&cam.join("megasam_depth.npy"), &depth.shape, &depth.data).unwrap();
+        datagen::io::npy::write_npy(&cam.join("megasam_c2ws.npy"), &poses.shape, &poses.data).unwrap();
     };
     let check = |what: &str, needles: &[&str]| {
         let error = error_of(&seq);
@@ -137,24 +137,24 @@ fn bad_sequences_fail_naming_file_and_field() {
     holes[..500].fill(f32::NAN);
     holes[500..600].fill(0.0);
     holes[600..700].fill(f32::INFINITY);
-    datagen::npy::write_npy(&cam.join("megasam_depth.npy"), &depth.shape, &holes).unwrap();
+    datagen::io::npy::write_npy(&cam.join("megasam_depth.npy"), &depth.shape, &holes).unwrap();
     assert!(read_sequence(&seq).is_ok(), "partially invalid depth must work");
     let mut dead = depth.data.clone();
     dead[64 * 48..2 * 64 * 48].fill(f32::NAN);
-    datagen::npy::write_npy(&cam.join("megasam_depth.npy"), &depth.shape, &dead).unwrap();
+    datagen::io::npy::write_npy(&cam.join("megasam_depth.npy"), &depth.shape, &dead).unwrap();
     check("all-invalid frame", &["megasam_depth.npy", "depth[1]"]);
 
-    datagen::npy::write_npy(&cam.join("megasam_depth.npy"), &[2, 48, 64], &depth.data[..2 * 48 * 64]).unwrap();
+    datagen::io::npy::write_npy(&cam.join("megasam_depth.npy"), &[2, 48, 64], &depth.data[..2 * 48 * 64]).unwrap();
     check("frame count mismatch", &["megasam_depth.npy", "3 frames"]);
 
     let mut nan_pose = poses.data.clone();
     nan_pose[16 + 3] = f32::NAN;
-    datagen::npy::write_npy(&cam.join("megasam_c2ws.npy"), &poses.shape, &nan_pose).unwrap();
+    datagen::io::npy::write_npy(&cam.join("megasam_c2ws.npy"), &poses.shape, &nan_pose).unwrap();
     check("non-finite pose", &["megasam_c2ws.npy", "world_from_camera[1]"]);
 
     let mut scaled = poses.data.clone();
     scaled[32] *= 2.0;
-    datagen::npy::write_npy(&cam.join("megasam_c2ws.npy"), &poses.shape, &scaled).unwrap();
+    datagen::io::npy::write_npy(&cam.join("megasam_c2ws.npy"), &poses.shape, &scaled).unwrap();
     check("non-rigid pose", &["megasam_c2ws.npy", "world_from_camera[2]", "rigid"]);
 
     let bytes = std::fs::read(cam.join("megasam_depth.npy")).unwrap();

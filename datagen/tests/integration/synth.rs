@@ -31,12 +31,12 @@ fn synth_writes_a_complete_cog_nvs_sequence() {
     let stdout = String::from_utf8_lossy(&status.stdout);
     assert!(stdout.contains("contact_sheet.png"), "tells the user what to look at: {stdout}");
 
-    let depth = datagen::npy::read_npy_f32(&out.join("cam_info/megasam_depth.npy")).unwrap();
+    let depth = datagen::io::npy::read_npy_f32(&out.join("cam_info/megasam_depth.npy")).unwrap();
     assert_eq!(depth.shape, vec![6, 64, 96]);
-    let k = datagen::npy::read_npy_f32(&out.join("cam_info/megasam_intrinsics.npy")).unwrap();
+    let k = datagen::io::npy::read_npy_f32(&out.join("cam_info/megasam_intrinsics.npy")).unwrap();
     assert_eq!(k.shape, vec![3, 3]);
     assert_eq!(k.data[2], 96.0 / 2.0 - 0.5, "principal point at the pixel-centre convention");
-    let poses = datagen::npy::read_npy_f32(&out.join("cam_info/megasam_c2ws.npy")).unwrap();
+    let poses = datagen::io::npy::read_npy_f32(&out.join("cam_info/megasam_c2ws.npy")).unwrap();
     assert_eq!(poses.shape, vec![6, 4, 4]);
     assert_eq!(&poses.data[12..16], &[0.0, 0.0, 0.0, 1.0]);
     for frame in 0..6 {
@@ -46,7 +46,7 @@ fn synth_writes_a_complete_cog_nvs_sequence() {
     assert!(sheet.width() > 96 * 3);
 
     // The H.264 video decodes back to the lossless frames, closely.
-    let video = datagen::video::decode_video(&out.join("gt_rgb.mp4")).unwrap();
+    let video = datagen::io::video::decode_video(&out.join("gt_rgb.mp4")).unwrap();
     assert_eq!(video.frames.len(), 6);
     assert!((video.fps - 24.0).abs() < 1e-6, "fps {}", video.fps);
     for (i, decoded) in video.frames.iter().enumerate() {

@@ -3,10 +3,11 @@
 
 use std::path::{Path, PathBuf};
 
-use datagen::pairs::{ClipConfig, PairsConfig, TrajectoryRequest, generate_clips};
-use datagen::sequence::{Sequence, read_sequence};
-use datagen::trajectory::{NovelTrajectory, Sampler, TrajectoryConfig, sample_novel_trajectory};
-use datagen::trajectory_bank::{CollectSummary, TrajectoryBank, collect_from_sequence};
+use datagen::io::sequence::{Sequence, read_sequence};
+use datagen::pairs::clip::ClipConfig;
+use datagen::pairs::generator::{PairsConfig, TrajectoryRequest, generate_clips};
+use datagen::pairs::trajectory::{NovelTrajectory, Sampler, TrajectoryConfig, sample_novel_trajectory};
+use datagen::pairs::trajectory_bank::{CollectSummary, TrajectoryBank, collect_from_sequence};
 use glam::{DMat4, DVec3};
 use schemas::{BankEntry, TrajectoryKind};
 
@@ -51,20 +52,22 @@ fn collect_stores_motion_relative_to_the_first_camera_in_pivot_units_and_skips_s
     let entry = &summary.entries[0];
     assert_eq!(entry.entry_id, format!("synth/{}/0", sequence.source_id));
     assert_eq!((entry.window_start, entry.num_frames()), (0, 4));
-    let pivot = datagen::trajectory::pivot_distance(&sequence.depth[0], &sequence.cameras[0], 1.0);
+    let pivot = datagen::pairs::clip::pivot_distance(&sequence.depth[0], &sequence.cameras[0], 1.0);
     assert!((entry.pivot_distance - pivot).abs() < 1e-12);
-    assert!(datagen::camera::mat4_from_row_major(&entry.relative_pose[0]).abs_diff_eq(DMat4::IDENTITY, 1e-12));
+    assert!(
+        datagen::geometry::camera::mat4_from_row_major(&entry.relative_pose[0]).abs_diff_eq(DMat4::IDENTITY, 1e-12)
+    );
     let first = sequence.cameras[0].world_from_camera;
     for (t, pose) in entry.relative_pose.iter().enumerate() {
         let expected = first.inverse() * sequence.cameras[t].world_from_camera;
-        let pose = datagen::camera::mat4_from_row_major(pose);
+        let pose = datagen::geometry::camera::mat4_from_row_major(pose);
         assert!((pose.w_axis.truncate() * pivot).abs_diff_eq(expected.w_axis.truncate(), 1e-9), "frame {t}");
         assert!(pose.x_axis.abs_diff_eq(expected.x_axis, 1e-9));
     }
     let steps: f64 =
         (1..4).map(|t| (sequence.cameras[t].center() - sequence.cameras[t - 1].center()).length() / pivot).sum();
     assert!((entry.path_length - steps).abs() < 1e-9 && entry.path_length > 0.0);
-    let net = datagen::camera::mat4_from_row_major(&entry.relative_pose[3]).w_axis.truncate();
+    let net = datagen::geometry::camera::mat4_from_row_major(&entry.relative_pose[3]).w_axis.truncate();
     assert!(DVec3::from_array(entry.net_translation).abs_diff_eq(net, 1e-12));
     assert!(!entry.dominant_direction.is_empty());
 }
@@ -92,7 +95,7 @@ fn bank_sampler_is_deterministic_records_its_entry_and_survives_the_shard() {
     let other_seed = generate_clips(&sequence, "synth", &config, &request, 12).unwrap();
     assert_ne!(records[0].trajectories[0].world_from_camera, other_seed[0].trajectories[0].world_from_camera);
     // Provenance survives the shard.
-    let (shard, _) = datagen::pairs::write_shard(
+    let (shard, _) = datagen::pairs::generator::write_shard(
         &dir.path().join("pairs"),
         "synth",
         &records,
@@ -114,7 +117,7 @@ fn pan_bank(dir: &Path, frames: usize) -> PathBuf {
     let relative_pose = (0..frames)
         .map(|t| {
             let angle = 20f64.to_radians() * t as f64 / (frames - 1) as f64;
-            datagen::camera::mat4_to_row_major(&DMat4::from_rotation_y(angle))
+            datagen::geometry::camera::mat4_to_row_major(&DMat4::from_rotation_y(angle))
         })
         .collect();
     let entry = BankEntry {
@@ -233,7 +236,7 @@ fn bad_banks_and_sampler_keys_are_named_by_file_and_field() {
         0,
     )
     .unwrap();
-    let (shard, _) = datagen::pairs::write_shard(
+    let (shard, _) = datagen::pairs::generator::write_shard(
         &dir.path().join("pairs"),
         "synth",
         &records,

@@ -83,19 +83,25 @@ pub fn finetune_on(
     let pairs_dir = run.join("pairs");
     let built = request.resume && crate::data::ClipIndex::open(std::slice::from_ref(&pairs_dir)).is_ok();
     if rank == 0 && !built {
-        let sequence = datagen::sequence::read_sequence(sequence_dir)?;
+        let sequence = datagen::io::sequence::read_sequence(sequence_dir)?;
         let frames = config.data.frames as u32;
-        let pairs_config = datagen::pairs::PairsConfig {
-            clip: datagen::pairs::ClipConfig { length: frames, stride: frames, max_clips: 0 },
+        let pairs_config = datagen::pairs::generator::PairsConfig {
+            clip: datagen::pairs::clip::ClipConfig { length: frames, stride: frames, max_clips: 0 },
             ..Default::default()
         };
-        let request = datagen::pairs::TrajectoryRequest { sampled: trajectories, explicit: Vec::new() };
-        let records = datagen::pairs::generate_clips(&sequence, "finetune", &pairs_config, &request, config.data.seed)?;
+        let request = datagen::pairs::generator::TrajectoryRequest { sampled: trajectories, explicit: Vec::new() };
+        let records = datagen::pairs::generator::generate_clips(
+            &sequence,
+            "finetune",
+            &pairs_config,
+            &request,
+            config.data.seed,
+        )?;
         let digest = schemas::InputDigest {
             source_path: sequence_dir.display().to_string(),
             content_hash: datagen::corpus::build::hash_tree(sequence_dir)?,
         };
-        datagen::pairs::write_shard(&pairs_dir, &sequence.source_id, &records, digest)?;
+        datagen::pairs::generator::write_shard(&pairs_dir, &sequence.source_id, &records, digest)?;
     }
     if let Some(pg) = pg {
         pg.barrier("pairs written by rank 0")?;

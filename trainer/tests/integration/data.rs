@@ -13,21 +13,22 @@ fn shards() -> &'static Path {
     static DIR: OnceLock<tempfile::TempDir> = OnceLock::new();
     DIR.get_or_init(|| {
         let dir = tempfile::tempdir().unwrap();
-        let pairs = datagen::pairs::PairsConfig {
-            clip: datagen::pairs::ClipConfig { length: 5, stride: 4, max_clips: 0 },
+        let pairs = datagen::pairs::generator::PairsConfig {
+            clip: datagen::pairs::clip::ClipConfig { length: 5, stride: 4, max_clips: 0 },
             ..Default::default()
         };
-        let request = datagen::pairs::TrajectoryRequest { sampled: 2, explicit: Vec::new() };
+        let request = datagen::pairs::generator::TrajectoryRequest { sampled: 2, explicit: Vec::new() };
         for seed in 0..3u64 {
             let scene = datagen::synth::SynthConfig { width: 48, height: 32, frames: 9, seed, ..Default::default() };
             let seq = dir.path().join(format!("seq{seed}"));
             datagen::synth::write_sequence(&scene, &seq, |_| {}).unwrap();
-            let sequence = datagen::sequence::read_sequence(&seq).unwrap();
-            let records = datagen::pairs::generate_clips(&sequence, "synth", &pairs, &request, seed).unwrap();
+            let sequence = datagen::io::sequence::read_sequence(&seq).unwrap();
+            let records =
+                datagen::pairs::generator::generate_clips(&sequence, "synth", &pairs, &request, seed).unwrap();
             let digest = schemas::InputDigest { source_path: seq.display().to_string(), content_hash: String::new() };
             let shard = if seed < 2 { "a" } else { "b" };
             let out = dir.path().join("shards");
-            datagen::pairs::write_shard(&out, &format!("{shard}{seed}"), &records, digest).unwrap();
+            datagen::pairs::generator::write_shard(&out, &format!("{shard}{seed}"), &records, digest).unwrap();
         }
         dir
     })

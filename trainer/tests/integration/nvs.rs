@@ -50,7 +50,7 @@ fn trajectories(dir: &Path, sequence: &Path) -> Vec<PathBuf> {
     std::fs::create_dir_all(dir.join("trajs")).unwrap();
     let orbit = dir.join("trajs/orbit.txt");
     std::fs::write(&orbit, "0 -20\n0 5\n0 -0.1\n").unwrap();
-    let seq = datagen::sequence::read_sequence(sequence).unwrap();
+    let seq = datagen::io::sequence::read_sequence(sequence).unwrap();
     let poses: Vec<Vec<Vec<f64>>> = seq
         .cameras
         .iter()
@@ -73,7 +73,7 @@ fn nvs(args: &[std::ffi::OsString]) -> Command {
 fn frames(dir: &Path) -> Vec<image::RgbImage> {
     let mut paths: Vec<PathBuf> = std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().path()).collect();
     paths.sort();
-    datagen::sequence::read_frames(&paths).unwrap()
+    datagen::io::sequence::read_frames(&paths).unwrap()
 }
 
 #[test]
@@ -109,7 +109,7 @@ fn nvs_finetunes_renders_and_samples_and_continues_after_a_kill() {
     for (name, output) in ["orbit", "shift"].iter().zip(record["outputs"].as_array().unwrap()) {
         assert_eq!(output["name"], *name);
         assert_eq!(output["stacked_background"], true);
-        let video = datagen::video::decode_video(&whole.join(format!("{name}.mp4"))).unwrap();
+        let video = datagen::io::video::decode_video(&whole.join(format!("{name}.mp4"))).unwrap();
         assert_eq!((video.frames.len(), video.frames[0].dimensions()), (9, (80, 64)));
         assert_eq!(frames(&whole.join(name)).len(), 9);
         let sheet = image::open(whole.join(format!("{name}_sheet.png"))).unwrap();

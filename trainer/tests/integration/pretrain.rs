@@ -20,15 +20,15 @@ pub(super) fn pairs(dir: &Path) -> PathBuf {
 pub(super) fn video_pairs(dir: &Path, dataset: &str, frames: u32, seed: u64, trajectories: u32) -> PathBuf {
     let scene = datagen::synth::SynthConfig { width: 96, height: 64, frames, seed, ..Default::default() };
     datagen::synth::write_sequence(&scene, &dir.join("seq"), |_| {}).unwrap();
-    let sequence = datagen::sequence::read_sequence(&dir.join("seq")).unwrap();
-    let config = datagen::pairs::PairsConfig {
-        clip: datagen::pairs::ClipConfig { length: 9, stride: 4, max_clips: 0 },
+    let sequence = datagen::io::sequence::read_sequence(&dir.join("seq")).unwrap();
+    let config = datagen::pairs::generator::PairsConfig {
+        clip: datagen::pairs::clip::ClipConfig { length: 9, stride: 4, max_clips: 0 },
         ..Default::default()
     };
-    let request = datagen::pairs::TrajectoryRequest { sampled: trajectories, explicit: Vec::new() };
-    let records = datagen::pairs::generate_clips(&sequence, dataset, &config, &request, 1).unwrap();
+    let request = datagen::pairs::generator::TrajectoryRequest { sampled: trajectories, explicit: Vec::new() };
+    let records = datagen::pairs::generator::generate_clips(&sequence, dataset, &config, &request, 1).unwrap();
     let digest = schemas::InputDigest { source_path: "seq".to_string(), content_hash: String::new() };
-    datagen::pairs::write_shard(&dir.join("pairs"), "seq", &records, digest).unwrap();
+    datagen::pairs::generator::write_shard(&dir.join("pairs"), "seq", &records, digest).unwrap();
     dir.join("pairs")
 }
 
@@ -169,11 +169,11 @@ fn pretrain_finetune_sample_eval_end_to_end() {
     let checkpoint = finetuned.join("checkpoints/step-00000003");
     assert!(checkpoint.join("transformer/config.json").is_file());
 
-    let sequence = datagen::sequence::read_sequence(&video).unwrap();
+    let sequence = datagen::io::sequence::read_sequence(&video).unwrap();
     let trajectory = dir.path().join("orbit.txt");
     std::fs::write(&trajectory, "0 1 2 3 4 5 6 7 8\n0 0 0 0 0 0 0 0 0\n0 0 0 0 0 0 0 0 0\n").unwrap();
     let render = dir.path().join("render");
-    datagen::pairs::render_sequence(&sequence, &trajectory, &render, &Default::default(), false).unwrap();
+    datagen::pairs::generator::render_sequence(&sequence, &trajectory, &render, &Default::default(), false).unwrap();
     let sample = |seed: &str, out: &Path| {
         run(&[
             "sample".as_ref(),
@@ -196,7 +196,7 @@ fn pretrain_finetune_sample_eval_end_to_end() {
     ok(&sample("2", &c));
     let frames = |p: &Path| {
         let paths: Vec<PathBuf> = (0..9).map(|i| p.join(format!("{i:05}.png"))).collect();
-        datagen::sequence::read_frames(&paths).unwrap()
+        datagen::io::sequence::read_frames(&paths).unwrap()
     };
     let (fa, fb, fc) = (frames(&a), frames(&b), frames(&c));
     assert_eq!(fa.len(), 9);

@@ -13,7 +13,7 @@
 //! Every query runs obvhs's f32 ray/triangle test on these triangles. The mesh itself answers
 //! single rays from anywhere: through an obvhs BVH when built with [`Accelerator::Cwbvh`], else
 //! by testing every triangle. The production path is the batch of rays leaving one novel camera,
-//! answered by [`crate::mesh_view::MeshView`], which must equal those answers exactly (integration tests).
+//! answered by [`crate::geometry::mesh_view::MeshView`], which must equal those answers exactly (integration tests).
 
 use std::time::Duration;
 
@@ -26,9 +26,9 @@ use obvhs::triangle::Triangle;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::camera::PinholeCamera;
 use crate::config_file::{Checked, Validate, check_float};
-use crate::depth_exr::DepthMap;
+use crate::geometry::camera::PinholeCamera;
+use crate::io::depth_exr::DepthMap;
 
 /// How the mesh is cut and how unobserved space is treated.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -79,7 +79,7 @@ pub const DEFAULT_OCCLUDER_THICKNESS: f64 = 0.05;
 #[serde(rename_all = "kebab-case")]
 pub enum Accelerator {
     /// Nothing built per frame: the batches of rays leaving a novel camera are scanned on that
-    /// camera's pixel grid ([`crate::mesh_view::MeshView`]); a single ray from elsewhere tests every triangle.
+    /// camera's pixel grid ([`crate::geometry::mesh_view::MeshView`]); a single ray from elsewhere tests every triangle.
     #[default]
     ImageGrids,
     /// An obvhs compressed-wide BVH over all triangles (SAH build per frame) answers every ray
@@ -101,7 +101,7 @@ pub(crate) enum Quad {
 }
 
 /// Most pixels a side of a depth map, so that a pixel's column and row fit in 16 bits (the
-/// readers stop at [`crate::npy::MAX_SIDE_PX`]).
+/// readers stop at [`crate::io::npy::MAX_SIDE_PX`]).
 pub const MAX_SIDE: usize = u16::MAX as usize;
 
 /// The two triangles of a quad, as corner indices (see [`Quad`]).

@@ -1,4 +1,4 @@
-//! Depth noise on dynamic objects (DESIGN §4), for training robustness: reconstructions of moving
+//! Depth noise on dynamic objects, for training robustness: reconstructions of moving
 //! objects are the least accurate part of a video's geometry, and at inference the conditioning
 //! render shows the resulting smearing at object edges. Training pairs imitate it.
 //!
@@ -27,9 +27,9 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::camera::PinholeCamera;
 use crate::config_file::{Checked, Validate, check_count, check_float, check_placeholders};
-use crate::depth_exr::DepthMap;
+use crate::geometry::camera::PinholeCamera;
+use crate::io::depth_exr::DepthMap;
 
 /// Parametric noise settings and the optional second depth source.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

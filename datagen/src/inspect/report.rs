@@ -1,7 +1,7 @@
 //! `datagen inspect DIR --report OUT.html`: one self-contained HTML page a person reads at a
-//! glance (issue 18): totals and per-dataset counts, failures by reason from the corpus status
-//! tables, histograms (inline SVG) of the co-visible fraction and of the trajectory parameters
-//! ([`crate::trajectory::PathParameters`]), and a grid of contact-sheet thumbnails of sampled
+//! glance: totals and per-dataset counts, failures by reason from the corpus status tables,
+//! histograms (inline SVG) of the co-visible fraction and of the trajectory parameters
+//! ([`crate::pairs::trajectory::PathParameters`]), and a grid of contact-sheet thumbnails of sampled
 //! pairs (PNG data URIs) linked to their exports. A script on the page marks it ready in the DOM
 //! once it has loaded (`data-report-ready`), which a headless browser test reads back.
 //!
@@ -15,10 +15,10 @@ use std::path::{Path, PathBuf};
 use image::RgbImage;
 use schemas::{ClipRecord, InputStatus, ShardReader, TrajectoryRecord};
 
-use crate::camera::mat4_from_row_major;
 use crate::error::{Error, Result};
-use crate::inspect::{SHEET_COLUMNS, pair_id, shard_paths};
-use crate::trajectory::{PathParameters, path_parameters};
+use crate::geometry::camera::mat4_from_row_major;
+use crate::inspect::shards::{SHEET_COLUMNS, pair_id, shard_paths};
+use crate::pairs::trajectory::{PathParameters, path_parameters};
 
 /// Bins of every histogram: fine enough to show a shape on a few hundred pairs.
 const HISTOGRAM_BINS: usize = 20;
@@ -282,10 +282,10 @@ fn thumbnail(record: &ClipRecord, trajectory: &TrajectoryRecord) -> Result<Vec<u
                 if mask.get_pixel(x, y).0[0] > 0 { *target.get_pixel(x, y) } else { image::Rgb([0, 0, 0]) }
             }),
         };
-        rows.push(vec![target, crate::contact_sheet::mask_to_rgb(&mask), condition]);
+        rows.push(vec![target, crate::inspect::contact_sheet::mask_to_rgb(&mask), condition]);
     }
     let labels: Vec<String> = picked.iter().map(|i| format!("frame {i}")).collect();
-    let mut sheet = crate::contact_sheet::labelled_contact_sheet(&SHEET_COLUMNS[..3], &labels, &rows);
+    let mut sheet = crate::inspect::contact_sheet::labelled_contact_sheet(&SHEET_COLUMNS[..3], &labels, &rows);
     if sheet.width() > THUMBNAIL_WIDTH {
         let height = (f64::from(sheet.height()) * f64::from(THUMBNAIL_WIDTH) / f64::from(sheet.width())).round() as u32;
         sheet = image::imageops::resize(&sheet, THUMBNAIL_WIDTH, height.max(1), image::imageops::FilterType::Triangle);
@@ -398,7 +398,8 @@ pub fn write_report(dir: &Path, out: &Path, options: &ReportOptions) -> Result<R
             );
             let mut reasons: BTreeMap<String, (usize, String)> = BTreeMap::new();
             for record in status.values().filter(|r| r.status != InputStatus::Ok) {
-                let key = format!("{}: {}", record.status.as_str(), crate::inspect::reason_kind(&record.reason));
+                let key =
+                    format!("{}: {}", record.status.as_str(), crate::inspect::shards::reason_kind(&record.reason));
                 let entry = reasons.entry(key).or_insert_with(|| (0, record.input_key.clone()));
                 entry.0 += 1;
             }

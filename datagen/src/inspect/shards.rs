@@ -12,11 +12,11 @@ use image::{GrayImage, Rgb, RgbImage};
 use rayon::prelude::*;
 use schemas::{ClipRecord, InputStatus, ShardReader, TrajectoryRecord};
 
-use crate::camera::{PinholeCamera, mat3_from_row_major, mat4_from_row_major};
-use crate::covisibility::CovisibilityConfig;
 use crate::error::{Error, Result};
-use crate::sequence::Sequence;
-use crate::static_background::{StackingConfig, StaticBackground};
+use crate::geometry::camera::{PinholeCamera, mat3_from_row_major, mat4_from_row_major};
+use crate::geometry::covisibility::CovisibilityConfig;
+use crate::io::sequence::Sequence;
+use crate::pairs::static_background::{StackingConfig, StaticBackground};
 
 /// Frames shown per pair on the contact sheet.
 const SHEET_FRAMES: usize = 4;
@@ -218,7 +218,7 @@ impl<'a> ClipRenderer<'a> {
 
     fn render(&self, frame: usize, novel: &PinholeCamera) -> RgbImage {
         let (mut image, mut holes) =
-            crate::pairs::render_frame(&self.sequence, frame, novel, &self.options.covisibility);
+            crate::pairs::generator::render_frame(&self.sequence, frame, novel, &self.options.covisibility);
         if let Some(background) = &self.background {
             background.fill_holes(&mut image, &mut holes, novel);
         }
@@ -278,7 +278,7 @@ fn export_pair(
             if !sheet_frames.contains(&i) {
                 return Ok(None);
             }
-            let mut row = vec![target.clone(), crate::contact_sheet::mask_to_rgb(&mask), cond];
+            let mut row = vec![target.clone(), crate::inspect::contact_sheet::mask_to_rgb(&mask), cond];
             if let Some(render) = render {
                 row.push(render.render(i, &camera(record, &trajectory.world_from_camera[i], i)));
             }
@@ -288,7 +288,12 @@ fn export_pair(
     let sheet: Vec<Vec<RgbImage>> = rows.into_iter().flatten().collect();
     let columns = &SHEET_COLUMNS[..if render.is_some() { 4 } else { 3 }];
     let labels: Vec<String> = sheet_frames.iter().map(|i| format!("frame {i}")).collect();
-    crate::contact_sheet::write_labelled_contact_sheet(&folder.join("contact_sheet.png"), columns, &labels, &sheet)?;
+    crate::inspect::contact_sheet::write_labelled_contact_sheet(
+        &folder.join("contact_sheet.png"),
+        columns,
+        &labels,
+        &sheet,
+    )?;
     let meta = serde_json::json!({
         "pair_id": pair_id(record, trajectory),
         "clip_id": record.clip_id,
@@ -388,7 +393,7 @@ fn export_clip_cog_nvs(record: &ClipRecord, out: &Path) -> Result<PathBuf> {
         .into_par_iter()
         .map(|i| Ok(decode_png(&record.frames[i], &format!("{}: frames[{i}]", record.clip_id))?.to_rgb8()))
         .collect::<Result<_>>()?;
-    crate::video::encode_video(&folder.join(COG_NVS_TARGET), &targets, fps).map_err(in_clip)?;
+    crate::io::video::encode_video(&folder.join(COG_NVS_TARGET), &targets, fps).map_err(in_clip)?;
     let mut renders = Vec::new();
     for (position, trajectory) in record.trajectories.iter().enumerate() {
         let conditioning: Vec<RgbImage> = (0..record.num_frames())
@@ -409,7 +414,7 @@ fn export_clip_cog_nvs(record: &ClipRecord, out: &Path) -> Result<PathBuf> {
             })
             .collect::<Result<_>>()?;
         let name = cog_nvs_render_name(position + 1);
-        crate::video::encode_video(&folder.join(&name), &conditioning, fps).map_err(in_clip)?;
+        crate::io::video::encode_video(&folder.join(&name), &conditioning, fps).map_err(in_clip)?;
         renders.push(serde_json::json!({
             "file": name,
             "trajectory_index": trajectory.index,

@@ -1,4 +1,4 @@
-//! Novel camera paths (DESIGN §1, §4). The pivot distance R is the depth at the optical-centre
+//! Novel camera paths. The pivot distance R ([`pivot_distance`]) is the depth at the optical-centre
 //! pixel of the clip's first frame (× a scale). Frame t's novel camera is the source camera of
 //! frame t orbited about the point at distance R on *its own* optical axis by azimuth φ_t and
 //! elevation θ_t, moved radially by Δr_t·R, and looking at that point: the source motion is kept
@@ -10,7 +10,7 @@
 //! moves it towards −x.
 //!
 //! With `sampler = "bank"` (or `"mixed"`), a trajectory is instead a real camera motion from a
-//! trajectory bank composed with the source path about the pivot ([`crate::trajectory_bank`]),
+//! trajectory bank composed with the source path about the pivot ([`super::trajectory_bank`]),
 //! randomly mirrored left/right and rotated about the viewing axis.
 //!
 //! Sampling is deterministic per (seed, source id, clip start, trajectory index). A candidate
@@ -26,10 +26,11 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::camera::{PinholeCamera, checked_pose};
 use crate::config_file::{Checked, KeyError, Validate, check_count, check_float};
-use crate::depth_exr::DepthMap;
 use crate::error::{Error, Result};
+use crate::geometry::camera::{PinholeCamera, checked_pose};
+use crate::io::depth_exr::DepthMap;
+use crate::pairs::clip::pivot_distance;
 
 /// Ranges of the spherical offsets. Every field is checked when a config is loaded and when
 /// [`sample_trajectory`] is called ([`Validate`]).
@@ -69,7 +70,7 @@ pub struct TrajectoryConfig {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Sampler {
-    /// Spherical offsets about the pivot (the paper's sampler, DESIGN §4).
+    /// Spherical offsets about the pivot (the paper's sampler).
     #[default]
     Spherical,
     /// Real camera motion from a trajectory bank.
@@ -163,32 +164,6 @@ pub struct SampledTrajectory {
     pub world_from_camera: Vec<DMat4>,
     /// Candidates rejected before this one.
     pub rejected_samples: u32,
-}
-
-/// Half-size of the window around the optical centre whose median valid depth gives R.
-const PIVOT_WINDOW: i64 = 2;
-
-/// R: the median valid depth in a small window around the first frame's principal point (the
-/// whole frame's median if that window has none), × `scale`.
-pub fn pivot_distance(depth: &DepthMap, camera: &PinholeCamera, scale: f64) -> f64 {
-    let (cx, cy) = (camera.intrinsics.z_axis.x.round() as i64, camera.intrinsics.z_axis.y.round() as i64);
-    let valid = |d: f32| d.is_finite() && d > 0.0;
-    let mut window: Vec<f32> = Vec::new();
-    for v in cy - PIVOT_WINDOW..=cy + PIVOT_WINDOW {
-        for u in cx - PIVOT_WINDOW..=cx + PIVOT_WINDOW {
-            if u >= 0 && v >= 0 && (u as usize) < depth.width && (v as usize) < depth.height {
-                let d = depth.values[v as usize * depth.width + u as usize];
-                if valid(d) {
-                    window.push(d);
-                }
-            }
-        }
-    }
-    if window.is_empty() {
-        window = depth.values.iter().copied().filter(|&d| valid(d)).collect();
-    }
-    window.sort_by(f32::total_cmp);
-    scale * f64::from(window.get(window.len() / 2).copied().unwrap_or(1.0))
 }
 
 /// The novel pose for one frame: `source` orbited about the point at `pivot` on its optical axis.
@@ -411,7 +386,7 @@ pub fn sample_novel_trajectory(
     cameras: &[PinholeCamera],
     first_depth: &DepthMap,
     config: &TrajectoryConfig,
-    bank: Option<&crate::trajectory_bank::TrajectoryBank>,
+    bank: Option<&crate::pairs::trajectory_bank::TrajectoryBank>,
     seed: u64,
     source_id: &str,
     clip_start: u32,
@@ -528,10 +503,11 @@ enum JsonPoses {
 }
 
 /// One pose of a JSON trajectory: a 4×4 matrix as nested rows or 16 row-major values
-/// ([`crate::camera::json_matrix`]), checked by [`checked_pose`].
+/// ([`crate::geometry::camera::json_matrix`]), checked by [`checked_pose`].
 fn json_matrix(path: &Path, index: usize, value: &serde_json::Value) -> Result<DMat4> {
     let field = format!("world_from_camera[{index}]");
-    let values = crate::camera::json_matrix(value, 4, 4).map_err(|reason| Error::invalid(path, &field, reason))?;
+    let values =
+        crate::geometry::camera::json_matrix(value, 4, 4).map_err(|reason| Error::invalid(path, &field, reason))?;
     checked_pose(path, &field, &values)
 }
 
@@ -597,8 +573,8 @@ pub fn read_trajectory_file(
     let poses: Vec<DMat4> = match extension.as_str() {
         "npy" => {
             // The shape is checked from the header, before the values are read.
-            use crate::npy::Axis;
-            let array = crate::npy::read_npy_f64_shaped(path, &[Axis::Any, Axis::Is(4), Axis::Is(4)])?;
+            use crate::io::npy::Axis;
+            let array = crate::io::npy::read_npy_f64_shaped(path, &[Axis::Any, Axis::Is(4), Axis::Is(4)])?;
             if array.shape[0] != frames {
                 return Err(wrong_count(array.shape[0]));
             }
@@ -642,7 +618,11 @@ pub fn read_trajectory_file(
                 .map(|i| {
                     let pose =
                         orbit(&cameras[i].world_from_camera, pivot, at(&azimuth, i), at(&elevation, i), at(&radius, i));
-                    checked_pose(path, &format!("world_from_camera[{i}]"), &crate::camera::mat4_to_row_major(&pose))
+                    checked_pose(
+                        path,
+                        &format!("world_from_camera[{i}]"),
+                        &crate::geometry::camera::mat4_to_row_major(&pose),
+                    )
                 })
                 .collect::<Result<_>>()?
         }

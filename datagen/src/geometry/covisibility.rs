@@ -7,9 +7,9 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::camera::PinholeCamera;
 use crate::config_file::{Checked, Validate, check_float};
-use crate::depth_mesh::{DepthMesh, MeshConfig};
+use crate::geometry::camera::PinholeCamera;
+use crate::geometry::depth_mesh::{DepthMesh, MeshConfig};
 
 /// Occlusion-test settings.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

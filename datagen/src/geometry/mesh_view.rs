@@ -23,8 +23,8 @@ use glam::{DMat4, DVec2, DVec3, Vec4};
 use obvhs::ray::Ray;
 use rayon::prelude::*;
 
-use crate::camera::{PinholeCamera, pixel_of};
-use crate::depth_mesh::{DepthMesh, Quad, corner_indices, segment_ray};
+use crate::geometry::camera::{PinholeCamera, pixel_of};
+use crate::geometry::depth_mesh::{DepthMesh, Quad, corner_indices, segment_ray};
 
 /// Widening of every quad's projected box, in pixels: ×50 the f32 error of a hit's projection.
 pub const MARGIN_PIXELS: f64 = 0.05;
@@ -108,7 +108,7 @@ impl QuadBox {
 
 /// A source point in view, as the quads' scans read it: where it projects, the depth up to which
 /// a quad's nearest corner counts ([`DEPTH_SLACK`] included), and its source pixel (16 bits a
-/// coordinate: [`crate::depth_mesh::MAX_SIDE`]).
+/// coordinate: [`crate::geometry::depth_mesh::MAX_SIDE`]).
 #[derive(Clone, Copy, Default)]
 struct BinnedPoint {
     x: f32,

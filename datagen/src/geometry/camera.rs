@@ -1,6 +1,6 @@
-//! The pinhole camera of DESIGN §2: intrinsics K in pixels with pixel centres at integer
-//! coordinates, pose as `world_from_camera` with OpenCV axes (x right, y down, z forward), and
-//! z-depth along the optical axis.
+//! The pinhole camera: intrinsics K in pixels with pixel centres at integer coordinates, pose as
+//! `world_from_camera` with OpenCV axes (x right, y down, z forward), and z-depth along the optical
+//! axis (see docs/ARCHITECTURE.md, Conventions).
 
 use std::path::Path;
 

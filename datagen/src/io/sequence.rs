@@ -1,5 +1,5 @@
-//! Reading one sequence folder (a video plus its reconstruction) in any of the three layouts of
-//! DESIGN §3, into frames, frame-resolution depth, per-frame cameras and optional dynamic masks:
+//! Reading one sequence folder (a video plus its reconstruction) in any of three layouts, into
+//! frames, frame-resolution depth, per-frame cameras and optional dynamic masks:
 //!
 //! - **cog-nvs**: `gt_rgb.mp4` + `cam_info/megasam_depth.npy` (N,H,W), optional
 //!   `cam_info/megasam_intrinsics.npy` (3,3) and `cam_info/megasam_c2ws.npy` (N,4,4). Depth at
@@ -21,10 +21,10 @@ use glam::{DMat3, DMat4, DVec3};
 use image::{GrayImage, RgbImage};
 use rayon::prelude::*;
 
-use crate::camera::{PinholeCamera, checked_intrinsics, checked_pose};
-use crate::depth_exr::DepthMap;
 use crate::error::{Error, Result};
-use crate::npy::{Axis, NdArray, NpzReader, read_npy_f32_planes, read_npy_f64, read_npy_f64_shaped};
+use crate::geometry::camera::{PinholeCamera, checked_intrinsics, checked_pose};
+use crate::io::depth_exr::DepthMap;
+use crate::io::npy::{Axis, NdArray, NpzReader, read_npy_f32_planes, read_npy_f64, read_npy_f64_shaped};
 
 /// Focal length in pixels (at the depth resolution) assumed when intrinsics are missing: the
 /// public cog-nvs code's fallback.
@@ -81,7 +81,7 @@ impl Sequence {
             .enumerate()
             .map(|(i, exr)| {
                 let (width, height) = (record.width as usize, record.height as usize);
-                crate::depth_exr::decode_depth_exr_of_size(exr, &format!("{id}: depth[{i}]"), width, height)
+                crate::io::depth_exr::decode_depth_exr_of_size(exr, &format!("{id}: depth[{i}]"), width, height)
             })
             .collect::<Result<Vec<_>>>()?;
         let dynamic_masks = match &record.dynamic_mask {
@@ -278,7 +278,7 @@ fn read_cog_nvs(dir: &Path) -> Result<Parts> {
     let video_path = dir.join("gt_rgb.mp4");
     // Decoding is mostly serial: read the reconstruction meanwhile.
     let (video, reconstruction) =
-        rayon::join(|| crate::video::decode_video(&video_path), || cog_nvs_reconstruction(dir));
+        rayon::join(|| crate::io::video::decode_video(&video_path), || cog_nvs_reconstruction(dir));
     let video = video?;
     assemble(video.fps, video.frames, &video_path, reconstruction?)
 }
@@ -418,7 +418,8 @@ fn megasam_reconstruction(path: &Path, with_images: bool) -> Result<(Option<NdAr
 /// A list of 3 lists of 3 numbers is therefore one nested K, never 3 frames' K (a flat K has 9).
 fn json_intrinsics(path: &Path, value: &serde_json::Value) -> Result<NdArray<f64>> {
     let field = "intrinsics";
-    let single = |value| crate::camera::json_matrix(value, 3, 3).map_err(|reason| Error::invalid(path, field, reason));
+    let single =
+        |value| crate::geometry::camera::json_matrix(value, 3, 3).map_err(|reason| Error::invalid(path, field, reason));
     let serde_json::Value::Array(items) = value else {
         return Err(single(value).unwrap_err());
     };
@@ -431,7 +432,7 @@ fn json_intrinsics(path: &Path, value: &serde_json::Value) -> Result<NdArray<f64
     }
     let mut data = Vec::with_capacity(items.len() * 9);
     for (i, k) in items.iter().enumerate() {
-        let values = crate::camera::json_matrix(k, 3, 3)
+        let values = crate::geometry::camera::json_matrix(k, 3, 3)
             .map_err(|reason| Error::invalid(path, format!("{field}[{i}]"), reason))?;
         data.extend(values);
     }
@@ -458,7 +459,7 @@ fn json_poses(path: &Path, value: &serde_json::Value) -> Result<NdArray<f64>> {
     }
     let mut data = Vec::with_capacity(items.len() * 16);
     for (i, pose) in items.iter().enumerate() {
-        let values = crate::camera::json_matrix(pose, 4, 4)
+        let values = crate::geometry::camera::json_matrix(pose, 4, 4)
             .map_err(|reason| Error::invalid(path, format!("{field}[{i}]"), reason))?;
         data.extend(values);
     }
@@ -476,7 +477,7 @@ fn read_generic(dir: &Path) -> Result<Parts> {
             .into_iter()
             .next()
             .ok_or_else(|| Error::invalid(dir, "frames", "no frames/ folder and no video file"))?;
-        let decoded = crate::video::decode_video(&video)?;
+        let decoded = crate::io::video::decode_video(&video)?;
         Ok((decoded.fps, decoded.frames, video))
     };
     // Decoding is mostly serial: read the reconstruction meanwhile.
@@ -657,7 +658,7 @@ pub fn read_exr_folder(depth_dir: &Path) -> Result<DepthStack> {
     let sizes = contents
         .par_iter()
         .enumerate()
-        .map(|(i, bytes)| crate::depth_exr::depth_exr_size(bytes, &context(i)))
+        .map(|(i, bytes)| crate::io::depth_exr::depth_exr_size(bytes, &context(i)))
         .collect::<Result<Vec<_>>>()?;
     let Some(&(w, h)) = sizes.first() else {
         return Err(Error::invalid(depth_dir, "depth", "no .exr files"));
@@ -673,7 +674,7 @@ pub fn read_exr_folder(depth_dir: &Path) -> Result<DepthStack> {
     let depth_maps = contents
         .par_iter()
         .enumerate()
-        .map(|(i, bytes)| crate::depth_exr::decode_depth_exr_of_size(bytes, &context(i), w, h))
+        .map(|(i, bytes)| crate::io::depth_exr::decode_depth_exr_of_size(bytes, &context(i), w, h))
         .collect::<Result<Vec<_>>>()?;
     Ok(DepthStack { shape: vec![depth_maps.len(), h, w], planes: depth_maps.into_iter().map(|m| m.values).collect() })
 }
@@ -732,7 +733,7 @@ fn read_masks(dir: &Path, frames: &[RgbImage]) -> Result<Option<Vec<GrayImage>>>
     files
         .par_iter()
         .map(|path| {
-            let mask = crate::corpus::annotations::read_id_png(path)?;
+            let mask = crate::io::annotations::read_id_png(path)?;
             Ok(if mask.dimensions() == (width, height) {
                 mask
             } else {

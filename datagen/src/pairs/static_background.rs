@@ -1,4 +1,4 @@
-//! Static-background stacking (DESIGN §4), for renders of videos longer than one frame: the
+//! Static-background stacking, for renders of videos longer than one frame: the
 //! static (non-dynamic) surface points of many frames are fused into one coloured world-space
 //! point set, deduplicated on a voxel grid, and rendered into each novel frame to fill the holes
 //! of that frame's own render: background hidden behind a moving object or outside the frame's
@@ -20,10 +20,10 @@ use glam::DVec3;
 use image::{GrayImage, Luma, Rgb, RgbImage};
 use serde::{Deserialize, Serialize};
 
-use crate::camera::PinholeCamera;
 use crate::config_file::{Checked, Validate, check_count, check_float};
-use crate::depth_exr::DepthMap;
-use crate::sequence::Sequence;
+use crate::geometry::camera::PinholeCamera;
+use crate::io::depth_exr::DepthMap;
+use crate::io::sequence::Sequence;
 
 /// Stacking settings.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -137,7 +137,7 @@ impl StaticBackground {
             if z <= 0.0 {
                 continue;
             }
-            let pixel = crate::camera::pixel_of(&camera.intrinsics, in_camera);
+            let pixel = crate::geometry::camera::pixel_of(&camera.intrinsics, in_camera);
             // Half the voxel's projected size, at least the pixel the point falls in.
             let reach = ((self.voxel * focal / z) * 0.5 - 0.5).ceil().max(0.0) as i64;
             let (cx, cy) = (pixel.x.round() as i64, pixel.y.round() as i64);

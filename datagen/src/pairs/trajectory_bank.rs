@@ -1,8 +1,8 @@
-//! The trajectory bank (issue 18): the data-driven sampler the CogNVS paper names as its
-//! generator's missing piece ("sample from a set of real-world trajectories observed in the
-//! training set"). Collection harvests the source cameras' own motion over each clip window of
-//! every reconstruction: per frame the pose relative to the window's first camera, translation
-//! in units of the window's pivot distance R (DESIGN §4, [`pivot_distance`]) so paths from scenes
+//! The trajectory bank, the data of the sampler the CogNVS paper names as its generator's missing
+//! piece ("sample from a set of real-world trajectories observed in the training set"). Collection
+//! harvests the source cameras' own motion over each clip window of a reconstruction (a whole
+//! corpus: [`crate::corpus::harvest`]): per frame the pose relative to the window's first camera,
+//! translation in units of the window's pivot distance R ([`pivot_distance`]) so paths from scenes
 //! of different scale compare, plus provenance and summary statistics. Static windows (no motion)
 //! and degenerate ones (non-finite poses, no valid depth for R) are skipped and counted.
 //!
@@ -11,7 +11,8 @@
 //! `p = (0, 0, R)` the clip's pivot on the source camera's optical axis (so the motion's turns
 //! become orbits about the pivot, as the spherical sampler's are, and keep the scene in view),
 //! M_t's translation scaled by the clip's R, and C a left/right mirror and/or a rotation about
-//! the viewing axis. The entry is resampled in time to the clip's length.
+//! the viewing axis. The entry is resampled in time to the clip's length. Which entry, mirror and
+//! roll a clip gets is drawn by [`crate::pairs::trajectory::sample_novel_trajectory`].
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -20,12 +21,10 @@ use std::sync::{Arc, Mutex, OnceLock};
 use glam::{DMat3, DMat4, DQuat, DVec3};
 use schemas::BankEntry;
 
-use crate::camera::{mat4_from_row_major, mat4_to_row_major};
-use crate::corpus::build::BuildConfig;
 use crate::error::{Error, Result};
-use crate::pairs::ClipConfig;
-use crate::sequence::Sequence;
-use crate::trajectory::pivot_distance;
+use crate::geometry::camera::{mat4_from_row_major, mat4_to_row_major};
+use crate::io::sequence::Sequence;
+use crate::pairs::clip::{ClipConfig, pivot_distance};
 
 /// A window whose camera turns less than this in total (degrees) and moves less than
 /// [`MIN_PATH_LENGTH`] is static: below the frame-to-frame rotation noise of monocular SLAM
@@ -36,7 +35,7 @@ pub const MIN_ROTATION_DEG: f64 = 0.5;
 /// pixel per hundred of focal length, i.e. nothing a novel view would show.
 pub const MIN_PATH_LENGTH: f64 = 0.01;
 
-/// What [`collect_from_sequence`] and [`collect_from_corpus`] found.
+/// What [`collect_from_sequence`] and [`crate::corpus::harvest::collect_from_corpus`] found.
 #[derive(Debug, Clone, Default)]
 pub struct CollectSummary {
     /// The bank's entries, in input then window order.
@@ -175,30 +174,6 @@ pub fn collect_from_sequence(
             Err(Skip::Degenerate) => summary.degenerate_windows += 1,
         }
     }
-}
-
-/// Harvests the bank of a whole corpus config (`datagen build`'s TOML): every video its sources
-/// crawl to, cut into the windows of its `[pairs.clip]`, with its `[pairs.trajectory]`
-/// `pivot_scale`. An input that cannot be read is recorded in `failed_inputs` and skipped.
-pub fn collect_from_corpus(config: &BuildConfig) -> Result<CollectSummary> {
-    let mut summary = CollectSummary::default();
-    for entry in crate::corpus::crawl::crawl_all(&config.sources)? {
-        if let Some(reason) = &entry.crawl_error {
-            summary.failed_inputs.push((entry.key(), reason.clone()));
-            continue;
-        }
-        match crate::corpus::input::load_entry(&entry) {
-            Ok(sequence) => collect_from_sequence(
-                &sequence,
-                entry.dataset.name(),
-                &config.pairs.clip,
-                config.pairs.trajectory.pivot_scale,
-                &mut summary,
-            ),
-            Err(error) => summary.failed_inputs.push((entry.key(), error.to_string())),
-        }
-    }
-    Ok(summary)
 }
 
 /// A loaded, checked trajectory bank.

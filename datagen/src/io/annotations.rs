@@ -1,4 +1,4 @@
-//! Dynamic-object masks from dataset annotations (DESIGN §3): SA-V RLE masklets, YouTube-VOS and
+//! Dynamic-object masks from dataset annotations: SA-V RLE masklets, YouTube-VOS and
 //! DAVIS palette PNGs, TAO boxes. All become per-frame id masks: 0 static, 1..=254 object, 255 void.
 //!
 //! Annotations are sparse in time (SA-V every 4th frame, YouTube-VOS train every 5th, TAO every

@@ -1,5 +1,5 @@
 //! NumPy `.npy` arrays (and `.npz` members) in and out, through npyz: the reconstruction formats
-//! of DESIGN §3 are NumPy files (`megasam_depth.npy`, `*_sgd_cvd_hr.npz`, ...).
+//! [`crate::io::sequence`] reads are NumPy files (`megasam_depth.npy`, `*_sgd_cvd_hr.npz`, ...).
 //!
 //! Every size a file states is a claim, checked before anything is allocated for it: the header's
 //! shape × item size must fit in the bytes that really follow the header (a `.npy` file's length;

@@ -1,4 +1,4 @@
-//! Self-supervised training pairs for one sequence (DESIGN §1, §4, §5): cut the video into clip
+//! Self-supervised training pairs for one sequence: cut the video into clip
 //! windows, give each clip N novel trajectories (sampled deterministically, or given by the
 //! user), compute each frame's exact co-visibility mask from one depth mesh shared by all
 //! trajectories, and pack clip + trajectories into shard records.
@@ -13,66 +13,25 @@ use rayon::prelude::*;
 use schemas::{ClipRecord, InputDigest, ShardStats, ShardWriter, ShardWriterOptions, TrajectoryKind, TrajectoryRecord};
 use serde::{Deserialize, Serialize};
 
-use crate::camera::{PinholeCamera, mat3_to_row_major, mat4_to_row_major};
 use crate::config_file::{Checked, Validate, check_count};
-use crate::covisibility::CovisibilityConfig;
-use crate::depth_exr::encode_depth_exr;
-use crate::depth_noise::{DepthNoiseConfig, NoiseKey, SourceFrame};
 use crate::error::{Error, Result};
-use crate::sequence::Sequence;
-use crate::static_background::{StackingConfig, StaticBackground};
-use crate::trajectory::{NovelTrajectory, Sampler, TrajectoryConfig};
-use crate::trajectory_bank::TrajectoryBank;
+use crate::geometry::camera::{PinholeCamera, mat3_to_row_major, mat4_to_row_major};
+use crate::geometry::covisibility::CovisibilityConfig;
+use crate::io::depth_exr::encode_depth_exr;
+use crate::io::sequence::Sequence;
+use crate::pairs::clip::ClipConfig;
+use crate::pairs::depth_noise::{DepthNoiseConfig, NoiseKey, SourceFrame};
+use crate::pairs::static_background::{StackingConfig, StaticBackground};
+use crate::pairs::trajectory::{NovelTrajectory, Sampler, TrajectoryConfig};
+use crate::pairs::trajectory_bank::TrajectoryBank;
 
-/// Paper value: clips of 49 frames (DESIGN §1).
-pub const PAPER_CLIP_FRAMES: u32 = 49;
-/// Paper value: N = 2 trajectories per video during pretraining (DESIGN §1).
+/// Paper value: the CogNVS paper pretrains with N = 2 trajectories per video.
 pub const PAPER_TRAJECTORIES: u32 = 2;
 
 /// Most trajectories per clip: every one adds a mask per frame to the clip's record, and the
-/// paper uses at most 9 (DESIGN §1); this bounds a record's size, not the method.
+/// CogNVS paper uses at most 9 (test-time finetuning on Kubric-4D and ParDom-4D); this bounds a
+/// record's size, not the method.
 pub const MAX_TRAJECTORIES: u32 = 256;
-
-/// How a video is cut into clips.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct ClipConfig {
-    /// Frames per clip; shorter videos are kept whole as one clip. Valid: at least 1.
-    pub length: u32,
-    /// Frames between the starts of consecutive clips (equal to `length`: back to back).
-    /// Valid: at least 1.
-    pub stride: u32,
-    /// At most this many clips per video (0: all). Valid: any.
-    pub max_clips: u32,
-}
-
-impl Validate for ClipConfig {
-    fn validate(&self) -> Checked {
-        check_count("length", self.length, 1, u64::MAX)?;
-        check_count("stride", self.stride, 1, u64::MAX)
-    }
-}
-
-impl Default for ClipConfig {
-    fn default() -> Self {
-        Self { length: PAPER_CLIP_FRAMES, stride: PAPER_CLIP_FRAMES, max_clips: 0 }
-    }
-}
-
-impl ClipConfig {
-    /// Start frames of the clips of a video of `frames` frames, and the clip length used.
-    pub fn windows(&self, frames: u32) -> Vec<(u32, u32)> {
-        if frames <= self.length {
-            return vec![(0, frames)];
-        }
-        let mut starts: Vec<(u32, u32)> =
-            (0..=frames - self.length).step_by(self.stride.max(1) as usize).map(|s| (s, self.length)).collect();
-        if self.max_clips > 0 {
-            starts.truncate(self.max_clips as usize);
-        }
-        starts
-    }
-}
 
 /// Everything `datagen pairs` can be configured with (a TOML file via `--config`). Every field
 /// of every section has a documented valid range, checked when the file is loaded and by each
@@ -129,8 +88,12 @@ pub fn trajectory_request(sequence: &Sequence, files: &[PathBuf], count: Option<
     let explicit = files
         .iter()
         .map(|path| {
-            let poses =
-                crate::trajectory::read_trajectory_file(path, sequence.len(), &sequence.cameras, &sequence.depth[0])?;
+            let poses = crate::pairs::trajectory::read_trajectory_file(
+                path,
+                sequence.len(),
+                &sequence.cameras,
+                &sequence.depth[0],
+            )?;
             Ok((path.clone(), poses))
         })
         .collect::<Result<Vec<_>>>()?;
@@ -143,9 +106,9 @@ pub fn trajectory_request(sequence: &Sequence, files: &[PathBuf], count: Option<
 }
 
 /// PNG bytes of an image, fast deflate and one fixed filter instead of the default per-row choice
-/// among all five. Measured on the benchmark clip's frames and masks (png 0.18, fast deflate):
-/// Paeth encodes colour frames 7 % faster than the adaptive choice and 0.3 % smaller; Up encodes
-/// masks three times faster for 0.4 KB more a mask (4.5 KB against 4.1 KB).
+/// among all five: on the benchmark clip's frames and masks (png 0.18, fast deflate), Paeth encodes
+/// colour frames faster than the adaptive choice and no larger, and Up encodes masks several times
+/// faster for slightly larger files.
 fn png<P: image::PixelWithColorType>(image: &image::ImageBuffer<P, Vec<P::Subpixel>>, filter: FilterType) -> Vec<u8>
 where
     [P::Subpixel]: image::EncodableLayout,
@@ -279,12 +242,12 @@ fn generate_clip(
     // Paths that reach their camera position by crossing the surface are rejected with a cheap
     // test against each frame's depth map, so no frame's mesh has to be kept for sampling.
     let crossing = |i: usize, a: glam::DVec3, b: glam::DVec3| {
-        crate::trajectory::crosses_depth_surface(&sequence.depth[start as usize + i], &cameras[i], a, b)
+        crate::pairs::trajectory::crosses_depth_surface(&sequence.depth[start as usize + i], &cameras[i], a, b)
     };
 
     let mut planned = Vec::new();
     for index in 0..request.sampled {
-        let novel = crate::trajectory::sample_novel_trajectory(
+        let novel = crate::pairs::trajectory::sample_novel_trajectory(
             cameras,
             &sequence.depth[start as usize],
             &config.trajectory,
@@ -343,7 +306,8 @@ fn generate_clip(
         .map(|i| -> Result<_> {
             let source = &sequence.cameras[i];
             let clock = Instant::now();
-            let mesh = &crate::depth_mesh::DepthMesh::new(&sequence.depth[i], source, &config.covisibility.mesh);
+            let mesh =
+                &crate::geometry::depth_mesh::DepthMesh::new(&sequence.depth[i], source, &config.covisibility.mesh);
             let mesh_seconds = clock.elapsed().as_secs_f64();
             let (mut ray_seconds, mut encode_seconds) = (0.0, 0.0);
             let dynamic = sequence.dynamic_masks.as_ref().map(|m| &m[i]);
@@ -353,7 +317,8 @@ fn generate_clip(
                 .map(|t| {
                     let novel = PinholeCamera { world_from_camera: t.poses[i - start as usize], ..*source };
                     let clock = Instant::now();
-                    let mut mask = crate::covisibility::covisibility_mask(mesh, source, &novel, &config.covisibility);
+                    let mut mask =
+                        crate::geometry::covisibility::covisibility_mask(mesh, source, &novel, &config.covisibility);
                     ray_seconds += clock.elapsed().as_secs_f64();
                     let clock = Instant::now();
                     let condition = noise.map(|dynamic| {
@@ -364,7 +329,7 @@ fn generate_clip(
                             trajectory: t.index,
                             frame: i as u32,
                         };
-                        let offsets = crate::depth_noise::offsets(
+                        let offsets = crate::pairs::depth_noise::offsets(
                             &config.depth_noise,
                             &sequence.depth[i],
                             sequence.second_depth.as_ref().map(|d| &d[i]),
@@ -377,7 +342,8 @@ fn generate_clip(
                             dynamic,
                             camera: source,
                         };
-                        let noisy = crate::depth_noise::render_back(frame, |p| mesh.point(p), &mask, &offsets, &novel);
+                        let noisy =
+                            crate::pairs::depth_noise::render_back(frame, |p| mesh.point(p), &mask, &offsets, &novel);
                         mask = noisy.mask;
                         let differs = noisy.condition != masked_frame(&sequence.frames[i], &mask);
                         (png(&noisy.condition, FilterType::Paeth), differs)
@@ -479,13 +445,13 @@ pub fn write_shard(
 /// the novel camera, holes black.
 pub fn render_novel(
     frame: &RgbImage,
-    depth: &crate::depth_exr::DepthMap,
+    depth: &crate::io::depth_exr::DepthMap,
     source: &PinholeCamera,
     novel: &PinholeCamera,
     config: &CovisibilityConfig,
 ) -> RgbImage {
-    let mesh = crate::depth_mesh::DepthMesh::new(depth, source, &config.mesh);
-    crate::render::render_novel_view(&mesh, frame, source, novel).0
+    let mesh = crate::geometry::depth_mesh::DepthMesh::new(depth, source, &config.mesh);
+    crate::geometry::render::render_novel_view(&mesh, frame, source, novel).0
 }
 
 /// What [`render_sequence`] produced.
@@ -510,7 +476,7 @@ pub fn render_sequence(
     stacking: bool,
 ) -> Result<RenderSummary> {
     config.validate()?;
-    let poses = crate::trajectory::read_trajectory_file(
+    let poses = crate::pairs::trajectory::read_trajectory_file(
         trajectory_file,
         sequence.len(),
         &sequence.cameras,
@@ -545,7 +511,7 @@ pub fn render_sequence(
     let frames: Vec<RgbImage> = rendered.into_iter().map(|r| r.0).collect();
     if width % 2 == 0 && height % 2 == 0 {
         let fps = if sequence.fps > 0.0 { sequence.fps } else { DEFAULT_RENDER_FPS };
-        crate::video::encode_video(&out.join("render.mp4"), &frames, fps)?;
+        crate::io::video::encode_video(&out.join("render.mp4"), &frames, fps)?;
     }
     Ok(summary)
 }
@@ -558,8 +524,8 @@ pub fn render_frame(
     config: &CovisibilityConfig,
 ) -> (RgbImage, image::GrayImage) {
     let source = &sequence.cameras[i];
-    let mesh = crate::depth_mesh::DepthMesh::new(&sequence.depth[i], source, &config.mesh);
-    crate::render::render_novel_view(&mesh, &sequence.frames[i], source, novel)
+    let mesh = crate::geometry::depth_mesh::DepthMesh::new(&sequence.depth[i], source, &config.mesh);
+    crate::geometry::render::render_novel_view(&mesh, &sequence.frames[i], source, novel)
 }
 
 /// Frame rate of `render.mp4` when the input's is unknown (image-folder inputs).

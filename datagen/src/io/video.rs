@@ -1,5 +1,5 @@
 //! Video decoding and encoding with FFmpeg (ffmpeg-next): any container/codec FFmpeg reads in,
-//! H.264 (libx264, yuv420p, MP4) out, frames as RGB u8 in memory (DESIGN §2).
+//! H.264 (libx264, yuv420p, MP4) out, frames as RGB u8 in memory.
 
 use std::path::Path;
 use std::sync::Once;

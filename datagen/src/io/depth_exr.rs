@@ -1,11 +1,11 @@
 //! Depth maps as OpenEXR: one 32-bit float channel `Z` per image, lossless ZIP compression in
-//! blocks of 16 scanlines. This is the encoding of the shard's `depth` column (DESIGN §5) and of
-//! the generic input layout's `depth/*.exr` files (DESIGN §3).
+//! blocks of 16 scanlines. This is the encoding of the shard's `depth` column and of the
+//! generic input layout's `depth/*.exr` files ([`crate::io::sequence`]).
 //!
 //! Files are read with the exr crate (any compression, any channel layout). They are written by
-//! the small single-channel ZIP writer below, which produces the same standard files at about
-//! 60 % of the exr crate's encoding time (its zlib level is not configurable): depth encoding is
-//! a visible share of `datagen pairs`.
+//! the small single-channel ZIP writer below, which produces the same standard files in less time
+//! than the exr crate's writer (whose zlib level is not configurable): depth encoding is a visible
+//! share of `datagen pairs`.
 //!
 //! A header is checked before anything is decoded (the decoder allocates a whole data window up
 //! front): at most [`MAX_SIDE_PX`] a side, the size the caller expects where it knows one (the
@@ -18,7 +18,7 @@ use flate2::Compression as ZlibLevel;
 use flate2::write::ZlibEncoder;
 
 use crate::error::{Error, Result};
-use crate::npy::MAX_SIDE_PX;
+use crate::io::npy::MAX_SIDE_PX;
 
 /// Name of the depth channel written; also preferred when reading a multi-channel file.
 pub const DEPTH_CHANNEL: &str = "Z";
@@ -37,10 +37,9 @@ pub struct DepthMap {
 /// Scanlines per ZIP block, fixed by the format for ZIP (as opposed to ZIPS, one line).
 const ZIP_LINES: usize = 16;
 
-/// zlib level: 1, the fastest. On the benchmark clip of `scripts/bench_pairs_vs.sh` (49 frames at
-/// 480×720) it cuts `datagen pairs`' encoding CPU from 1.23 s to 0.86 s against level 3, for a
-/// shard 8 % larger (65.8 MB against 60.8 MB). Level 3 matches the exr crate's output within 0.5 %;
-/// higher levels gain under 1 % more for twice the time.
+/// zlib level: 1, the fastest. On the benchmark clip of `scripts/bench_pairs_vs.sh` it spends
+/// markedly less encoding CPU than level 3 for a somewhat larger shard; level 3 matches the exr
+/// crate's output, and higher levels shrink it little more for much more time.
 const ZLIB_LEVEL: u32 = 1;
 
 /// Appends a header attribute: name, type name, byte size, value.

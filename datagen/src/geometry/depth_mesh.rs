@@ -12,8 +12,8 @@
 //!
 //! Every query runs obvhs's f32 ray/triangle test on these triangles. The mesh itself answers
 //! single rays from anywhere: through an obvhs BVH when built with [`Accelerator::Cwbvh`], else
-//! by testing every triangle. The production path is the batch of rays leaving one novel camera,
-//! answered by [`crate::geometry::mesh_view::MeshView`], which must equal those answers exactly (integration tests).
+//! by testing every triangle. The production path, the rays leaving one novel camera in a batch,
+//! is [`super::mesh_view::MeshView`]; it must equal those answers exactly (integration tests).
 
 use std::time::Duration;
 
@@ -78,8 +78,8 @@ pub const DEFAULT_OCCLUDER_THICKNESS: f64 = 0.05;
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Accelerator {
-    /// Nothing built per frame: the batches of rays leaving a novel camera are scanned on that
-    /// camera's pixel grid ([`crate::geometry::mesh_view::MeshView`]); a single ray from elsewhere tests every triangle.
+    /// Nothing built per frame: the batches of rays leaving a novel camera are scanned on its pixel
+    /// grid ([`super::mesh_view::MeshView`]); a single ray from elsewhere tests every triangle.
     #[default]
     ImageGrids,
     /// An obvhs compressed-wide BVH over all triangles (SAH build per frame) answers every ray

@@ -121,7 +121,7 @@ fn per_frame_errors(a: &Tensor, b: &Tensor) -> Vec<f64> {
 
 #[test]
 fn chunked_encode_is_close_to_one_pass() {
-    // Streaming equals whole (STYLE.md), as far as this VAE allows. The causal convolutions
+    // Streaming must equal the whole-clip pass, as far as this VAE allows. The causal convolutions
     // stream exactly (unit test `causal_conv_streams_exactly`); between temporal batches and one
     // pass over all frames only GroupNorm's statistics differ (they span a batch's frames), which
     // shifts the latent frames of every batch alike. A lost conv cache instead makes every later

@@ -7,8 +7,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 use image::{Rgb, RgbImage};
-use trainer::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoXConfig};
-use trainer::cogvideox_transformer_3d::{self as transformer, CogVideoXTransformer3DModelConfig};
+use trainer::autoencoder_kl_cogvideox::AutoencoderKLCogVideoXConfig;
+use trainer::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
 use trainer::diffusers_config::DiffusersConfig;
 use trainer::tch::{Device, Kind, Tensor};
 use trainer::training::PretrainConfig;
@@ -199,12 +199,7 @@ fn empty_and_foreign_shard_folders_are_named_errors() {
 fn tiny_checkpoint(dir: &Path) -> PathBuf {
     let ckpt = dir.join("ckpt");
     let config = CogVideoXTransformer3DModelConfig::tiny();
-    let (vs, _model) = transformer::build(&config, Device::Cpu, Kind::Float).unwrap();
-    let max = weights::DEFAULT_MAX_SHARD_BYTES;
-    weights::save(&vs, &config, transformer::CLASS_NAME, &ckpt.join("transformer"), max).unwrap();
-    let vae_config = AutoencoderKLCogVideoXConfig::tiny();
-    let (vae_vs, _vae) = vae::build(&vae_config, Device::Cpu, Kind::Float).unwrap();
-    weights::save(&vae_vs, &vae_config, vae::CLASS_NAME, &ckpt.join("vae"), max).unwrap();
+    super::parity::save_tiny_models(&config, &ckpt.join("transformer"), &ckpt.join("vae"));
     ckpt
 }
 

@@ -7,11 +7,8 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use trainer::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoXConfig};
-use trainer::cogvideox_transformer_3d::{self as transformer, CogVideoXTransformer3DModelConfig};
+use trainer::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
 use trainer::scheduling_ddim_cogvideox::CogVideoXSchedulerConfig;
-use trainer::tch::{Device, Kind};
-use trainer::weights;
 
 use super::parity::assert_success;
 
@@ -20,13 +17,7 @@ use super::parity::assert_success;
 fn released_layout(dir: &Path) -> (PathBuf, PathBuf, PathBuf) {
     let transformer_dir = dir.join("released/transformer");
     let base = dir.join("CogVideoX");
-    let config = CogVideoXTransformer3DModelConfig::tiny();
-    let (vs, _model) = transformer::build(&config, Device::Cpu, Kind::Float).unwrap();
-    let max = weights::DEFAULT_MAX_SHARD_BYTES;
-    weights::save(&vs, &config, transformer::CLASS_NAME, &transformer_dir, max).unwrap();
-    let vae_config = AutoencoderKLCogVideoXConfig::tiny();
-    let (vae_vs, _vae) = vae::build(&vae_config, Device::Cpu, Kind::Float).unwrap();
-    weights::save(&vae_vs, &vae_config, vae::CLASS_NAME, &base.join("vae"), max).unwrap();
+    super::parity::save_tiny_models(&CogVideoXTransformer3DModelConfig::tiny(), &transformer_dir, &base.join("vae"));
     std::fs::create_dir_all(base.join("scheduler")).unwrap();
     let scheduler = serde_json::to_string_pretty(&CogVideoXSchedulerConfig::cogvideox_5b()).unwrap();
     std::fs::write(base.join("scheduler/scheduler_config.json"), scheduler).unwrap();

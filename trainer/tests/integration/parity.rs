@@ -1,5 +1,5 @@
 //! Shared helpers of the parity tests: running the golden scripts of `scripts/` (diffusers in the
-//! project venv) and comparing tensors.
+//! project venv), comparing tensors, and writing tiny random models in the diffusers layout.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -64,4 +64,20 @@ pub fn assert_close(name: &str, actual: &Tensor, expected: &Tensor, tol: f64) {
     let (abs, rel) = errors(actual, expected);
     println!("parity {name}: max abs {abs:.3e}, rel {rel:.3e}");
     assert!(rel <= tol, "{name}: max abs error {abs:.3e}, relative {rel:.3e} > {tol:.0e}");
+}
+
+/// Writes a random transformer of `config` to `transformer_dir` and a tiny random VAE to `vae_dir`,
+/// in the diffusers layout `trainer` reads.
+pub fn save_tiny_models(
+    config: &trainer::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig,
+    transformer_dir: &Path,
+    vae_dir: &Path,
+) {
+    use trainer::{autoencoder_kl_cogvideox as vae, cogvideox_transformer_3d as transformer, weights};
+    let max = weights::DEFAULT_MAX_SHARD_BYTES;
+    let (vs, _model) = transformer::build(config, Device::Cpu, Kind::Float).unwrap();
+    weights::save(&vs, config, transformer::CLASS_NAME, transformer_dir, max).unwrap();
+    let vae_config = vae::AutoencoderKLCogVideoXConfig::tiny();
+    let (vae_vs, _vae) = vae::build(&vae_config, Device::Cpu, Kind::Float).unwrap();
+    weights::save(&vae_vs, &vae_config, vae::CLASS_NAME, vae_dir, max).unwrap();
 }

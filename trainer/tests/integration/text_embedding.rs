@@ -5,10 +5,8 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use trainer::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoXConfig};
-use trainer::cogvideox_transformer_3d::{self as transformer, CogVideoXTransformer3DModelConfig};
+use trainer::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
 use trainer::tch::{Device, Kind, Tensor};
-use trainer::weights;
 
 use super::parity::{assert_success, python, read_tensors, repo_root, run_python};
 
@@ -70,12 +68,7 @@ fn t5_xxl_shaped_checkpoint(dir: &Path) -> PathBuf {
         text_embed_dim: 4096,
         ..CogVideoXTransformer3DModelConfig::tiny()
     };
-    let (vs, _model) = transformer::build(&config, Device::Cpu, Kind::Float).unwrap();
-    let max = weights::DEFAULT_MAX_SHARD_BYTES;
-    weights::save(&vs, &config, transformer::CLASS_NAME, &ckpt.join("transformer"), max).unwrap();
-    let vae_config = AutoencoderKLCogVideoXConfig::tiny();
-    let (vae_vs, _vae) = vae::build(&vae_config, Device::Cpu, Kind::Float).unwrap();
-    weights::save(&vae_vs, &vae_config, vae::CLASS_NAME, &ckpt.join("vae"), max).unwrap();
+    super::parity::save_tiny_models(&config, &ckpt.join("transformer"), &ckpt.join("vae"));
     ckpt
 }
 

@@ -565,10 +565,7 @@ pub fn check_fits(plan: &MemoryPlan, source_name: &str) -> Result<()> {
 
 /// [`check_fits`] for a given `free` / `total` device memory in bytes.
 pub fn fits(plan: &MemoryPlan, free: u64, total: u64, source_name: &str) -> Result<()> {
-    let usable = (free as f64 * (1.0 - CUDA_MARGIN_FRACTION)) as u64;
-    if plan.total <= usable {
-        return Ok(());
-    }
+    let Some(shortfall) = shortfall(plan.total, plan.device, free, total) else { return Ok(()) };
     let mut hints = Vec::new();
     if !plan.activations.checkpointing && plan.activations.with_checkpointing < plan.activations.without_checkpointing {
         hints.push(format!(
@@ -590,16 +587,25 @@ pub fn fits(plan: &MemoryPlan, free: u64, total: u64, source_name: &str) -> Resu
         source_name: source_name.to_string(),
         field: "(memory plan)".to_string(),
         reason: format!(
-            "the run needs {} on {:?} but only {} of its {} are free ({} after the {:.0} % allocator margin); \
-             nothing was written.{}",
-            human_bytes(plan.total),
-            plan.device,
+            "the run {shortfall}; nothing was written.{}",
+            if hints.is_empty() { String::new() } else { format!(" Try {}.", hints.join(", or ")) }
+        ),
+    })
+}
+
+/// "needs … on DEVICE but only … are free" when `needed` bytes exceed what [`CUDA_MARGIN_FRACTION`]
+/// leaves of `free`; None when they fit.
+fn shortfall(needed: u64, device: Device, free: u64, total: u64) -> Option<String> {
+    let usable = (free as f64 * (1.0 - CUDA_MARGIN_FRACTION)) as u64;
+    (needed > usable).then(|| {
+        format!(
+            "needs {} on {device:?} but only {} of its {} are free ({} after the {:.0} % allocator margin)",
+            human_bytes(needed),
             human_bytes(free),
             human_bytes(total),
             human_bytes(usable),
             CUDA_MARGIN_FRACTION * 100.0,
-            if hints.is_empty() { String::new() } else { format!(" Try {}.", hints.join(", or ")) }
-        ),
+        )
     })
 }
 
@@ -880,21 +886,7 @@ pub fn sampling_plan_for(
 pub fn check_sampling_fits(plan: &SamplingPlan) -> Result<()> {
     let Device::Cuda(index) = plan.device else { return Ok(()) };
     let Some((free, total)) = crate::distributed::cuda_mem_get_info(index) else { return Ok(()) };
-    let usable = (free as f64 * (1.0 - CUDA_MARGIN_FRACTION)) as u64;
-    if plan.total <= usable {
-        return Ok(());
-    }
-    Err(Error::InvalidArgument {
-        name: "device".to_string(),
-        reason: format!(
-            "sampling needs {} on {:?} but only {} of its {} are free ({} after the {:.0} % margin){}",
-            human_bytes(plan.total),
-            plan.device,
-            human_bytes(free),
-            human_bytes(total),
-            human_bytes(usable),
-            CUDA_MARGIN_FRACTION * 100.0,
-            if plan.tiling { "" } else { "; VAE tiling would lower the decode peak" }
-        ),
-    })
+    let Some(shortfall) = shortfall(plan.total, plan.device, free, total) else { return Ok(()) };
+    let hint = if plan.tiling { "" } else { "; VAE tiling would lower the decode peak" };
+    Err(Error::InvalidArgument { name: "device".to_string(), reason: format!("sampling {shortfall}{hint}") })
 }

@@ -10,10 +10,12 @@
 //! foreground edge is solid for a limited depth. Skirts block visibility segments but are never
 //! rendered. Thickness 0 is the plain cut mesh; a very large one approaches the uncut mesh.
 //!
-//! Every query runs obvhs's f32 ray/triangle test on these triangles. The mesh itself answers
-//! single rays from anywhere: through an obvhs BVH when built with [`Accelerator::Cwbvh`], else
-//! by testing every triangle. The production path, the rays leaving one novel camera in a batch,
-//! is [`super::mesh_view::MeshView`]; it must equal those answers exactly (integration tests).
+//! Every co-visibility segment ends in obvhs's f32 ray/triangle test on these triangles; every
+//! render ray in the watertight f64 test of [`super::ray_triangle`], which also counts the mesh's
+//! vertices as surface. The mesh itself answers single rays from anywhere: through an obvhs BVH
+//! when built with [`Accelerator::Cwbvh`], else by testing every triangle. The production path,
+//! the rays leaving one novel camera in a batch, is [`super::mesh_view::MeshView`]; it must equal
+//! those answers exactly (integration tests).
 
 use std::time::Duration;
 
@@ -28,6 +30,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::config_file::{Checked, Validate, check_float};
 use crate::geometry::camera::PinholeCamera;
+use crate::geometry::ray_triangle::RenderRay;
 use crate::io::depth_exr::DepthMap;
 
 /// How the mesh is cut and how unobserved space is treated.
@@ -284,14 +287,15 @@ impl DepthMesh {
             || (!self.has_corner(quad, 1, exclude) && second.intersect(ray) < ray.tmax)
     }
 
-    /// The nearest hit distance of `ray` on a surface quad's triangles, +∞ for a miss, a skirt or
-    /// an empty quad.
-    pub(crate) fn surface_hit(&self, quad: usize, ray: &Ray) -> f32 {
+    /// The nearest hit distance of `ray` on a surface quad's closed triangles
+    /// ([`RenderRay::triangle_hit`]); None for a miss, a skirt or an empty quad.
+    pub(crate) fn surface_hit(&self, quad: usize, ray: &RenderRay) -> Option<f64> {
         if self.quads[quad] != Quad::Surface {
-            return f32::INFINITY;
+            return None;
         }
-        let [first, second] = self.triangles(quad);
-        first.intersect(ray).min(second.intersect(ray))
+        let corners = corner_indices(quad, self.width).map(|p| self.points[p]);
+        let [first, second] = SPLIT.map(|[a, b, c]| ray.triangle_hit([corners[a], corners[b], corners[c]]));
+        nearest(first, second)
     }
 
     /// Whether any triangle (skirts included) other than those with pixel `exclude` as a corner
@@ -312,22 +316,30 @@ impl DepthMesh {
         })
     }
 
-    /// The first surface triangle (skirts ignored) hit by the ray from `origin` along the unit
-    /// `direction`: its distance.
+    /// The first surface hit of the ray from `origin` along the unit `direction` (skirts ignored;
+    /// triangles and vertices as in [`super::ray_triangle`]): its distance.
     pub fn first_surface_hit(&self, origin: DVec3, direction: DVec3) -> Option<f64> {
-        let Some(MeshBvh { bvh, triangles, quad_of }) = &self.bvh else {
-            return self.first_surface_hit_brute_force(origin, direction);
+        let ray = RenderRay::new(origin, direction);
+        nearest(self.first_triangle_hit(&ray), self.vertex_hit_brute_force(&ray))
+    }
+
+    /// The nearest surface triangle that `ray` hits: through the BVH if the mesh has one, else
+    /// testing every triangle.
+    pub(crate) fn first_triangle_hit(&self, ray: &RenderRay) -> Option<f64> {
+        let Some(MeshBvh { bvh, quad_of, .. }) = &self.bvh else {
+            return (0..self.quads.len()).map(|quad| self.surface_hit(quad, ray)).fold(None, nearest);
         };
-        let mut hit = RayHit::none();
-        let ray = Ray::new_inf(origin.as_vec3a(), direction.as_vec3a());
-        let found = bvh.ray_traverse(ray, &mut hit, |ray, id| {
-            let triangle = bvh.primitive_indices[id] as usize;
-            match self.quads[quad_of[triangle / 2] as usize] {
-                Quad::Surface => triangles[triangle].intersect(ray),
-                _ => f32::INFINITY,
-            }
+        // The BVH finds the candidate triangles in f32; each is tested in f64, and the traversal
+        // prunes with the f32 distance rounded up, so it never drops a nearer candidate.
+        let (origin, direction) = (ray.origin().as_vec3a(), ray.direction().as_vec3a());
+        let mut found = None;
+        bvh.ray_traverse(Ray::new_inf(origin, direction), &mut RayHit::none(), |_, id| {
+            let quad = quad_of[bvh.primitive_indices[id] as usize / 2] as usize;
+            let Some(t) = self.surface_hit(quad, ray) else { return f32::INFINITY };
+            found = nearest(found, Some(t));
+            (t as f32).next_up()
         });
-        found.then_some(f64::from(hit.t))
+        found
     }
 
     /// [`Self::segment_blocked`] by testing every triangle.
@@ -336,16 +348,29 @@ impl DepthMesh {
         (0..self.quads.len()).any(|quad| self.blocks_segment(quad, &ray, exclude.map(|p| p as usize)))
     }
 
-    /// [`Self::first_surface_hit`] by testing every triangle.
+    /// [`Self::first_surface_hit`] by testing every triangle and vertex.
     pub fn first_surface_hit_brute_force(&self, origin: DVec3, direction: DVec3) -> Option<f64> {
-        let ray = Ray::new_inf(origin.as_vec3a(), direction.as_vec3a());
-        let nearest = (0..self.quads.len()).map(|quad| self.surface_hit(quad, &ray)).fold(f32::INFINITY, f32::min);
-        nearest.is_finite().then_some(f64::from(nearest))
+        let ray = RenderRay::new(origin, direction);
+        let triangles = (0..self.quads.len()).map(|quad| self.surface_hit(quad, &ray)).fold(None, nearest);
+        nearest(triangles, self.vertex_hit_brute_force(&ray))
+    }
+
+    /// The nearest vertex that `ray` hits ([`RenderRay::vertex_hit`]), testing every one.
+    fn vertex_hit_brute_force(&self, ray: &RenderRay) -> Option<f64> {
+        (0..self.points.len()).filter_map(|p| ray.vertex_hit(self.point(p)?)).fold(None, |a, b| nearest(a, Some(b)))
     }
 
     /// Whether the mesh was built with a BVH ([`Accelerator::Cwbvh`]), which then answers every ray.
     pub(crate) fn has_bvh(&self) -> bool {
         self.bvh.is_some()
+    }
+}
+
+/// The nearer of two hit distances.
+pub(crate) fn nearest(a: Option<f64>, b: Option<f64>) -> Option<f64> {
+    match (a, b) {
+        (Some(a), Some(b)) => Some(a.min(b)),
+        (a, b) => a.or(b),
     }
 }
 

@@ -17,14 +17,14 @@
 //! and depth comparisons by [`DEPTH_SLACK`], so every pair left out is one the f32 triangle test
 //! misses, and answers equal a loop over every triangle (integration tests).
 
-use std::sync::atomic::{AtomicBool, AtomicU32, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 
 use glam::{DMat4, DVec2, DVec3, Vec4};
-use obvhs::ray::Ray;
 use rayon::prelude::*;
 
 use crate::geometry::camera::{PinholeCamera, pixel_of};
 use crate::geometry::depth_mesh::{DepthMesh, Quad, corner_indices, segment_ray};
+use crate::geometry::ray_triangle::RenderRay;
 
 /// Widening of every quad's projected box, in pixels: ×50 the f32 error of a hit's projection.
 pub const MARGIN_PIXELS: f64 = 0.05;
@@ -410,35 +410,52 @@ impl MeshView<'_> {
     }
 
     /// The first surface hit of the ray through every novel pixel (row-major): its distance along
-    /// the unit direction `novel.pixel_ray(x, y).normalize()`, None where it hits nothing.
+    /// the unit direction `novel.pixel_ray(x, y).normalize()`, None where it hits nothing. Hits
+    /// are those of [`super::ray_triangle`]: closed surface triangles and the mesh's vertices.
     pub fn surface_hits(&self) -> Vec<Option<f64>> {
         let (width, height) = (self.novel.width as usize, self.novel.height as usize);
-        let direction = |i: usize| self.novel.pixel_ray((i % width) as f64, (i / width) as f64).normalize();
-        let Some(grids) = &self.grids else {
-            return (0..width * height).into_par_iter().map(|i| self.first_surface_hit(direction(i))).collect();
-        };
-        let rays: Vec<Ray> = (0..width * height)
+        let rays: Vec<RenderRay> = (0..width * height)
             .into_par_iter()
-            .map(|i| Ray::new_inf(self.eye.as_vec3a(), direction(i).as_vec3a()))
+            .map(|i| {
+                let direction = self.novel.pixel_ray((i % width) as f64, (i / width) as f64).normalize();
+                RenderRay::new(self.eye, direction)
+            })
             .collect();
-        // Per pixel the nearest distance so far, as f32 bits: non-negative floats order as their
-        // bits (+ 0.0 turns a hit at −0.0 into +0.0).
-        let nearest: Vec<AtomicU32> = (0..width * height).map(|_| AtomicU32::new(f32::INFINITY.to_bits())).collect();
-        let quads = (0..grids.projected.len()).into_par_iter().filter(|&quad| self.mesh.quad(quad) == Quad::Surface);
-        quads.for_each(|quad| {
-            let [x0, x1, y0, y1] = match self.quad_reach(grids, quad) {
-                Some(Reach::Box(quad_box)) => quad_box.pixels,
-                Some(Reach::Everywhere) => [0, width - 1, 0, height - 1],
-                Some(Reach::Outside) | None => return,
-            };
-            for i in (y0..=y1).flat_map(|y| y * width + x0..=y * width + x1) {
-                let t = self.mesh.surface_hit(quad, &rays[i]);
-                if t < f32::INFINITY {
-                    nearest[i].fetch_min((t + 0.0).to_bits(), Ordering::Relaxed);
-                }
+        // Per pixel the nearest distance so far, as f64 bits: positive floats order as their bits.
+        let nearest: Vec<AtomicU64> = (0..width * height).map(|_| AtomicU64::new(f64::INFINITY.to_bits())).collect();
+        let record = |i: usize, t: Option<f64>| {
+            if let Some(t) = t {
+                nearest[i].fetch_min(t.to_bits(), Ordering::Relaxed);
+            }
+        };
+        match &self.grids {
+            None => rays.par_iter().enumerate().for_each(|(i, ray)| record(i, self.mesh.first_triangle_hit(ray))),
+            Some(grids) => {
+                let quads = (0..grids.projected.len()).into_par_iter().filter(|&q| self.mesh.quad(q) == Quad::Surface);
+                quads.for_each(|quad| {
+                    let [x0, x1, y0, y1] = match self.quad_reach(grids, quad) {
+                        Some(Reach::Box(quad_box)) => quad_box.pixels,
+                        Some(Reach::Everywhere) => [0, width - 1, 0, height - 1],
+                        Some(Reach::Outside) | None => return,
+                    };
+                    for i in (y0..=y1).flat_map(|y| y * width + x0..=y * width + x1) {
+                        record(i, self.mesh.surface_hit(quad, &rays[i]));
+                    }
+                });
+            }
+        }
+        // A vertex can only be hit by the ray of the pixel centre nearest its image point (the
+        // tolerance is far below half a pixel).
+        (0..self.mesh.width() * self.mesh.height()).into_par_iter().for_each(|p| {
+            let Some(point) = self.mesh.point(p) else { return };
+            let q = self.project(point);
+            let (x, y) = (q.x.round(), q.y.round());
+            if q.z > 0.0 && x >= 0.0 && y >= 0.0 && x < width as f64 && y < height as f64 {
+                let i = y as usize * width + x as usize;
+                record(i, rays[i].vertex_hit(point));
             }
         });
-        nearest.into_iter().map(|t| Some(f64::from(f32::from_bits(t.into_inner()))).filter(|t| t.is_finite())).collect()
+        nearest.into_iter().map(|t| Some(f64::from_bits(t.into_inner())).filter(|t| t.is_finite())).collect()
     }
 
     /// How many (quad, pixel) pairs the boxes of the quads with triangles cover, and how many

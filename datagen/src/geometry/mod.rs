@@ -6,4 +6,5 @@ pub mod camera;
 pub mod covisibility;
 pub mod depth_mesh;
 pub mod mesh_view;
+pub mod ray_triangle;
 pub mod render;

@@ -112,6 +112,13 @@ fn nvs_finetunes_renders_and_samples_and_continues_after_a_kill() {
         assert!(whole.join(format!("renders/{name}/frames/00012.png")).is_file(), "the whole video is rendered");
     }
     assert!(whole.join("finetune/checkpoints").is_dir());
+    // The public-format path starts at the source camera: its first render is the source frame,
+    // every pixel filled (the scene's depth is valid everywhere).
+    let source = datagen::io::sequence::read_sequence(&sequence).unwrap();
+    let first = image::open(whole.join("renders/orbit/frames/00000.png")).unwrap().to_rgb8();
+    assert!(first == source.frames[0], "the render at the source pose is the source frame");
+    let holes = image::open(whole.join("renders/orbit/holes/00000.png")).unwrap().to_luma8();
+    assert!(holes.pixels().all(|p| p.0[0] == 0), "no holes at the source pose");
 
     // Preempted (SIGTERM) once finetuning has finished, then run again with the same arguments.
     let resumed = dir.path().join("resumed");

@@ -27,7 +27,7 @@ cat >"$work/wide.json" <<JSON
  "time_embed_dim": 512, "sample_width": 10, "sample_height": 8, "sample_frames": 9,
  "use_rotary_positional_embeddings": true, "use_learned_positional_embeddings": true}
 JSON
-sed -e "s|^transformer = .*|transformer = \"$work/wide.json\"|" -e "s|^steps = .*|steps = $steps|" \
+sed -e "s|^transformer = .*|transformer = \"$work/wide.json\"\nzero_text_embedding = true|" -e "s|^steps = .*|steps = $steps|" \
     -e "s|^batch_size = .*|batch_size = 1|" -e "s|^checkpoint_every = .*|checkpoint_every = 1|" \
     -e "s|^keep_last = .*|keep_last = 1|" -e "s|^validate_every = .*|validate_every = 0|" \
     configs/pretrain_tiny.toml >"$work/wide.toml"

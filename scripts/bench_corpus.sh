@@ -4,6 +4,7 @@
 # DAVIS JPEGs + id PNGs, cog-nvs sequence folders), 2 sampled trajectories per clip, clips of 49
 # frames. Prints pairs/s, MB/s written, peak RSS and where the time went.
 # Usage: scripts/bench_corpus.sh [VIDEOS_PER_LAYOUT (2)] [WIDTH (720)] [HEIGHT (480)] [FRAMES (49)]
+# Builds datagen at $PROFILE (default release); BENCH_PREBUILT=1 uses the binary already built there.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
@@ -14,8 +15,9 @@ frames="${4:-49}"
 work="$(mktemp -d)"
 trap 'rm -rf "$work"' EXIT
 
-cargo build --release -p datagen --quiet
-bin=target/release/datagen
+profile="${PROFILE:-release}"
+[[ -n "${BENCH_PREBUILT:-}" ]] || cargo build --profile "$profile" -p datagen --quiet
+bin=target/$([[ "$profile" == dev ]] && echo debug || echo "$profile")/datagen
 printf 'width = %s\nheight = %s\nframes = %s\n' "$width" "$height" "$frames" >"$work/scene.toml"
 start=$(date +%s.%N)
 "$bin" synth-corpus --out "$work/trees" --videos-per-layout "$videos" --config "$work/scene.toml" >/dev/null

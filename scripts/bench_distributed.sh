@@ -7,7 +7,8 @@
 # collectives and with local no-ops, interleaved in rounds of COST_STEPS steps per variant); then
 # the all-reduce bandwidth between 2 local processes (`trainer comm-check`).
 # Usage: scripts/bench_distributed.sh [STEPS (8)]   (PROFILE=release for a release build;
-#        COST_ROUNDS (3) and COST_STEPS (3) size the comm-cost part)
+#        COST_ROUNDS (3) and COST_STEPS (3) size the comm-cost part, CHECK_MIB (64) and
+#        CHECK_ITERATIONS (9) the bandwidth part)
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
@@ -16,7 +17,7 @@ work="$(mktemp -d)"
 trap 'rm -rf "$work"' EXIT
 PROFILE="${PROFILE:-dev}" source scripts/bench_common.sh
 for stage in 0 2; do
-    sed -e "s|^transformer = .*|transformer = \"$work/mid.json\"|" -e "s|^steps = .*|steps = $steps|" \
+    sed -e "s|^transformer = .*|transformer = \"$work/mid.json\"\nzero_text_embedding = true|" -e "s|^steps = .*|steps = $steps|" \
         -e "s|^batch_size = .*|batch_size = 2|" -e "s|^checkpoint_every = .*|checkpoint_every = 1000000|" \
         -e "s|^validate_every = .*|validate_every = 0|" configs/pretrain_tiny.toml >"$work/zero$stage.toml"
     printf '\n[distributed]\nzero_stage = %s\n' "$stage" >>"$work/zero$stage.toml"
@@ -29,18 +30,27 @@ s = [json.loads(l)['seconds'] for l in open('$1/metrics.jsonl')][2:]
 print(f'{statistics.median(s):.3f} s (range {min(s):.3f}-{max(s):.3f})')"
 }
 
-OMP_NUM_THREADS=2 /usr/bin/time -f '%M' -o "$work/single.rss" "$trainer" pretrain --config "$work/zero0.toml" \
-    --shards "$work/pairs" --out "$work/single" >/dev/null 2>&1
+# Runs a command with its output in LOG, printing the log and failing if it fails.
+logged() {
+    local log="$1"
+    shift
+    "$@" >"$log" 2>&1 || { echo "failed: $*" >&2; cat "$log" >&2; return 1; }
+}
+
+OMP_NUM_THREADS=2 logged "$work/single.log" /usr/bin/time -f '%M' -o "$work/single.rss" "$trainer" pretrain \
+    --config "$work/zero0.toml" --shards "$work/pairs" --out "$work/single"
 echo "1 rank x batch 2 (2 threads): median step $(median_step "$work/single"), peak RSS $(( $(cat "$work/single.rss") / 1024 )) MiB"
 port=29650
 for stage in 0 2; do
     port=$((port + 1))
+    pids=()
     for rank in 0 1; do
         RANK=$rank WORLD_SIZE=2 MASTER_ADDR=127.0.0.1 MASTER_PORT=$port OMP_NUM_THREADS=1 \
-            /usr/bin/time -f '%M' -o "$work/zero$stage-$rank.rss" "$trainer" pretrain --config "$work/zero$stage.toml" \
-            --shards "$work/pairs" --out "$work/zero$stage" >/dev/null 2>&1 &
+            logged "$work/zero$stage-$rank.log" /usr/bin/time -f '%M' -o "$work/zero$stage-$rank.rss" "$trainer" \
+            pretrain --config "$work/zero$stage.toml" --shards "$work/pairs" --out "$work/zero$stage" &
+        pids+=($!)
     done
-    wait
+    for pid in "${pids[@]}"; do wait "$pid"; done
     echo "2 ranks x batch 1 (1 thread each), ZeRO-$stage: median step $(median_step "$work/zero$stage"), peak RSS rank 0 $(( $(cat "$work/zero$stage-0.rss") / 1024 )) MiB, rank 1 $(( $(cat "$work/zero$stage-1.rss") / 1024 )) MiB"
 done
 python3 - "$work" <<'PY'
@@ -63,5 +73,6 @@ parts = [f"ZeRO-{z} {100 * r['exposed_fraction'][f'zero{z}']:.1f} % (real {step[
 print(f"exposed communication, 2 ranks x batch 1 ({r['backend']}, {r['rounds']} rounds x {r['steps']} steps, "
       f"medians): {', '.join(parts)}; ZeRO-2 / ZeRO-0 step {r['zero2_over_zero0']:.3f}")
 PY
-.venv/bin/torchrun --nproc-per-node 2 --master-port $((port + 2)) --no-python "$trainer" comm-check --mib 64 --iterations 9 2>/dev/null \
-    | grep '^all-reduce [0-9]'
+logged "$work/check.log" .venv/bin/torchrun --nproc-per-node 2 --master-port $((port + 2)) --no-python "$trainer" \
+    comm-check --mib "${CHECK_MIB:-64}" --iterations "${CHECK_ITERATIONS:-9}"
+grep '^all-reduce [0-9]' "$work/check.log"

@@ -16,9 +16,9 @@ py=.venv/bin/python
 work="$(mktemp -d)"
 trap 'rm -rf "$work"' EXIT
 
-cargo build -p trainer --bin trainer --quiet
+[[ -n "${BENCH_PREBUILT:-}" ]] || cargo build -p trainer --bin trainer --quiet
 bin=target/debug/trainer
-"$py" scripts/goldens_eval.py "$work/w" >/dev/null 2>&1
+"$py" scripts/goldens_eval.py "$work/w" --weights-only
 "$py" - "$work" "$frames" <<'PY'
 import sys, numpy as np
 from pathlib import Path

@@ -4,6 +4,8 @@
 # Prints every run's wall time, peak RSS and phase split, then the median wall time and the
 # largest peak RSS. Usage: scripts/bench_pairs.sh [RUNS (default 5)] [THREADS (default: all)]
 # [ACCELERATOR: image-grids (default) | cwbvh, the obvhs BVH, for comparison]
+# [SCENE: a `datagen synth` TOML (default configs/synth_paper_size.toml)]. Builds datagen at
+# $PROFILE (default release); BENCH_PREBUILT=1 uses the binary already built there.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
@@ -14,9 +16,10 @@ work="$(mktemp -d)"
 trap 'rm -rf "$work"' EXIT
 printf '[covisibility.mesh]\naccelerator = "%s"\n' "$accelerator" >"$work/pairs.toml"
 
-cargo build --release -p datagen --quiet
-bin=target/release/datagen
-"$bin" synth --config configs/synth_paper_size.toml --out "$work/seq" >/dev/null
+profile="${PROFILE:-release}"
+[[ -n "${BENCH_PREBUILT:-}" ]] || cargo build --profile "$profile" -p datagen --quiet
+bin=target/$([[ "$profile" == dev ]] && echo debug || echo "$profile")/datagen
+"$bin" synth --config "${4:-configs/synth_paper_size.toml}" --out "$work/seq" >/dev/null
 
 walls=()
 rss_max=0

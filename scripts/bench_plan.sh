@@ -34,7 +34,7 @@ printf '%-18s %14s %14s %9s\n' config predicted measured error
 for model in tiny tiny-checkpointed mid mid-checkpointed; do
     transformer="tiny"
     [[ "$model" == mid* ]] && transformer="$work/mid.json"
-    sed -e "s|^transformer = .*|transformer = \"$transformer\"|" -e "s|^steps = .*|steps = $steps|" \
+    sed -e "s|^transformer = .*|transformer = \"$transformer\"\nzero_text_embedding = true|" -e "s|^steps = .*|steps = $steps|" \
         -e "s|^batch_size = .*|batch_size = 1|" -e "s|^checkpoint_every = .*|checkpoint_every = 1000000|" \
         -e "s|^validate_every = .*|validate_every = 0|" \
         configs/pretrain_tiny.toml >"$work/$model.toml"

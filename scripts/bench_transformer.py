@@ -8,7 +8,8 @@ Usage: bench_transformer.py [--threads 2] [--steps 5] [--warmup 2] [--repeats 3]
 For each config the same CogVideoXTransformer3DModel (config, batch, latent size, text length)
 runs a forward + backward step (loss = mean squared error against a random target; gradients
 zeroed in place between steps) in two fresh processes: the Rust example `bench_transformer`
-(release build, built here first) and diffusers. Both use the same thread count and the rotary
+(release build, built here first; PROFILE=dev builds the test profile, BENCH_PREBUILT=1 uses the one
+already built) and diffusers. Both use the same thread count and the rotary
 table of the CogNVS trainer (grid_type="slice"), computed outside the timed region. Runs
 alternate between the two implementations `--repeats` times; the figure per implementation is the
 median over repeats of each run's median step time. Prints a table with the ratio tch / PyTorch
@@ -130,9 +131,11 @@ def main() -> None:
         return worker(args)
 
     target_dir = Path(os.environ.get("CARGO_TARGET_DIR", ROOT / "target"))
-    subprocess.run(["cargo", "build", "--release", "--quiet", "-p", "trainer", "--example", "bench_transformer"],
-                   cwd=ROOT, check=True)
-    rust = target_dir / "release" / "examples" / "bench_transformer"
+    profile = os.environ.get("PROFILE", "release")
+    if not os.environ.get("BENCH_PREBUILT"):
+        subprocess.run(["cargo", "build", "--profile", profile, "--quiet", "-p", "trainer", "--example", "bench_transformer"],
+                       cwd=ROOT, check=True)
+    rust = target_dir / ("debug" if profile == "dev" else profile) / "examples" / "bench_transformer"
     # Both processes get the same thread settings; OpenMP must not spin on cores the other uses.
     env = dict(os.environ, OMP_NUM_THREADS=str(args.threads), MKL_NUM_THREADS=str(args.threads))
     results = {}

@@ -3,7 +3,10 @@
 `trainer eval`'s parity tests. Nothing is downloaded: the backbones have random weights, the
 LPIPS linear heads are the v0.1 files the `lpips` wheel ships.
 
-Usage: goldens_eval.py OUT_DIR
+Usage: goldens_eval.py OUT_DIR [--weights-only]
+
+With --weights-only it writes only lpips_alex.safetensors and inception.safetensors (what
+scripts/bench_eval.sh needs).
 
 Writes
 - OUT_DIR/{pred,target}/%05d.png: two small frame sets (the target a smooth pattern, the
@@ -65,11 +68,10 @@ def load_rgb(path: Path) -> torch.Tensor:
     return torch.from_numpy(x * 2 - 1).permute(2, 0, 1)[None].float()
 
 
-def lpips_goldens(out: Path, net: str) -> tuple[list, list]:
+def lpips_model(out: Path, net: str) -> torch.nn.Module:
+    """The random-backbone LPIPS of `net`, its weights saved as OUT/lpips_{net}.safetensors."""
     torch.manual_seed(SEED + len(net))
     model = lpips.LPIPS(pnet_rand=True, net=net, version="0.1", verbose=False).eval()
-    spatial = lpips.LPIPS(pnet_rand=True, net=net, version="0.1", spatial=True, verbose=False).eval()
-    spatial.load_state_dict(model.state_dict())
     tensors = {}
     for name, value in model.state_dict().items():
         if name.startswith("net.slice"):
@@ -78,6 +80,13 @@ def lpips_goldens(out: Path, net: str) -> tuple[list, list]:
         elif name.startswith("lin") and not name.startswith("lins."):
             tensors[name] = value.clone()
     save_file({k: v.contiguous() for k, v in tensors.items()}, str(out / f"lpips_{net}.safetensors"))
+    return model
+
+
+def lpips_goldens(out: Path, net: str) -> tuple[list, list]:
+    model = lpips_model(out, net)
+    spatial = lpips.LPIPS(pnet_rand=True, net=net, version="0.1", spatial=True, verbose=False).eval()
+    spatial.load_state_dict(model.state_dict())
     plain, masked = [], []
     with torch.no_grad():
         for f in range(FRAMES):
@@ -108,7 +117,7 @@ class CleanFeatures(torch.nn.Module):
 def fid_inception() -> torch.nn.Module:
     """cleanfid.inception_pytorch.fid_inception_v3() without its weight download."""
     torch.manual_seed(SEED)
-    net = torchvision.models.inception_v3(weights=None, num_classes=1008, aux_logits=False, init_weights=True)
+    net = torchvision.models.inception_v3(weights=None, num_classes=1008, aux_logits=False, init_weights=False)
     net.Mixed_5b = cinc.FIDInceptionA(192, pool_features=32)
     net.Mixed_5c = cinc.FIDInceptionA(256, pool_features=64)
     net.Mixed_5d = cinc.FIDInceptionA(288, pool_features=64)
@@ -130,16 +139,27 @@ def fid_inception() -> torch.nn.Module:
     return net.eval()
 
 
-def main() -> None:
-    out = Path(sys.argv[1])
-    frames(out)
-    expected = {}
-    for net in ("alex", "vgg"):
-        expected[f"lpips_{net}"], expected[f"masked_lpips_{net}"] = lpips_goldens(out, net)
+def save_inception(out: Path) -> torch.nn.Module:
+    """The random FID Inception, its weights saved as OUT/inception.safetensors."""
     net = fid_inception()
     save_file({k: v.contiguous() for k, v in net.state_dict().items()
                if not k.endswith("num_batches_tracked") and not k.startswith("fc.")},
               str(out / "inception.safetensors"))
+    return net
+
+
+def main() -> None:
+    out = Path(sys.argv[1])
+    if sys.argv[2:] == ["--weights-only"]:
+        out.mkdir(parents=True, exist_ok=True)
+        lpips_model(out, "alex")
+        save_inception(out)
+        return
+    frames(out)
+    expected = {}
+    for net in ("alex", "vgg"):
+        expected[f"lpips_{net}"], expected[f"masked_lpips_{net}"] = lpips_goldens(out, net)
+    net = save_inception(out)
     model = CleanFeatures(net).eval()
     feats = {}
     for name in ("pred", "target"):

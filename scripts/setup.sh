@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # One-step, idempotent set-up of a fresh Debian machine for this workspace:
 #   1. Debian packages: FFmpeg development libraries and CLI, clang/libclang, pkg-config,
-#      libzstd-dev (Parquet's zstd links it: see `.cargo/config.toml`),
+#      libzstd-dev (Parquet's zstd links it: see `.cargo/config.toml`), time and bc (the bench
+#      scripts measure peak RSS with /usr/bin/time and do their arithmetic with bc),
 #      chromium (headless, renders `datagen inspect --report` pages in a test); gloo's headers (the
 #      c10d shim of `trainer` compiles against them); slurm-wlm and munge (a one-node Slurm that
 #      `scripts/test_slurm.sh` starts and stops);
@@ -24,6 +25,7 @@ APT_PACKAGES=(
   pkg-config clang libclang-dev ffmpeg
   libavcodec-dev libavformat-dev libavutil-dev libswscale-dev
   libzstd-dev
+  time bc
   chromium
   libgloo-dev slurm-wlm munge
 )

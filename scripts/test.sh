@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # The full test suite, exactly as CI runs it: formatting, lints (warnings are errors), and every
-# test of every crate (unit, integration, end-to-end, numerical parity against diffusers), then a
-# one-node Slurm cluster started and stopped by scripts/test_slurm.sh (needs root, as setup does),
-# then the GPU check's rehearsal on the CPU.
+# test of every crate (unit, integration, end-to-end, numerical parity against diffusers), then
+# every benchmark script at its smallest size (scripts/bench_smoke.sh), then a one-node Slurm
+# cluster started and stopped by scripts/test_slurm.sh (needs root, as setup does), then the GPU
+# check's rehearsal on the CPU.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
@@ -20,6 +21,8 @@ clippy_driver="$(rustc --print sysroot)/bin/clippy-driver"
 [[ -x "$clippy_driver" ]] || { echo "clippy-driver not found at $clippy_driver: rustup component add clippy" >&2; exit 1; }
 RUSTC_WORKSPACE_WRAPPER="$clippy_driver" CLIPPY_ARGS="-D__CLIPPY_HACKERY__warnings__CLIPPY_HACKERY__" \
     cargo test --workspace --locked
+echo "==> every benchmark script at its smallest size, on the test build"
+bash scripts/bench_smoke.sh
 echo "==> one-node Slurm: corpus build array and a 2-task srun of trainer pretrain"
 bash scripts/test_slurm.sh
 # The GPU check as the GPU machine runs it (bundle, library stubs, stage deadlines), on tiny models

@@ -16,7 +16,8 @@ videos="${2:-4}"
 trajectories=4
 
 cd "$root"
-cargo build -q --workspace --bin datagen  # the features of the tests build: see scripts/demo.sh
+# The features of the tests build (see scripts/demo.sh); BENCH_PREBUILT=1 uses the one built.
+[[ -n "${BENCH_PREBUILT:-}" ]] || cargo build -q --workspace --bin datagen
 datagen="$root/target/debug/datagen"
 
 rm -rf "$out"

@@ -187,10 +187,20 @@ def self_test() -> None:
 
 
 def main() -> None:
-    if sys.argv[1:] == ["--self-test"]:
+    args = sys.argv[1:]
+    if not args or any(a in ("-h", "--help") for a in args):
+        print(__doc__.strip())
+        sys.exit(0 if args else 2)
+    if args == ["--self-test"]:
         self_test()
         return
-    problems = [p for arg in sys.argv[1:] for p in check(Path(arg))]
+    unknown = [a for a in args if a.startswith("-")]
+    missing = [a for a in args if not a.startswith("-") and not Path(a).is_dir()]
+    if unknown or missing:
+        print(f"check_module_cycles.py: {'unknown option ' + unknown[0] if unknown else 'no such folder ' + missing[0]}"
+              " (see --help)", file=sys.stderr)
+        sys.exit(2)
+    problems = [p for arg in args for p in check(Path(arg))]
     for p in problems:
         print(p)
     if problems:

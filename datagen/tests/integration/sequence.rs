@@ -8,7 +8,7 @@ use datagen::io::sequence::read_sequence;
 use datagen::synth::{SynthConfig, write_sequence};
 
 pub fn fixtures() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/fixtures")
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures")
 }
 
 fn venv_python() -> PathBuf {
@@ -27,7 +27,7 @@ pub fn synth_sequence(dir: &Path, frames: u32) -> PathBuf {
 fn blender_fixture_reads_with_exact_depth_and_cameras() {
     let dir = fixtures().join("scene_101");
     let sequence = read_sequence(&dir).unwrap();
-    assert_eq!((sequence.len(), sequence.size()), (25, (360, 240)));
+    assert_eq!((sequence.len(), sequence.size()), (9, (360, 240)));
     let depth = datagen::io::npy::read_npy_f32(&dir.join("cam_info/megasam_depth.npy")).unwrap();
     assert_eq!(sequence.depth[3].values, depth.data[3 * 360 * 240..4 * 360 * 240]);
     let k = datagen::io::npy::read_npy_f64(&dir.join("cam_info/megasam_intrinsics.npy")).unwrap();

@@ -139,7 +139,7 @@ fn saved_checkpoints_load_in_diffusers_and_compute_the_same() {
 #[test]
 fn cognvs_5b_module_tree_has_exactly_the_reference_names() {
     let shapes = transformer::variable_shapes(&CogVideoXTransformer3DModelConfig::cognvs_5b()).unwrap();
-    let keys_file = repo_root().join("../shared/reference/cognvs_transformer_keys.txt");
+    let keys_file = repo_root().join("trainer/tests/reference/cognvs_transformer_keys.txt");
     let text = std::fs::read_to_string(&keys_file).unwrap_or_else(|e| panic!("{}: {e}", keys_file.display()));
     let reference: BTreeSet<&str> = text.lines().map(str::trim).filter(|l| !l.is_empty()).collect();
     assert_eq!(reference.len(), 1025);
@@ -157,7 +157,7 @@ fn cognvs_5b_module_tree_has_exactly_the_reference_names() {
 
 #[test]
 fn cognvs_5b_preset_equals_the_reference_config() {
-    let path = repo_root().join("../shared/reference/cognvs_transformer_config.json");
+    let path = repo_root().join("trainer/tests/reference/cognvs_transformer_config.json");
     let config = CogVideoXTransformer3DModelConfig::from_json_file(&path).unwrap();
     assert!(config.unknown_keys().is_empty(), "{:?}", config.unknown_keys());
     assert_eq!(

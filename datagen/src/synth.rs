@@ -6,7 +6,8 @@
 //! that renders the frames answers exact visibility queries for any camera
 //! ([`FrameGeometry::is_visible`], [`ground_truth_covisibility`]): the analytic counterpart of the
 //! Blender fixtures. Shading is Lambertian with a fixed light, so a surface point has the same
-//! colour from every viewpoint.
+//! colour from every viewpoint. [`write_multiview`] renders the same scene from a rig of
+//! synchronised cameras (the multi-camera layout of [`crate::io::multiview`]).
 
 use std::ops::Bound;
 use std::path::{Path, PathBuf};
@@ -600,6 +601,91 @@ pub fn write_sequence(config: &SynthConfig, out: &Path, mut progress: impl FnMut
     let contact_sheet = out.join("contact_sheet.png");
     crate::inspect::contact_sheet::write_contact_sheet(&contact_sheet, &sheet_rows)?;
     Ok(SynthOutput { dir: out.to_owned(), contact_sheet })
+}
+
+/// Synchronised cameras of a multi-camera scene ([`write_multiview`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CameraRig {
+    /// Number of cameras. Valid: 2 to [`MAX_RIG_CAMERAS`].
+    pub cameras: u32,
+    /// Yaw between neighbouring cameras about the scene's look-at point, in degrees; the rig is
+    /// centred on the source path. Valid: finite, in (0, [`MAX_RIG_SPACING_DEG`]].
+    pub spacing_deg: f64,
+}
+
+/// Most cameras of a synthetic rig: more than the 16 of Kubric-4D, the largest public rig the
+/// readers take.
+pub const MAX_RIG_CAMERAS: u32 = 64;
+
+/// Widest yaw between neighbouring synthetic cameras: beyond it neighbours share little of the
+/// room.
+pub const MAX_RIG_SPACING_DEG: f64 = 90.0;
+
+impl SynthScene {
+    /// Pose of `camera` of `rig` at `frame`: the source path's pose turned about the look-at
+    /// point's vertical axis by (camera − (cameras − 1) / 2) × spacing.
+    pub fn rig_world_from_camera(&self, frame: u32, rig: &CameraRig, camera: u32) -> DMat4 {
+        let yaw = (f64::from(camera) - f64::from(rig.cameras - 1) / 2.0) * rig.spacing_deg;
+        let about_look_at = DMat4::from_translation(LOOK_AT)
+            * DMat4::from_rotation_y(yaw.to_radians())
+            * DMat4::from_translation(-LOOK_AT);
+        about_look_at * self.world_from_camera(frame)
+    }
+}
+
+/// Renders the scene from every camera of `rig` and writes a synchronised multi-camera folder:
+/// `out/camNN/` per camera in the generic layout (`frames/%05d.png`, `depth/%05d.exr`,
+/// `cameras.json` with `intrinsics`, `world_from_camera` and `timestamps` in seconds), one world
+/// frame for all (see [`crate::io::multiview`]).
+pub fn write_multiview(
+    config: &SynthConfig,
+    rig: &CameraRig,
+    out: &Path,
+    mut progress: impl FnMut(u32),
+) -> Result<PathBuf> {
+    if !(2..=MAX_RIG_CAMERAS).contains(&rig.cameras) {
+        return Err(Error::parameter("cameras", format!("must be 2 to {MAX_RIG_CAMERAS}, got {}", rig.cameras)));
+    }
+    if !(rig.spacing_deg > 0.0 && rig.spacing_deg <= MAX_RIG_SPACING_DEG) {
+        let reason = format!("must be a finite number in (0, {MAX_RIG_SPACING_DEG}], got {}", rig.spacing_deg);
+        return Err(Error::parameter("camera_spacing_deg", reason));
+    }
+    let scene = SynthScene::new(config)?;
+    let (width, height) = (config.width as usize, config.height as usize);
+    let intrinsics = config.intrinsics();
+    let folders: Vec<PathBuf> = (0..rig.cameras).map(|c| out.join(format!("cam{c:02}"))).collect();
+    for folder in &folders {
+        for sub in ["frames", "depth"] {
+            let dir = folder.join(sub);
+            std::fs::create_dir_all(&dir).map_err(|e| Error::io(&dir, e))?;
+        }
+    }
+    let mut poses = vec![Vec::new(); rig.cameras as usize];
+    for frame in 0..config.frames {
+        let geometry = scene.frame_geometry(frame);
+        for (camera, folder) in folders.iter().enumerate() {
+            let pose = scene.rig_world_from_camera(frame, rig, camera as u32);
+            let rendered = scene.render_view(&geometry, &pose, &intrinsics);
+            save_png(&rendered.rgb, &folder.join(format!("frames/{frame:05}.png")))?;
+            let depth = crate::io::depth_exr::DepthMap { width, height, values: rendered.depth };
+            let exr_path = folder.join(format!("depth/{frame:05}.exr"));
+            let exr = crate::io::depth_exr::encode_depth_exr(&depth)?;
+            std::fs::write(&exr_path, exr).map_err(|e| Error::io(&exr_path, e))?;
+            poses[camera].push(crate::geometry::camera::mat4_to_row_major(&pose).to_vec());
+        }
+        progress(frame + 1);
+    }
+    let timestamps: Vec<f64> = (0..config.frames).map(|f| scene.seconds(f)).collect();
+    for (folder, poses) in folders.iter().zip(poses) {
+        let cameras = serde_json::json!({
+            "intrinsics": crate::geometry::camera::mat3_to_row_major(&intrinsics).to_vec(),
+            "world_from_camera": poses,
+            "timestamps": timestamps,
+        });
+        let path = folder.join("cameras.json");
+        std::fs::write(&path, serde_json::to_vec_pretty(&cameras).expect("json")).map_err(|e| Error::io(&path, e))?;
+    }
+    Ok(out.to_owned())
 }
 
 /// Up to four evenly spaced frames shown on the contact sheet.

@@ -10,6 +10,7 @@ mod hostile_corpus;
 mod hostile_files;
 mod hostile_sequences;
 mod inspect;
+mod multiview;
 mod novel_view;
 mod pairs;
 mod pairs_golden;

@@ -194,6 +194,15 @@ impl CogNvsPipeline {
         let denoiser = Denoiser { transformer: &self.transformer, vae: &self.vae, scheduler: &self.scheduler };
         let mut timings = Timings::default();
         let video = denoiser.run(condition, &self.text, negative, steps, guidance, progress, &mut timings)?;
+        // A NaN anywhere (weights, adapters, text, arithmetic) comes out as black frames: an
+        // error, never a result.
+        weights::check_finite("sampled video", &video).map_err(|e| match e {
+            Error::NonFinite { tensor, reason } => Error::NonFinite {
+                tensor,
+                reason: format!("{reason}: the model produced no usable video, nothing is written"),
+            },
+            other => other,
+        })?;
         Ok((video, timings))
     }
 }

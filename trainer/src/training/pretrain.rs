@@ -244,7 +244,10 @@ pub(super) fn train(
     let stop_now = |watch: &PreemptWatch| -> Result<bool> {
         Ok(consensus::any_rank(pg, [watch.received().is_some()], "preemption")?[0])
     };
-    // A signal during start-up stops before the first step: nothing new to save.
+    // Until here a signal ended the process at once (nothing to save); from here on it stops the
+    // loop after its step, with a checkpoint.
+    let checkpointable = super::preempt::Checkpointable::enter();
+    // A signal on another rank during its start-up stops before the first step.
     let mut preempted = stop_now(&watch)?;
     while state.step < config.train.steps && !preempted {
         let started = Instant::now();
@@ -391,6 +394,7 @@ pub(super) fn train(
     if preempted {
         watch.hold_until_exit();
     }
+    drop(checkpointable);
     if preempted && lead {
         let signal = signal.map_or("a preemption signal (on another rank)".to_string(), super::preempt::signal_name);
         eprintln!(

@@ -462,6 +462,8 @@ impl PretrainConfig {
             reason,
         };
         let (transformer, vae) = self.model.configs(false)?;
+        // The scheduler's file too: its ranges are checked as it is read.
+        self.model.scheduler_config()?;
         if let Some(lora) = &self.lora {
             // Targets and rank against the transformer's layers, before any run folder exists.
             crate::cogvideox_transformer_3d::check_lora(&transformer, lora).map_err(|e| match e {

@@ -112,7 +112,7 @@ pub(super) fn train(
     let (rank, world) = pg.map_or((0, 1), |pg| (pg.rank, pg.world_size));
     let lead = rank == 0;
     // A bad config or bad shard folders fail before the run folder is touched.
-    config.validate("training config")?;
+    config.validate(&config.source_name())?;
     config.model.check_text_embedding()?;
     let data = rank_data_config(config, rank, world)?;
     let (training_clips, held_out) = super::validation::split_training_clips(config, shards)?;
@@ -412,7 +412,7 @@ fn rank_data_config(config: &PretrainConfig, rank: usize, world: usize) -> Resul
     let global = config.data.batch_size;
     if world > 1 && !global.is_multiple_of(world) {
         return Err(Error::InvalidConfig {
-            source_name: "training config".to_string(),
+            source_name: config.source_name(),
             field: "data.batch_size".to_string(),
             reason: format!(
                 "the global batch {global} must be a multiple of the world size {world} (each rank takes an equal share)"

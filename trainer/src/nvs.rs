@@ -13,11 +13,14 @@
 //!
 //! `nvs.json` keeps every setting, the seeds, the inputs' digests and the outputs' digests. A
 //! folder whose `nvs.json` records other settings or other inputs is refused, and one that
-//! another `nvs` is working in (its `trainer.lock`) too.
+//! another `nvs` is working in (its `trainer.lock`) too. Every argument, model folder and input
+//! (output names included: one plain file name each, clashing neither with the job's own files
+//! nor with each other) is checked before the first write, so a refused command leaves OUT as it
+//! was; the job is recorded once it starts.
 //!
 //! Preemption: a signal during finetuning ends it as `finetune` does (a complete checkpoint, see
-//! [`crate::training::preempt`]); during rendering and sampling the job stops after the
-//! trajectory in progress. Either way the caller exits with
+//! [`crate::training::preempt`]; before its first step, at once); during rendering and sampling
+//! the job stops after the trajectory in progress. Either way the caller exits with
 //! [`crate::training::preempt::EXIT_PREEMPTED`] and the same command continues the job.
 
 use std::path::{Path, PathBuf};

@@ -1,7 +1,11 @@
 //! Hostile inputs to `trainer`: every bad config value, shard folder, safetensors
 //! file, dtype, config.json, frame size or count fails with one error naming the file and the
 //! key or tensor, before any model work and without writing anything; diffusers-accepted VAE
-//! configs and off-size conditionings are computed as diffusers / the training loader do.
+//! configs and off-size conditionings are computed as diffusers / the training loader do. On the
+//! user path (`trainer nvs`, text embeddings, released-model folders, checkpoints, held-out
+//! validation): output names that leave or clash with OUT, non-finite tensors and samples,
+//! scheduler and transformer configs out of range, checkpoint records reaching beyond their
+//! folder, signals at start-up, and flags refused by the parser.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -526,6 +530,13 @@ impl NvsJob {
     }
 }
 
+/// Command-line flags and values of a case.
+type Flags<'a> = Vec<&'a dyn AsRef<std::ffi::OsStr>>;
+/// Config fields and their values of a case.
+type Fields<'a> = &'a [(&'a str, i64)];
+/// Files a checkpoint record lists: name, bytes, BLAKE3.
+type Listed<'a> = Vec<(&'a str, u64, String)>;
+
 /// A copy of `from` named `name` beside it.
 fn copy_as(from: &Path, name: &str) -> PathBuf {
     let to = from.with_file_name(name);
@@ -615,7 +626,7 @@ fn nvs_checks_every_argument_and_model_before_its_first_write() {
     let nan_name = nan_text.display().to_string();
     let inf_name = inf_text.display().to_string();
     let lora_name = lora.display().to_string();
-    let cases: Vec<(Vec<&dyn AsRef<std::ffi::OsStr>>, Vec<&str>)> = vec![
+    let cases: Vec<(Flags, Vec<&str>)> = vec![
         (vec![&"--init", &mistyped], vec![&mistyped_name]),
         (vec![&"--sample-steps", &"0"], vec!["steps", "0"]),
         (vec![&"--sample-steps", &"1001"], vec!["steps", "1001", "1000"]),
@@ -786,7 +797,7 @@ fn transformer_configs_whose_sizes_overflow_name_the_config_and_fields() {
     let ckpt = tiny_checkpoint(dir.path());
     let config_path = ckpt.join("transformer/config.json");
     let original: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&config_path).unwrap()).unwrap();
-    let cases: &[(&[(&str, i64)], &[&str])] = &[
+    let cases: &[(Fields, &[&str])] = &[
         (
             &[("num_attention_heads", 1 << 32), ("attention_head_dim", 1 << 32)],
             &["num_attention_heads", "attention_head_dim"],
@@ -876,7 +887,7 @@ fn checkpoint_records_name_only_regular_files_of_their_folder_and_their_own_step
     std::fs::write(dir.path().join("outside.bin"), weights).unwrap();
     // Newer ones, each damaged by its record alone: a device, paths out of the folder, a link
     // to a device and one to a file outside, and a step that is not the folder's.
-    let cases: Vec<(&str, Vec<(&str, u64, String)>, u64, &str)> = vec![
+    let cases: Vec<(&str, Listed, u64, &str)> = vec![
         ("step-00000002", vec![("/dev/zero", 0, digest(b""))], 2, "/dev/zero"),
         ("step-00000003", vec![("../../../outside.bin", 7, digest(weights))], 3, "outside.bin"),
         ("step-00000004", vec![("sub/../../step-00000001/w.bin", 7, digest(weights))], 4, "w.bin"),
@@ -919,7 +930,7 @@ fn a_signal_while_nothing_checkpointable_runs_ends_the_process_at_once() {
     let big = std::fs::File::create(folder.join("big.bin")).unwrap();
     big.set_len(32 << 30).unwrap();
     let mut job = Command::new(env!("CARGO_BIN_EXE_trainer"))
-        .args([&"pretrain".as_ref(), &"--config".as_ref(), config.as_os_str(), "--shards".as_ref(), shards.as_os_str()])
+        .args(["pretrain".as_ref(), "--config".as_ref(), config.as_os_str(), "--shards".as_ref(), shards.as_os_str()])
         .args(["--out".as_ref(), run.as_os_str(), "--resume".as_ref()])
         .stderr(std::process::Stdio::piped())
         .spawn()

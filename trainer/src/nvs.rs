@@ -179,12 +179,12 @@ pub fn run(
     let rank = pg.map_or(0, |pg| pg.rank);
     // Every argument, model folder and input is checked before the first write: a refused
     // command leaves OUT as it was, and the corrected command starts there as if new.
-    let Preflight { names, sequence, settings, inputs } = preflight(request)?;
+    let Preflight { names, sequence, settings, inputs, train } = preflight(request)?;
     let record_path = request.out.join(RECORD);
     // One job per output folder; the finetuning run below holds its own folder's lock as well.
     let _lock = crate::training::RunLock::acquire_on(&request.out, "trainer nvs", pg)?;
     // Alive for the whole job, so that no signal falls between the phases' own watches.
-    let watch = preemption_watch(request)?;
+    let watch = preemption_watch(&train)?;
     // Read again under the lock: another job may have recorded itself since the check.
     let mut record = job_record(request, &settings, &inputs)?;
     record.inputs = inputs;
@@ -309,11 +309,7 @@ pub fn run(
 
 /// The preemption watch of the rendering and sampling phases: the finetuning config's signals
 /// and grace (`[loop] preempt_signals`, `preempt_grace_seconds`), else their defaults.
-fn preemption_watch(request: &NvsRequest) -> Result<crate::training::preempt::PreemptWatch> {
-    let train = match &request.config {
-        Some(path) => crate::training::PretrainConfig::from_toml_file(path)?.train,
-        None => crate::training::LoopConfig::default(),
-    };
+fn preemption_watch(train: &crate::training::LoopConfig) -> Result<crate::training::preempt::PreemptWatch> {
     let signals: Vec<i32> =
         train.preempt_signals.iter().filter_map(|name| crate::training::preempt::signal_number(name)).collect();
     let grace =
@@ -331,6 +327,8 @@ struct Preflight {
     settings: serde_json::Value,
     /// The inputs' digests.
     inputs: std::collections::BTreeMap<String, String>,
+    /// The `[loop]` settings of `--config` (its preemption signals and grace), else defaults.
+    train: crate::training::LoopConfig,
 }
 
 /// Checks the whole request without writing anything: the output names, the output folder and
@@ -347,7 +345,26 @@ fn preflight(request: &NvsRequest) -> Result<Preflight> {
     }
     let settings = serde_json::to_value(settings(request)).expect("settings serialise");
     // Settings first: a folder of another job is named before any input is read.
-    job_record(request, &settings, &Default::default())?;
+    let record = job_record(request, &settings, &Default::default())?;
+    if record.inputs.is_empty() {
+        // A new job: it must not replace what is in OUT already.
+        let ours = [FINETUNE_DIR, RENDERS_DIR].into_iter().map(str::to_string);
+        let outputs = names.iter().flat_map(|n| output_entries(n));
+        if let Some(entry) = ours.chain(outputs).find(|entry| request.out.join(entry).exists()) {
+            return Err(Error::InvalidArgument {
+                name: "out".to_string(),
+                reason: format!(
+                    "{} holds {entry} but no {RECORD}: this job's output would replace it; choose an empty or new \
+                     folder",
+                    request.out.display()
+                ),
+            });
+        }
+    }
+    let train = match &request.config {
+        Some(path) => crate::training::PretrainConfig::from_toml_file(path)?.train,
+        None => crate::training::LoopConfig::default(),
+    };
     let sequence = datagen::io::sequence::read_sequence(&request.sequence)?;
     for path in &request.trajectories {
         datagen::pairs::trajectory::read_trajectory_file(path, sequence.len(), &sequence.cameras, &sequence.depth[0])?;
@@ -369,7 +386,7 @@ fn preflight(request: &NvsRequest) -> Result<Preflight> {
     let checked = crate::sampling::CheckedModels::read(&paths, Device::Cpu)?;
     checked.check_sampling("sample-steps", request.sample_steps, request.guidance, &request.framing)?;
     crate::plan::check_sampling_fits(&crate::plan::sampling_plan_for(&paths, request.load, &request.framing)?)?;
-    Ok(Preflight { names, sequence, settings, inputs })
+    Ok(Preflight { names, sequence, settings, inputs, train })
 }
 
 /// The job `OUT/nvs.json` records (a new one when there is none), refused when it was asked with
@@ -522,7 +539,10 @@ fn trajectory_names(paths: &[PathBuf]) -> Result<Vec<String>> {
         if !plain || name.contains(['/', '\\', '\0']) {
             return Err(refuse(path, format!("`{name}` is not one plain file name (empty, `.`, `..` or a path)")));
         }
-        for entry in [name.to_string(), format!("{name}.mp4"), format!("{name}_sheet.png")] {
+        if output_entries(name).iter().any(|entry| entry.len() > NAME_MAX_BYTES) {
+            return Err(refuse(path, format!("`{name}` makes output names longer than {NAME_MAX_BYTES} bytes")));
+        }
+        for entry in output_entries(name) {
             if reserved.contains(&entry.as_str()) {
                 return Err(refuse(
                     path,
@@ -541,6 +561,14 @@ fn trajectory_names(paths: &[PathBuf]) -> Result<Vec<String>> {
     }
     Ok(names)
 }
+
+/// The entries of OUT a trajectory named `name` writes: its frame folder, video and sheet.
+fn output_entries(name: &str) -> [String; 3] {
+    [name.to_string(), format!("{name}.mp4"), format!("{name}_sheet.png")]
+}
+
+/// The longest file name Linux file systems take (`NAME_MAX`).
+const NAME_MAX_BYTES: usize = 255;
 
 fn settings(r: &NvsRequest) -> Settings {
     let show = |p: &Option<PathBuf>| p.as_ref().map(|p| p.display().to_string());

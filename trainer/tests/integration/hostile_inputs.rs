@@ -563,6 +563,7 @@ fn nvs_refuses_output_names_that_leave_out_or_clash_before_any_work() {
     cases.push((vec![a.clone(), copy_as(orbit, "a_sheet.png.txt")], "a_sheet.png"));
     cases.push((vec![a.clone(), copy_as(orbit, "a.mp4.txt")], "a.mp4"));
     cases.push((vec![a.clone(), copy_as(&job.trajectories[1], "a.json")], "`a`"));
+    cases.push((vec![copy_as(orbit, &format!("{}.txt", "n".repeat(250)))], "255 bytes"));
     for (trajectories, needle) in &cases {
         let output = job.run(&out, trajectories, &[]);
         let named = trajectories.last().unwrap().display().to_string();
@@ -621,6 +622,9 @@ fn nvs_checks_every_argument_and_model_before_its_first_write() {
     let spacing = base_with_scheduler(&job, "spacing", "timestep_spacing", serde_json::json!("sideways"));
     let huge_file = huge.join("scheduler/scheduler_config.json").display().to_string();
     let beta_file = beta.join("scheduler/scheduler_config.json").display().to_string();
+    let bad_toml = job.path("bad.toml");
+    std::fs::write(&bad_toml, std::fs::read_to_string(&job.toml).unwrap().replace("lr = 1e-3", "lr = nan")).unwrap();
+    let bad_toml_name = bad_toml.display().to_string();
     let mistyped = job.path("released/transformr");
     let mistyped_name = mistyped.display().to_string();
     let nan_name = nan_text.display().to_string();
@@ -628,6 +632,7 @@ fn nvs_checks_every_argument_and_model_before_its_first_write() {
     let lora_name = lora.display().to_string();
     let cases: Vec<(Flags, Vec<&str>)> = vec![
         (vec![&"--init", &mistyped], vec![&mistyped_name]),
+        (vec![&"--config", &bad_toml], vec![&bad_toml_name, "optim.lr"]),
         (vec![&"--sample-steps", &"0"], vec!["steps", "0"]),
         (vec![&"--sample-steps", &"1001"], vec!["steps", "1001", "1000"]),
         (vec![&"--frames", &"8"], vec!["frames", "8"]),
@@ -664,6 +669,13 @@ fn nvs_checks_every_argument_and_model_before_its_first_write() {
     std::fs::write(&file, "mine").unwrap();
     fails_with(&job.run(&file, &job.trajectories, &[]), &["out", &file.display().to_string(), "not a folder"]);
     assert_eq!(std::fs::read_to_string(&file).unwrap(), "mine");
+    // A new job refuses to replace what a folder without nvs.json holds.
+    let used = job.path("used");
+    std::fs::create_dir_all(&used).unwrap();
+    std::fs::write(used.join("orbit.mp4"), "mine").unwrap();
+    fails_with(&job.run(&used, &job.trajectories, &[]), &["out", "orbit.mp4", "nvs.json"]);
+    assert_eq!(std::fs::read_to_string(used.join("orbit.mp4")).unwrap(), "mine");
+    assert_eq!(std::fs::read_dir(&used).unwrap().count(), 1, "nothing is written");
     // The corrected command on the same OUT is a new job, not "a job with other settings".
     let output = job.run(&out, &job.trajectories, &[]);
     assert!(output.status.success(), "{}", stderr(&output));

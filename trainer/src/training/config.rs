@@ -486,8 +486,13 @@ impl PretrainConfig {
             reason,
         };
         let (transformer, vae) = self.model.configs(false)?;
-        // The scheduler's file too: its ranges are checked as it is read.
+        // The scheduler's file too: its ranges are checked as it is read. And the text embedding
+        // (small: its shape against the transformer, every value finite), so that a bad one
+        // stops the run before its folder is written.
         self.model.scheduler_config()?;
+        if let Some(path) = &self.model.text_embedding {
+            let _ = crate::loaders::load_text_embedding(Some(path), &transformer, tch::Device::Cpu)?;
+        }
         if let Some(lora) = &self.lora {
             // Targets and rank against the transformer's layers, before any run folder exists.
             crate::cogvideox_transformer_3d::check_lora(&transformer, lora).map_err(|e| match e {

@@ -170,6 +170,24 @@ fn pretrain_cli_refuses_a_bad_config_before_writing_anything() {
 }
 
 #[test]
+fn pretrain_refuses_a_non_finite_text_embedding_before_writing_anything() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = text_embedding_with(&dir.path().join("nan_text.safetensors"), f64::NAN);
+    let config = tiny_toml(
+        dir.path(),
+        "nan_text",
+        "# text_embedding = \"empty_prompt_t5.safetensors\"",
+        &format!("text_embedding = {:?}", text.display().to_string()),
+    );
+    let shards = dir.path().join("shards");
+    std::fs::create_dir_all(&shards).unwrap();
+    let out = dir.path().join("run");
+    let output = run(&[&"pretrain", &"--config", &config, &"--shards", &shards, &"--out", &out]);
+    fails_with(&output, &["encoder_hidden_states", &text.display().to_string(), "not finite"]);
+    assert!(!out.exists(), "nothing is written");
+}
+
+#[test]
 fn empty_and_foreign_shard_folders_are_named_errors() {
     let dir = tempfile::tempdir().unwrap();
     let config = tiny_toml(dir.path(), "ok", "steps = 20", "steps = 20");

@@ -152,6 +152,16 @@ impl DiffusersConfig for CogVideoXTransformer3DModelConfig {
     }
 }
 
+/// Largest value of one size field of the config (channels, heads, head width, layers, tokens,
+/// latent sizes) and of the token width heads × head_dim: far above every released model's
+/// (3072 channels, 48 heads, 226 text tokens, 42 layers, 90 latents a side), and small enough
+/// that the products the model forms from two or three of them stay inside 64-bit sizes.
+pub const MAX_DIMENSION: i64 = 1 << 20;
+
+/// Most values of the positional table (tokens × channels): the released models' is 17 550 ×
+/// 3072 ≈ 5.4e7; 2^36 (256 GiB in f32) is beyond any device, so a larger one is a config error.
+pub const MAX_TABLE_ELEMENTS: i64 = 1 << 36;
+
 impl CogVideoXTransformer3DModelConfig {
     /// The released CogNVS transformer (its checkpoint's `config.json`)
     /// (the CogVideoX-5B-I2V architecture: 42 × 48 heads × 64, learned + rotary positions) with
@@ -241,7 +251,7 @@ impl CogVideoXTransformer3DModelConfig {
         {
             return Err(err("_class_name", format!("is `{class}`, expected `{CLASS_NAME}`")));
         }
-        for (field, value) in [
+        let sizes = [
             ("num_attention_heads", self.num_attention_heads),
             ("attention_head_dim", self.attention_head_dim),
             ("in_channels", self.in_channels),
@@ -255,10 +265,49 @@ impl CogVideoXTransformer3DModelConfig {
             ("patch_size", self.patch_size),
             ("temporal_compression_ratio", self.temporal_compression_ratio),
             ("max_text_seq_length", self.max_text_seq_length),
-        ] {
+        ];
+        for (field, value) in sizes {
             if value <= 0 {
                 return Err(err(field, format!("must be positive, got {value}")));
             }
+        }
+        // Token width and the positional table, as the model forms them from several fields.
+        let inner = self.num_attention_heads.checked_mul(self.attention_head_dim).filter(|&d| d <= MAX_DIMENSION);
+        if inner.is_none() {
+            return Err(err(
+                "num_attention_heads",
+                format!(
+                    "num_attention_heads × attention_head_dim = {} × {} is more than {MAX_DIMENSION} channels",
+                    self.num_attention_heads, self.attention_head_dim
+                ),
+            ));
+        }
+        for (field, value) in sizes {
+            if value > MAX_DIMENSION {
+                return Err(err(field, format!("must be at most {MAX_DIMENSION}, got {value}")));
+            }
+        }
+        let table = ((self.sample_frames - 1) / self.temporal_compression_ratio + 1)
+            .checked_mul(self.sample_height / self.patch_size)
+            .and_then(|n| n.checked_mul(self.sample_width / self.patch_size))
+            .and_then(|n| n.checked_add(self.max_text_seq_length))
+            .and_then(|n| n.checked_mul(self.inner_dim()))
+            .filter(|&n| n <= MAX_TABLE_ELEMENTS);
+        if table.is_none() {
+            return Err(err(
+                "sample_frames",
+                format!(
+                    "the positional table of sample_frames × sample_height × sample_width = {} × {} × {} (in \
+                     patches of {}, plus max_text_seq_length {}) by {} channels has more than \
+                     {MAX_TABLE_ELEMENTS} values",
+                    self.sample_frames,
+                    self.sample_height,
+                    self.sample_width,
+                    self.patch_size,
+                    self.max_text_seq_length,
+                    self.inner_dim()
+                ),
+            ));
         }
         if let Some(v) = self.ofs_embed_dim.filter(|&v| v <= 0) {
             return Err(err("ofs_embed_dim", format!("must be positive or null, got {v}")));

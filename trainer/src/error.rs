@@ -66,6 +66,15 @@ pub enum Error {
         /// One of them.
         example: String,
     },
+    /// A tensor holds NaN or infinite values where only finite ones mean anything: a weight, a
+    /// LoRA factor or a text embedding read from a file, or a sampled video.
+    #[error("tensor `{tensor}`: {reason}")]
+    NonFinite {
+        /// The tensor's name and the file it came from (`encoder_hidden_states` in `prompt.safetensors`).
+        tensor: String,
+        /// How many values, where the first is, and what follows.
+        reason: String,
+    },
     /// An input file (a frame, a video, a shard folder) does not fit what it is used for.
     #[error("{path}: {what}: {reason}")]
     InvalidInput {

@@ -512,8 +512,20 @@ struct ForwardArgs {
     tiling: bool,
 }
 
+/// The command line as clap builds it, with every value argument taking values that look like
+/// negative numbers (`--seed -1`): the value then reaches the flag's parser, whose refusal names
+/// the flag, instead of being read as an unknown flag `-1`.
+fn command_line() -> clap::Command {
+    use clap::CommandFactory;
+    Cli::command().mut_subcommands(|sub| {
+        sub.mut_args(|arg| if arg.get_action().takes_values() { arg.allow_negative_numbers(true) } else { arg })
+    })
+}
+
 fn main() -> anyhow::Result<()> {
-    match Cli::parse().command {
+    use clap::FromArgMatches;
+    let cli = Cli::from_arg_matches(&command_line().get_matches()).unwrap_or_else(|e| e.exit());
+    match cli.command {
         Command::Forward(args) => run_forward(args),
         Command::Eval(args) => run_eval(args),
         Command::Pretrain(args) => training_exit(run_pretrain(args)),

@@ -13,11 +13,14 @@
 //!
 //! `nvs.json` keeps every setting, the seeds, the inputs' digests and the outputs' digests. A
 //! folder whose `nvs.json` records other settings or other inputs is refused, and one that
-//! another `nvs` is working in (its `trainer.lock`) too.
+//! another `nvs` is working in (its `trainer.lock`) too. Every argument, model folder and input
+//! (output names included: one plain file name each, clashing neither with the job's own files
+//! nor with each other) is checked before the first write, so a refused command leaves OUT as it
+//! was; the job is recorded once it starts.
 //!
 //! Preemption: a signal during finetuning ends it as `finetune` does (a complete checkpoint, see
-//! [`crate::training::preempt`]); during rendering and sampling the job stops after the
-//! trajectory in progress. Either way the caller exits with
+//! [`crate::training::preempt`]; before its first step, at once); during rendering and sampling
+//! the job stops after the trajectory in progress. Either way the caller exits with
 //! [`crate::training::preempt::EXIT_PREEMPTED`] and the same command continues the job.
 
 use std::path::{Path, PathBuf};
@@ -30,6 +33,7 @@ use tch::Device;
 use crate::error::{Error, Result};
 use crate::loaders::ModelSource;
 use crate::sampling::{CogNvsPipeline, Framing, LoadOptions};
+use crate::training::preempt::Checkpointable;
 use crate::training::{FinetuneRequest, StepMetrics};
 
 /// Everything `trainer nvs` is asked to do.
@@ -146,7 +150,14 @@ pub enum Progress<'a> {
     Denoise(usize, usize),
 }
 
+/// The job's record in OUT.
 const RECORD: &str = "nvs.json";
+/// The record while it is written (renamed over [`RECORD`]).
+const RECORD_TEMPORARY: &str = "nvs.json.tmp";
+/// The finetuning run's folder in OUT.
+const FINETUNE_DIR: &str = "finetune";
+/// The renders' folder in OUT.
+const RENDERS_DIR: &str = "renders";
 
 /// How a call of [`run`] ended.
 #[derive(Debug)]
@@ -165,77 +176,33 @@ pub fn run(
     pg: Option<&crate::distributed::ProcessGroup>,
     progress: &mut dyn FnMut(Progress),
 ) -> Result<Outcome> {
-    let names = trajectory_names(&request.trajectories)?;
     let rank = pg.map_or(0, |pg| pg.rank);
+    // Every argument, model folder and input is checked before the first write: a refused
+    // command leaves OUT as it was, and the corrected command starts there as if new.
+    let Preflight { names, sequence, settings, inputs, train } = preflight(request)?;
+    let record_path = request.out.join(RECORD);
     // One job per output folder; the finetuning run below holds its own folder's lock as well.
     let _lock = crate::training::RunLock::acquire_on(&request.out, "trainer nvs", pg)?;
     // Alive for the whole job, so that no signal falls between the phases' own watches.
-    let watch = preemption_watch(request)?;
-    let settings = serde_json::to_value(settings(request)).expect("settings serialise");
-    let record_path = request.out.join(RECORD);
-    let mut record = match read_record(&record_path)? {
-        Some(record) if record.settings != settings => {
-            return Err(Error::InvalidArgument {
-                name: "out".to_string(),
-                reason: format!(
-                    "{} holds a job with other settings ({}); use the same arguments to continue it or another folder",
-                    request.out.display(),
-                    record_path.display()
-                ),
-            });
-        }
-        Some(record) => record,
-        None => Record {
-            settings,
-            inputs: Default::default(),
-            checkpoint: None,
-            finetune_seconds: None,
-            outputs: Vec::new(),
-            complete: false,
-        },
-    };
-    // Inputs are checked, and their digests taken, before any work.
-    let sequence = datagen::io::sequence::read_sequence(&request.sequence)?;
-    let inputs = input_digests(request)?;
-    if !record.inputs.is_empty() && record.inputs != inputs {
-        return Err(Error::InvalidArgument {
-            name: "sequence".to_string(),
-            reason: format!(
-                "the inputs changed since {} was written (the video, a trajectory or the text embedding): start a \
-                 new output folder",
-                record_path.display()
-            ),
-        });
-    }
-    for path in &request.trajectories {
-        datagen::pairs::trajectory::read_trajectory_file(path, sequence.len(), &sequence.cameras, &sequence.depth[0])?;
-    }
+    let watch = preemption_watch(&train)?;
+    // Read again under the lock: another job may have recorded itself since the check.
+    let mut record = job_record(request, &settings, &inputs)?;
     record.inputs = inputs;
-    std::fs::create_dir_all(&request.out).map_err(|e| Error::Io { path: request.out.clone(), error: e })?;
     if rank == 0 {
         write_record(&record_path, &record)?;
     }
 
-    // 1. Finetuning.
+    // 1. Finetuning. Until it ends a signal stops the job at once (finetuning's own loop
+    // excepted): the record holds what was done. From then on the job stops between
+    // trajectories, each of which is recorded as it ends.
+    let mut checkpointable = None;
     let mut model = request.model.clone();
     if request.steps > 0 && record.checkpoint.is_none() {
         progress(Progress::Phase("finetune", request.steps));
         let started = Instant::now();
-        let finetune = FinetuneRequest {
-            init: request.model.checkpoint.clone(),
-            base_model: request.model.base_model.clone(),
-            vae: request.model.vae.clone(),
-            text_embedding: request.model.text_embedding.clone(),
-            zero_text_embedding: request.model.zero_text_embedding,
-            sequence: request.sequence.clone(),
-            out: request.out.join("finetune"),
-            steps: request.steps,
-            trajectories: request.finetune_trajectories,
-            config: request.config.clone(),
-            lora: request.model.lora.clone(),
-            resume: true,
-        };
+        let finetune = finetune_request(request);
         let summary = crate::training::finetune_on(&finetune, device, pg, |m| progress(Progress::Step(m)))?;
+        checkpointable = Some(Checkpointable::enter());
         if summary.preempted || rank != 0 {
             return Ok(Outcome { record: (rank == 0).then_some(record), preempted: summary.preempted });
         }
@@ -262,6 +229,7 @@ pub fn run(
     }
 
     // Rendering and sampling stop between trajectories on a preemption signal.
+    let _checkpointable = checkpointable.unwrap_or_else(Checkpointable::enter);
     let stopped = |record: Record| -> Result<Outcome> {
         write_record(&record_path, &record)?;
         Ok(Outcome { record: Some(record), preempted: true })
@@ -278,7 +246,7 @@ pub fn run(
         progress(Progress::Phase("render", to_render.len() as u64));
     }
     for &i in &to_render {
-        let folder = request.out.join("renders").join(&names[i]);
+        let folder = request.out.join(RENDERS_DIR).join(&names[i]);
         datagen::pairs::generator::render_sequence(&sequence, &request.trajectories[i], &folder, &pairs_config, stack)?;
         record.outputs.push(Output {
             name: names[i].clone(),
@@ -304,6 +272,10 @@ pub fn run(
         progress(Progress::Skipped("sample"));
     } else {
         progress(Progress::Phase("sample", pending.len() as u64));
+        if watch.received().is_some() {
+            watch.hold_until_exit();
+            return stopped(record);
+        }
         let paths = model.resolve()?;
         crate::plan::check_sampling_fits(&crate::plan::sampling_plan_for(&paths, request.load, &request.framing)?)?;
         let pipeline = CogNvsPipeline::load(&paths, request.load)?;
@@ -337,16 +309,141 @@ pub fn run(
 
 /// The preemption watch of the rendering and sampling phases: the finetuning config's signals
 /// and grace (`[loop] preempt_signals`, `preempt_grace_seconds`), else their defaults.
-fn preemption_watch(request: &NvsRequest) -> Result<crate::training::preempt::PreemptWatch> {
-    let train = match &request.config {
-        Some(path) => crate::training::PretrainConfig::from_toml_file(path)?.train,
-        None => crate::training::LoopConfig::default(),
-    };
+fn preemption_watch(train: &crate::training::LoopConfig) -> Result<crate::training::preempt::PreemptWatch> {
     let signals: Vec<i32> =
         train.preempt_signals.iter().filter_map(|name| crate::training::preempt::signal_number(name)).collect();
     let grace =
         (train.preempt_grace_seconds > 0.0).then(|| std::time::Duration::from_secs_f64(train.preempt_grace_seconds));
     crate::training::preempt::PreemptWatch::install(&signals, grace)
+}
+
+/// What [`preflight`] found.
+struct Preflight {
+    /// The trajectories' output names.
+    names: Vec<String>,
+    /// The video.
+    sequence: datagen::io::sequence::Sequence,
+    /// The settings `nvs.json` records.
+    settings: serde_json::Value,
+    /// The inputs' digests.
+    inputs: std::collections::BTreeMap<String, String>,
+    /// The `[loop]` settings of `--config` (its preemption signals and grace), else defaults.
+    train: crate::training::LoopConfig,
+}
+
+/// Checks the whole request without writing anything: the output names, the output folder and
+/// its record (same settings, same inputs), the video and every trajectory against it, the
+/// finetuning config and models (with `--steps` > 0), and the sampled models (configs, headers,
+/// LoRA files, text embeddings) with the sampling arguments.
+fn preflight(request: &NvsRequest) -> Result<Preflight> {
+    let names = trajectory_names(&request.trajectories)?;
+    if request.out.exists() && !request.out.is_dir() {
+        return Err(Error::InvalidArgument {
+            name: "out".to_string(),
+            reason: format!("{} exists and is not a folder", request.out.display()),
+        });
+    }
+    let settings = serde_json::to_value(settings(request)).expect("settings serialise");
+    // Settings first: a folder of another job is named before any input is read.
+    let record = job_record(request, &settings, &Default::default())?;
+    if record.inputs.is_empty() {
+        // A new job: it must not replace what is in OUT already.
+        let ours = [FINETUNE_DIR, RENDERS_DIR].into_iter().map(str::to_string);
+        let outputs = names.iter().flat_map(|n| output_entries(n));
+        if let Some(entry) = ours.chain(outputs).find(|entry| request.out.join(entry).exists()) {
+            return Err(Error::InvalidArgument {
+                name: "out".to_string(),
+                reason: format!(
+                    "{} holds {entry} but no {RECORD}: this job's output would replace it; choose an empty or new \
+                     folder",
+                    request.out.display()
+                ),
+            });
+        }
+    }
+    let train = match &request.config {
+        Some(path) => crate::training::PretrainConfig::from_toml_file(path)?.train,
+        None => crate::training::LoopConfig::default(),
+    };
+    let sequence = datagen::io::sequence::read_sequence(&request.sequence)?;
+    for path in &request.trajectories {
+        datagen::pairs::trajectory::read_trajectory_file(path, sequence.len(), &sequence.cameras, &sequence.depth[0])?;
+    }
+    let inputs = input_digests(request)?;
+    job_record(request, &settings, &inputs)?;
+    if request.steps > 0 {
+        if request.finetune_trajectories == 0 {
+            return Err(Error::InvalidArgument {
+                name: "finetune-trajectories".to_string(),
+                reason: "0 trajectories per clip give no finetuning pairs: pass at least 1 (or --steps 0)".to_string(),
+            });
+        }
+        let (config, source_name) = crate::training::finetune_config(&finetune_request(request))?;
+        config.validate(&source_name)?;
+        config.model.check_text_embedding()?;
+    }
+    let paths = request.model.resolve()?;
+    let checked = crate::sampling::CheckedModels::read(&paths, Device::Cpu)?;
+    checked.check_sampling("sample-steps", request.sample_steps, request.guidance, &request.framing)?;
+    crate::plan::check_sampling_fits(&crate::plan::sampling_plan_for(&paths, request.load, &request.framing)?)?;
+    Ok(Preflight { names, sequence, settings, inputs, train })
+}
+
+/// The job `OUT/nvs.json` records (a new one when there is none), refused when it was asked with
+/// other settings or, once `inputs` are known (not empty), on other inputs.
+fn job_record(
+    request: &NvsRequest,
+    settings: &serde_json::Value,
+    inputs: &std::collections::BTreeMap<String, String>,
+) -> Result<Record> {
+    let record_path = request.out.join(RECORD);
+    match read_record(&record_path)? {
+        Some(record) if &record.settings != settings => Err(Error::InvalidArgument {
+            name: "out".to_string(),
+            reason: format!(
+                "{} holds a job with other settings ({}); use the same arguments to continue it or another folder",
+                request.out.display(),
+                record_path.display()
+            ),
+        }),
+        Some(record) if !inputs.is_empty() && !record.inputs.is_empty() && &record.inputs != inputs => {
+            Err(Error::InvalidArgument {
+                name: "sequence".to_string(),
+                reason: format!(
+                    "the inputs changed since {} was written (the video, a trajectory or the text embedding): \
+                     start a new output folder",
+                    record_path.display()
+                ),
+            })
+        }
+        Some(record) => Ok(record),
+        None => Ok(Record {
+            settings: settings.clone(),
+            inputs: Default::default(),
+            checkpoint: None,
+            finetune_seconds: None,
+            outputs: Vec::new(),
+            complete: false,
+        }),
+    }
+}
+
+/// The finetuning phase's request: the job's models and video, its run in `OUT/finetune`.
+fn finetune_request(request: &NvsRequest) -> FinetuneRequest {
+    FinetuneRequest {
+        init: request.model.checkpoint.clone(),
+        base_model: request.model.base_model.clone(),
+        vae: request.model.vae.clone(),
+        text_embedding: request.model.text_embedding.clone(),
+        zero_text_embedding: request.model.zero_text_embedding,
+        sequence: request.sequence.clone(),
+        out: request.out.join(FINETUNE_DIR),
+        steps: request.steps,
+        trajectories: request.finetune_trajectories,
+        config: request.config.clone(),
+        lora: request.model.lora.clone(),
+        resume: true,
+    }
 }
 
 impl Output {
@@ -409,7 +506,11 @@ fn contact_sheet(source: &[RgbImage], render: &[RgbImage], result: &[RgbImage]) 
     datagen::inspect::contact_sheet::contact_sheet(&rows)
 }
 
-/// Trajectory names (file stems), which must be distinct.
+/// Trajectory names (file stems). Each names files and folders in OUT (`<name>/`, `<name>.mp4`,
+/// `<name>_sheet.png`, `renders/<name>/`), so it must be one plain path component (not `..`,
+/// `.`, empty or a path), valid UTF-8, and its outputs must clash neither with the job's own
+/// files (`nvs.json`, its temporary, the lock, `finetune/`, `renders/`) nor with another
+/// trajectory's. Errors name `--trajectory` and the file.
 fn trajectory_names(paths: &[PathBuf]) -> Result<Vec<String>> {
     if paths.is_empty() {
         return Err(Error::InvalidArgument {
@@ -417,22 +518,57 @@ fn trajectory_names(paths: &[PathBuf]) -> Result<Vec<String>> {
             reason: "give at least one --trajectory FILE".to_string(),
         });
     }
-    let names: Vec<String> =
-        paths.iter().map(|p| p.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default()).collect();
-    for (i, name) in names.iter().enumerate() {
-        if name.is_empty() || names[..i].contains(name) || name == "renders" || name == "finetune" {
-            return Err(Error::InvalidArgument {
-                name: "trajectory".to_string(),
-                reason: format!(
-                    "{}: the output is named after the file's stem `{name}`, which is empty, reserved or taken by \
-                     another --trajectory",
-                    paths[i].display()
-                ),
-            });
+    let refuse = |path: &Path, why: String| Error::InvalidArgument {
+        name: "trajectory".to_string(),
+        reason: format!(
+            "--trajectory {}: the outputs are named after the file's stem, and {why}; rename the file",
+            path.display()
+        ),
+    };
+    let reserved = [RECORD, RECORD_TEMPORARY, crate::training::run_lock::LOCK_NAME, FINETUNE_DIR, RENDERS_DIR];
+    // Each output entry in OUT, with the trajectory that makes it.
+    let mut taken: Vec<(String, &Path)> = Vec::new();
+    let mut names = Vec::new();
+    for path in paths {
+        let stem = path.file_stem().unwrap_or_default();
+        let Some(name) = stem.to_str() else {
+            return Err(refuse(path, format!("{} is not valid UTF-8", stem.to_string_lossy())));
+        };
+        let mut components = Path::new(name).components();
+        let plain = matches!((components.next(), components.next()), (Some(std::path::Component::Normal(c)), None) if c == name);
+        if !plain || name.contains(['/', '\\', '\0']) {
+            return Err(refuse(path, format!("`{name}` is not one plain file name (empty, `.`, `..` or a path)")));
         }
+        if output_entries(name).iter().any(|entry| entry.len() > NAME_MAX_BYTES) {
+            return Err(refuse(path, format!("`{name}` makes output names longer than {NAME_MAX_BYTES} bytes")));
+        }
+        for entry in output_entries(name) {
+            if reserved.contains(&entry.as_str()) {
+                return Err(refuse(
+                    path,
+                    format!("its output `{entry}` would replace the job's own `{entry}` in --out"),
+                ));
+            }
+            if let Some((_, other)) = taken.iter().find(|(e, _)| *e == entry) {
+                return Err(refuse(
+                    path,
+                    format!("its output `{entry}` is also an output of --trajectory {}", other.display()),
+                ));
+            }
+            taken.push((entry, path));
+        }
+        names.push(name.to_string());
     }
     Ok(names)
 }
+
+/// The entries of OUT a trajectory named `name` writes: its frame folder, video and sheet.
+fn output_entries(name: &str) -> [String; 3] {
+    [name.to_string(), format!("{name}.mp4"), format!("{name}_sheet.png")]
+}
+
+/// The longest file name Linux file systems take (`NAME_MAX`).
+const NAME_MAX_BYTES: usize = 255;
 
 fn settings(r: &NvsRequest) -> Settings {
     let show = |p: &Option<PathBuf>| p.as_ref().map(|p| p.display().to_string());
@@ -495,7 +631,7 @@ fn read_record(path: &Path) -> Result<Option<Record>> {
 /// Writes the record atomically (a temporary file renamed over it).
 fn write_record(path: &Path, record: &Record) -> Result<()> {
     let text = serde_json::to_vec_pretty(record).expect("record serialises");
-    let temporary = path.with_extension("json.tmp");
+    let temporary = path.with_file_name(RECORD_TEMPORARY);
     std::fs::write(&temporary, text).map_err(|e| Error::Io { path: temporary.clone(), error: e })?;
     std::fs::rename(&temporary, path).map_err(|e| Error::Io { path: path.to_path_buf(), error: e })
 }

@@ -70,17 +70,29 @@ pub struct CogNvsPipeline {
     _stores: (nn::VarStore, nn::VarStore),
 }
 
-impl CogNvsPipeline {
-    /// Checks every config and header, then builds and loads the models on the device in the
-    /// requested arithmetic.
-    pub fn load(paths: &ModelPaths, options: LoadOptions) -> Result<Self> {
+/// What [`CogNvsPipeline::load`] reads and checks before it builds a model: every config (the
+/// transformer's, the VAE's, the scheduler's), the checkpoints' headers, the LoRA files and the
+/// text embeddings (each tensor finite). Small: no model weight is read.
+#[derive(Debug)]
+pub struct CheckedModels {
+    config: CogVideoXTransformer3DModelConfig,
+    vae_config: AutoencoderKLCogVideoXConfig,
+    scheduler: CogVideoXSchedulerConfig,
+    adapters: Vec<(crate::loaders::lora::LoraFile, PathBuf)>,
+    text: Tensor,
+    negative: Tensor,
+}
+
+impl CheckedModels {
+    /// Reads and checks everything `paths` names that a pipeline needs, on `device` (the text
+    /// embeddings are loaded there), without building a model: a job calls it before it writes
+    /// anything.
+    pub fn read(paths: &ModelPaths, device: Device) -> Result<Self> {
         paths.check_text_embedding()?;
-        let device = options.device;
-        let kind = options.precision.kind(device);
         let adapters = paths
             .adapters
             .iter()
-            .map(|file| Ok((crate::loaders::lora::LoraFile::read(file)?, file)))
+            .map(|file| Ok((crate::loaders::lora::LoraFile::read(file)?, file.clone())))
             .collect::<Result<Vec<_>>>()?;
         let config = CogVideoXTransformer3DModelConfig::from_json_file(&paths.transformer)?;
         weights::check_against(
@@ -97,6 +109,84 @@ impl CogNvsPipeline {
             Some(path) => load_text_embedding(Some(path), &config, device)?,
             None => text.shallow_clone(),
         };
+        Ok(Self { config, vae_config, scheduler, adapters, text, negative })
+    }
+
+    /// Refuses sampling arguments these models cannot take, naming the flag: `steps` denoising
+    /// steps (flag `steps_flag`; 1 to the scheduler's training timesteps), a finite `guidance`,
+    /// and the framing's frame count, size and frame rate (see [`check_framing`]).
+    pub fn check_sampling(&self, steps_flag: &str, steps: usize, guidance: f64, framing: &Framing) -> Result<()> {
+        let timesteps = self.scheduler.num_train_timesteps;
+        if steps == 0 || steps as u64 > timesteps as u64 {
+            return Err(Error::InvalidArgument {
+                name: steps_flag.to_string(),
+                reason: format!(
+                    "{steps} denoising steps: must be in 1..={timesteps} (the scheduler's training timesteps)"
+                ),
+            });
+        }
+        if !guidance.is_finite() {
+            return Err(Error::InvalidArgument {
+                name: "guidance".to_string(),
+                reason: format!("must be a finite number, got {guidance}"),
+            });
+        }
+        check_framing(&self.config, &self.vae_config, framing).map(|_| ())
+    }
+}
+
+/// The model's input size for `framing` (its `size`, else the transformer's own), after checking
+/// the framing against the models, naming the flag: the frame count is 1 + (the VAE's temporal
+/// compression)·k, the size a positive multiple of the VAE's spatial compression × the patch size
+/// (and the positional table's size for a transformer with a learned one), the frame rate finite
+/// and positive.
+pub fn check_framing(
+    config: &CogVideoXTransformer3DModelConfig,
+    vae_config: &AutoencoderKLCogVideoXConfig,
+    framing: &Framing,
+) -> Result<(u32, u32)> {
+    let temporal = vae_config.effective_temporal_compression_ratio() as usize;
+    if framing.frames == 0 || !(framing.frames - 1).is_multiple_of(temporal) {
+        return Err(Error::InvalidArgument {
+            name: "frames".to_string(),
+            reason: format!("{} is not 1 + {temporal}k (the VAE compresses time {temporal}×)", framing.frames),
+        });
+    }
+    if !(framing.fps.is_finite() && framing.fps > 0.0) {
+        return Err(Error::InvalidArgument {
+            name: "fps".to_string(),
+            reason: format!("must be a finite number > 0, got {}", framing.fps),
+        });
+    }
+    let spatial = vae_config.spatial_compression_ratio();
+    let model_size = ((config.sample_width * spatial) as u32, (config.sample_height * spatial) as u32);
+    let (width, height) = framing.size.unwrap_or(model_size);
+    let multiple = (spatial * config.patch_size) as u32;
+    let reason = if width == 0 || height == 0 || width % multiple != 0 || height % multiple != 0 {
+        format!("{width}x{height} is not a positive multiple of {multiple} on both sides")
+    } else if config.use_learned_positional_embeddings && (width, height) != model_size {
+        let (w, h) = model_size;
+        format!("this transformer has a learned positional table for {w}x{h} only")
+    } else {
+        return Ok((width, height));
+    };
+    Err(Error::InvalidArgument { name: "size".to_string(), reason })
+}
+
+impl CogNvsPipeline {
+    /// Checks every config and header (see [`CheckedModels::read`]), then builds and loads the
+    /// models on the device in the requested arithmetic.
+    pub fn load(paths: &ModelPaths, options: LoadOptions) -> Result<Self> {
+        let device = options.device;
+        let checked = CheckedModels::read(paths, device)?;
+        Self::load_checked(paths, checked, options)
+    }
+
+    /// [`Self::load`] with the configs and small files read already.
+    pub fn load_checked(paths: &ModelPaths, checked: CheckedModels, options: LoadOptions) -> Result<Self> {
+        let device = options.device;
+        let kind = options.precision.kind(device);
+        let CheckedModels { config, vae_config, scheduler, adapters, text, negative } = checked;
 
         // Built in the working type: each checkpoint tensor is converted as it is copied in, and
         // adapters are merged in f32 layer by layer.
@@ -149,23 +239,6 @@ impl CogNvsPipeline {
         self.vae.kind()
     }
 
-    /// A frame size the models take, or an error naming the rule: a multiple of the VAE's spatial
-    /// compression × the patch size, and the positional table's size for a transformer with a
-    /// learned one.
-    pub fn check_size(&self, (width, height): (u32, u32)) -> Result<()> {
-        let c = self.transformer.config();
-        let multiple = (self.vae.config().spatial_compression_ratio() * c.patch_size) as u32;
-        let reason = if width == 0 || height == 0 || width % multiple != 0 || height % multiple != 0 {
-            format!("{width}x{height} is not a positive multiple of {multiple} on both sides")
-        } else if c.use_learned_positional_embeddings && (width, height) != self.model_size() {
-            let (w, h) = self.model_size();
-            format!("this transformer has a learned positional table for {w}x{h} only")
-        } else {
-            return Ok(());
-        };
-        Err(Error::InvalidArgument { name: "size".to_string(), reason })
-    }
-
     /// The video `[1, 3, F, H, W]` (f32, [−1, 1]) sampled for `condition` (same shape, any float
     /// type; F = 1 + 4k) with `steps` DPM steps and guidance scale `guidance`, every draw from
     /// tch's generator reseeded with `seed`. `progress(i, steps)` is called after each step.
@@ -194,6 +267,15 @@ impl CogNvsPipeline {
         let denoiser = Denoiser { transformer: &self.transformer, vae: &self.vae, scheduler: &self.scheduler };
         let mut timings = Timings::default();
         let video = denoiser.run(condition, &self.text, negative, steps, guidance, progress, &mut timings)?;
+        // A NaN anywhere (weights, adapters, text, arithmetic) comes out as black frames: an
+        // error, never a result.
+        weights::check_finite("sampled video", &video).map_err(|e| match e {
+            Error::NonFinite { tensor, reason } => Error::NonFinite {
+                tensor,
+                reason: format!("{reason}: the model produced no usable video, nothing is written"),
+            },
+            other => other,
+        })?;
         Ok((video, timings))
     }
 }
@@ -461,13 +543,8 @@ pub struct PreparedCondition {
 pub fn prepare_condition(path: &Path, pipeline: &CogNvsPipeline, framing: &Framing) -> Result<PreparedCondition> {
     let named = read_condition_named(path)?;
     let source_size = named.uniform_size()?;
+    let size = check_framing(pipeline.transformer_config(), pipeline.vae_config(), framing)?;
     let temporal = pipeline.vae_config().effective_temporal_compression_ratio() as usize;
-    if framing.frames == 0 || !(framing.frames - 1).is_multiple_of(temporal) {
-        return Err(Error::InvalidArgument {
-            name: "frames".to_string(),
-            reason: format!("{} is not 1 + {temporal}k (the VAE compresses time {temporal}×)", framing.frames),
-        });
-    }
     let used = video_processor::take_frames(named.frames.len(), framing.frames, temporal).ok_or_else(|| {
         Error::InvalidInput { path: path.to_path_buf(), what: "frames".to_string(), reason: "no frame".to_string() }
     })?;
@@ -485,8 +562,6 @@ pub fn prepare_condition(path: &Path, pipeline: &CogNvsPipeline, framing: &Frami
             ),
         });
     }
-    let size = framing.size.unwrap_or_else(|| pipeline.model_size());
-    pipeline.check_size(size)?;
     let frames = named.frames[..used].iter().map(|f| video_processor::fit(f, size.0, size.1, framing.resize)).collect();
     Ok(PreparedCondition { frames, source_size, used, available: named.frames.len() })
 }
@@ -561,7 +636,9 @@ pub fn sample(
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<SampleReport> {
     read_condition_named(&request.condition)?.uniform_size()?;
-    let pipeline = CogNvsPipeline::load(paths, request.load)?;
+    let checked = CheckedModels::read(paths, request.load.device)?;
+    checked.check_sampling("steps", request.steps, request.guidance, &request.framing)?;
+    let pipeline = CogNvsPipeline::load_checked(paths, checked, request.load)?;
     let condition = prepare_condition(&request.condition, &pipeline, &request.framing)?;
     let video = video_processor::frames_to_video(&condition.frames, pipeline.kind(), request.load.device)?;
     let started = Instant::now();

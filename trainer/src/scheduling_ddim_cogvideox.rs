@@ -19,6 +19,11 @@ use crate::error::{Error, Result};
 /// released checkpoints ship the DDIM one and pipelines build either scheduler from it.
 pub const CLASS_NAMES: [&str; 2] = ["CogVideoXDDIMScheduler", "CogVideoXDPMScheduler"];
 
+/// Most training timesteps a scheduler config may ask for: every released diffusion scheduler
+/// uses 1000; a million keeps the schedule's tables (ᾱ in float64, the DPM solver's timestep
+/// list) under 10 MB each, where a file's 1e12 would ask libtorch for terabytes.
+pub const MAX_TRAIN_TIMESTEPS: i64 = 1_000_000;
+
 /// A CogVideoX `scheduler_config.json`, field names verbatim; missing fields take diffusers'
 /// `__init__` defaults (which are *not* the 5B values: use [`Self::cogvideox_5b`] or the file).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -174,17 +179,41 @@ impl CogVideoXSchedulerConfig {
         {
             return Err(err("_class_name", format!("is `{class}`, expected one of {CLASS_NAMES:?}")));
         }
-        if self.num_train_timesteps <= 0 {
-            return Err(err("num_train_timesteps", format!("must be positive, got {}", self.num_train_timesteps)));
+        let t = self.num_train_timesteps;
+        // The zero-terminal-SNR rescale divides by √ᾱ_0 − √ᾱ_{T−1}, which one step makes 0.
+        let fewest = if self.rescale_betas_zero_snr { 2 } else { 1 };
+        if !(fewest..=MAX_TRAIN_TIMESTEPS).contains(&t) {
+            return Err(err(
+                "num_train_timesteps",
+                format!(
+                    "must be in {fewest}..={MAX_TRAIN_TIMESTEPS}{}, got {t}",
+                    if fewest > 1 { " (rescale_betas_zero_snr needs two)" } else { "" }
+                ),
+            ));
+        }
+        // A β outside (0, 1) makes 1 − β, and so ᾱ, zero, negative or above 1.
+        let in_unit = |beta: f64| beta > 0.0 && beta < 1.0;
+        for (field, beta) in [("beta_start", self.beta_start), ("beta_end", self.beta_end)] {
+            if !in_unit(beta) {
+                return Err(err(field, format!("must be a number in (0, 1), got {beta}")));
+            }
+        }
+        if self.beta_start > self.beta_end {
+            return Err(err(
+                "beta_end",
+                format!("{} is below beta_start {}: the βs must not decrease", self.beta_end, self.beta_start),
+            ));
         }
         match (&self.trained_betas, self.beta_schedule.as_str()) {
-            (Some(b), _) if b.len() as i64 != self.num_train_timesteps => {
-                return Err(err(
-                    "trained_betas",
-                    format!("has {} values, num_train_timesteps is {}", b.len(), self.num_train_timesteps),
-                ));
+            (Some(b), _) if b.len() as i64 != t => {
+                return Err(err("trained_betas", format!("has {} values, num_train_timesteps is {t}", b.len())));
             }
-            (Some(_), _) | (None, "linear" | "scaled_linear" | "squaredcos_cap_v2") => {}
+            (Some(b), _) => {
+                if let Some((i, beta)) = b.iter().enumerate().find(|(_, beta)| !in_unit(**beta)) {
+                    return Err(err("trained_betas", format!("value {i} must be in (0, 1), got {beta}")));
+                }
+            }
+            (None, "linear" | "scaled_linear" | "squaredcos_cap_v2") => {}
             (None, other) => {
                 return Err(err(
                     "beta_schedule",
@@ -192,8 +221,21 @@ impl CogVideoXSchedulerConfig {
                 ));
             }
         }
-        if self.snr_shift_scale.is_nan() || self.snr_shift_scale <= 0.0 {
-            return Err(err("snr_shift_scale", format!("must be positive, got {}", self.snr_shift_scale)));
+        if !(self.snr_shift_scale.is_finite() && self.snr_shift_scale > 0.0) {
+            return Err(err("snr_shift_scale", format!("must be a finite number > 0, got {}", self.snr_shift_scale)));
+        }
+        if !(0..t).contains(&self.steps_offset) {
+            return Err(err(
+                "steps_offset",
+                format!("must be in 0..{t} (num_train_timesteps), got {}", self.steps_offset),
+            ));
+        }
+        for (field, value) in
+            [("clip_sample_range", self.clip_sample_range), ("sample_max_value", self.sample_max_value)]
+        {
+            if !(value.is_finite() && value > 0.0) {
+                return Err(err(field, format!("must be a finite number > 0, got {value}")));
+            }
         }
         self.prediction().map_err(|_| {
             err("prediction_type", format!("`{}` is not epsilon, sample or v_prediction", self.prediction_type))

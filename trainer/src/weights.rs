@@ -150,15 +150,43 @@ pub fn read_header(file: &Path) -> Result<BTreeMap<String, TensorInfo>> {
     Ok(out)
 }
 
-/// Reads every tensor of a safetensors file (inputs, text embeddings) after [`read_header`]'s
-/// checks, so a truncated or malformed file is an error naming it and the tensor, never a
-/// libtorch exception.
+/// Reads every tensor of a safetensors file (inputs, text embeddings, LoRA files) after
+/// [`read_header`]'s checks, so a truncated or malformed file is an error naming it and the
+/// tensor, never a libtorch exception; every value must be finite (see [`check_finite`]).
 pub fn read_safetensors(file: &Path) -> Result<BTreeMap<String, Tensor>> {
     read_header(file)?;
-    Ok(Tensor::read_safetensors(file)
+    let tensors: BTreeMap<String, Tensor> = Tensor::read_safetensors(file)
         .map_err(|e| Error::Safetensors { path: file.to_path_buf(), reason: e.to_string() })?
         .into_iter()
-        .collect())
+        .collect();
+    for (name, tensor) in &tensors {
+        check_finite(&format!("{name}` in `{}", file.display()), tensor)?;
+    }
+    Ok(tensors)
+}
+
+/// Refuses a tensor with NaN or infinite values, naming it (`name`: the tensor and its file, or
+/// what it is) with how many there are and where the first is. One NaN in a weight, a LoRA
+/// factor or a text embedding turns every sampled frame black, so every tensor read from a
+/// user's file passes here once, as it is read; integer tensors always pass.
+pub fn check_finite(name: &str, tensor: &Tensor) -> Result<()> {
+    if !tensor.is_floating_point() {
+        return Ok(());
+    }
+    let not_finite = tensor.f_isfinite()?.f_logical_not()?;
+    let count = not_finite.f_sum(Kind::Int64)?.int64_value(&[]);
+    if count == 0 {
+        return Ok(());
+    }
+    let first = not_finite.f_flatten(0, -1)?.f_to_kind(Kind::Uint8)?.f_argmax(None, false)?.int64_value(&[]);
+    let value = tensor.f_flatten(0, -1)?.f_double_value(&[first])?;
+    Err(Error::NonFinite {
+        tensor: name.to_string(),
+        reason: format!(
+            "{count} of {} values are not finite (NaN or ±inf), the first ({value}) at flat index {first}",
+            tensor.numel()
+        ),
+    })
 }
 
 /// Checks that `tensor` (named `name`, from `file`) holds floating-point values.
@@ -258,6 +286,7 @@ pub fn load(vs: &nn::VarStore, path: &Path) -> Result<usize> {
                 })?;
                 let shape: Vec<i64> = view.shape().iter().map(|&d| d as i64).collect();
                 let src = Tensor::f_from_data_size(view.data(), &shape, kind)?;
+                check_finite(&format!("{name}` in `{}", file.display()), &src)?;
                 var.f_copy_(&src.f_to_kind(var.kind())?.f_to_device(var.device())?)?;
                 loaded += 1;
             }

@@ -191,6 +191,18 @@ impl Declared {
     }
 }
 
+/// Refuses a boolean array where measured values are read (depth maps, images): `True`/`False`
+/// would become depths of 1 and 0, a plane and holes, instead of an error naming the file.
+fn measured(declared: Declared, source: Source<'_>) -> Result<Declared> {
+    if declared.kind == Kind::B1 {
+        return Err(source.error(format!(
+            "dtype {} is boolean: a mask, not measured values (depth, image): expected a float or integer dtype",
+            declared.info.dtype
+        )));
+    }
+    Ok(declared)
+}
+
 /// The error for array data that cannot be read.
 fn data_error(source: Source<'_>, error: std::io::Error) -> Error {
     source.error(format!("cannot read array data (truncated or corrupt?): {error}"))
@@ -520,11 +532,12 @@ pub fn read_npy_f32(path: &Path) -> Result<NdArray<f32>> {
 
 /// A `.npy` array of at least one axis as `f32`, one `Vec` per index of its first axis (a stack
 /// of depth maps: each map is kept as it is read, with no second copy of the whole stack), after
-/// the header's shape is checked against `expected`. Returns the shape and the planes.
+/// the header's shape is checked against `expected` (a boolean array is refused: see
+/// [`measured`]). Returns the shape and the planes.
 pub fn read_npy_f32_planes(path: &Path, expected: &[Axis]) -> Result<(Vec<usize>, Vec<Vec<f32>>)> {
     let (mut reader, length) = open_npy(path)?;
     let source = Source { path, member: None };
-    let declared = read_declared(&mut reader, source, length, Some(expected))?;
+    let declared = measured(read_declared(&mut reader, source, length, Some(expected))?, source)?;
     let shape = declared.info.shape.clone();
     let (count, plane) = (shape.first().copied().unwrap_or(0), shape.iter().skip(1).product::<usize>());
     let planes = match declared.kind {
@@ -570,18 +583,20 @@ impl NpzReader {
     /// Reads array `name` as `f64` (see [`read_array_f64`]), then the rest of its member, and
     /// checks the member's CRC-32 against the zip directory.
     pub fn read_f64(&mut self, name: &str, expected: &[Axis]) -> Result<NdArray<f64>> {
-        self.read(name, expected)
+        self.read(name, expected, false)
     }
 
-    /// [`Self::read_f64`] as `f32` (see [`Real`]).
+    /// [`Self::read_f64`] as `f32` (see [`Real`]), for measured values (depth, images): a boolean
+    /// array is refused (see [`measured`]).
     pub fn read_f32(&mut self, name: &str, expected: &[Axis]) -> Result<NdArray<f32>> {
-        self.read(name, expected)
+        self.read(name, expected, true)
     }
 
-    fn read<T: Real>(&mut self, name: &str, expected: &[Axis]) -> Result<NdArray<T>> {
+    fn read<T: Real>(&mut self, name: &str, expected: &[Axis], measurement: bool) -> Result<NdArray<T>> {
         self.with_member(name, |member, source| {
             let size = member.size;
             let declared = read_declared(member, source, size, Some(expected))?;
+            let declared = if measurement { measured(declared, source)? } else { declared };
             // Buffered: values are read one at a time. What the buffer reads ahead is already
             // counted and hashed by the member reader, so `finish` goes on from there.
             let array = read_values(declared, BufReader::with_capacity(DRAIN_BUFFER, &mut *member), source)?;

@@ -291,6 +291,35 @@ np.savez(out + "/scene_sgd_cvd_hr.npz", images=images, depths=np.load(src + "/ca
 }
 
 #[test]
+fn boolean_depth_is_an_error_naming_the_file_and_member() {
+    let dir = tempfile::tempdir().unwrap();
+    let seq = synth(dir.path());
+    let depth_path = seq.join("cam_info/megasam_depth.npy");
+    let depth = datagen::io::npy::read_npy_f32(&depth_path).unwrap();
+    // cog-nvs: the depth stack saved as `depth > median` (a mask), same shape.
+    let mask: Vec<bool> = depth.data.iter().map(|&d| d > 1.0).collect();
+    datagen::io::npy::write_npy(&depth_path, &depth.shape, &mask).unwrap();
+    first_line_names(&error_of(&seq), &["megasam_depth.npy", "boolean"]);
+    // MegaSAM: `depths` of the npz as booleans; float depths of the same folder read.
+    let script = r#"
+import sys, glob, numpy as np
+from PIL import Image
+src, out, kind = sys.argv[1], sys.argv[2], sys.argv[3]
+images = np.stack([np.asarray(Image.open(p).convert("RGB")) for p in sorted(glob.glob(src + "/frames/*.png"))])
+depths = np.load(src + "/cam_info/megasam_depth.npy").astype(np.float32) + 1.0
+depths = depths > 1.5 if kind == "bool" else depths
+np.savez(out + "/scene_sgd_cvd_hr.npz", images=images, depths=depths,
+         intrinsic=np.load(src + "/cam_info/megasam_intrinsics.npy"), cam_c2w=np.load(src + "/cam_info/megasam_c2ws.npy"))
+"#;
+    let npz_dir = dir.path().join("megasam");
+    std::fs::create_dir_all(&npz_dir).unwrap();
+    python(script, &[&seq, &npz_dir, Path::new("float")]);
+    assert_eq!(read_sequence(&npz_dir).unwrap().len(), FRAMES, "float depths read");
+    python(script, &[&seq, &npz_dir, Path::new("bool")]);
+    first_line_names(&error_of(&npz_dir), &["scene_sgd_cvd_hr.npz", "depths", "boolean"]);
+}
+
+#[test]
 fn depth_stored_transposed_is_an_error_naming_both_shapes() {
     let dir = tempfile::tempdir().unwrap();
     let seq = synth(dir.path());

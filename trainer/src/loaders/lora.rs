@@ -60,6 +60,7 @@ pub fn save(
 
 /// A LoRA file's adapters by module: `(A, B·s)` with the file's scale applied (1 for the files
 /// this crate writes; `lora_alpha / r` from diffusers' adapter metadata where a file has it).
+#[derive(Debug)]
 pub struct LoraFile {
     /// Module path (`transformer_blocks.0.attn1.to_q`) → (`A` `[r, in]`, scaled `B` `[out, r]`).
     pub adapters: BTreeMap<String, (Tensor, Tensor)>,

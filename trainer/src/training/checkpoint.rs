@@ -95,15 +95,36 @@ pub fn list_checkpoints(run: &Path) -> Vec<(u64, PathBuf)> {
     step_folders(run).into_iter().filter(|(_, dir)| dir.join(STATE_NAME).is_file()).collect()
 }
 
-/// Reads a checkpoint's `state.json`.
+/// Reads a checkpoint's `state.json`, refusing a record that reaches beyond its folder: every
+/// listed file must be a relative path of plain names inside the folder (no `..`, no absolute
+/// path, no device), and the step must be the folder's own (`step-N` holds step N).
 pub fn read_state(dir: &Path) -> Result<TrainState> {
     let path = dir.join(STATE_NAME);
     let text = std::fs::read_to_string(&path).map_err(|error| Error::Io { path: path.clone(), error })?;
-    serde_json::from_str(&text).map_err(|e| Error::InvalidConfig {
+    let bad = |field: &str, reason: String| Error::InvalidConfig {
         source_name: path.display().to_string(),
-        field: "(json)".to_string(),
-        reason: e.to_string(),
-    })
+        field: field.to_string(),
+        reason,
+    };
+    let state: TrainState = serde_json::from_str(&text).map_err(|e| bad("(json)", e.to_string()))?;
+    let folder = dir.file_name().unwrap_or_default().to_string_lossy();
+    if let Some(step) = folder.strip_prefix("step-").and_then(|n| n.parse::<u64>().ok())
+        && step != state.step
+    {
+        return Err(bad("step", format!("is {}, but the checkpoint's folder is {folder} (step {step})", state.step)));
+    }
+    for name in state.files.keys() {
+        let plain = !name.is_empty()
+            && Path::new(name).components().all(|c| matches!(c, std::path::Component::Normal(_)))
+            && name != STATE_NAME;
+        if !plain {
+            return Err(bad(
+                &format!("files.{name}"),
+                "is not a file inside the checkpoint's folder (a relative path of plain names)".to_string(),
+            ));
+        }
+    }
+    Ok(state)
 }
 
 /// What is wrong with the listed files of a checkpoint: each missing, of another size or, with
@@ -117,8 +138,14 @@ pub fn check_files(dir: &Path, state: &TrainState, digests: bool, parts: (usize,
             continue;
         }
         let path = dir.join(name);
-        let size = match std::fs::metadata(&path) {
-            Ok(meta) => meta.len(),
+        // Only regular files inside the folder are read (a link to a device would never end).
+        let inside = |path: &Path| matches!((path.canonicalize(), dir.canonicalize()), (Ok(file), Ok(folder)) if file.starts_with(&folder));
+        let size = match std::fs::symlink_metadata(&path) {
+            Ok(meta) if meta.is_file() && inside(&path) => meta.len(),
+            Ok(_) => {
+                problems.push(format!("{name}: not a regular file inside the checkpoint's folder"));
+                continue;
+            }
             Err(e) => {
                 problems.push(format!(
                     "{name}: {}",

@@ -279,7 +279,25 @@ pub struct PretrainConfig {
     /// Held-out validation (none when the section is absent).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub validation: Option<ValidationConfig>,
+    /// The file the config was read from, for messages (not a key of the file).
+    #[serde(skip)]
+    pub source: ConfigSource,
 }
+
+/// Where a config was read from, named by the errors of checks made after loading (the
+/// held-out split against the data, the batch against the world size). Not part of the
+/// config's value: two configs with the same settings are equal wherever they came from.
+#[derive(Debug, Clone, Default)]
+pub struct ConfigSource(pub Option<String>);
+
+impl PartialEq for ConfigSource {
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
+}
+
+/// How errors name a config built in code rather than read from a file.
+const UNNAMED_CONFIG: &str = "training config";
 
 /// `[distributed]`: how ranks share the work when the launcher starts several processes
 /// (torchrun, Slurm `srun`, or RANK/WORLD_SIZE by hand; see `trainer::distributed`).
@@ -326,9 +344,15 @@ impl PretrainConfig {
         let text =
             std::fs::read_to_string(path).map_err(|source| Error::Io { path: path.to_path_buf(), error: source })?;
         let source_name = path.display().to_string();
-        let config: Self = toml::from_str(&text).map_err(|e| toml_error(&text, &source_name, &e))?;
+        let mut config: Self = toml::from_str(&text).map_err(|e| toml_error(&text, &source_name, &e))?;
         config.validate(&source_name)?;
+        config.source = ConfigSource(Some(source_name));
         Ok(config)
+    }
+
+    /// The file the config was read from, or "training config" for one built in code.
+    pub fn source_name(&self) -> String {
+        self.source.0.clone().unwrap_or_else(|| UNNAMED_CONFIG.to_string())
     }
 
     /// Checks every field against its documented range and the combinations the models need
@@ -462,6 +486,13 @@ impl PretrainConfig {
             reason,
         };
         let (transformer, vae) = self.model.configs(false)?;
+        // The scheduler's file too: its ranges are checked as it is read. And the text embedding
+        // (small: its shape against the transformer, every value finite), so that a bad one
+        // stops the run before its folder is written.
+        self.model.scheduler_config()?;
+        if let Some(path) = &self.model.text_embedding {
+            let _ = crate::loaders::load_text_embedding(Some(path), &transformer, tch::Device::Cpu)?;
+        }
         if let Some(lora) = &self.lora {
             // Targets and rank against the transformer's layers, before any run folder exists.
             crate::cogvideox_transformer_3d::check_lora(&transformer, lora).map_err(|e| match e {
@@ -621,7 +652,7 @@ impl PretrainConfig {
         let text =
             std::fs::read_to_string(path).map_err(|source| Error::Io { path: path.to_path_buf(), error: source })?;
         let source_name = path.display().to_string();
-        let config: Self = serde_json::from_str(&text).map_err(|e| {
+        let mut config: Self = serde_json::from_str(&text).map_err(|e| {
             let offset = offset_of(&text, e.line(), e.column());
             let key = json_key_at(&text, offset);
             Error::InvalidConfig {
@@ -630,6 +661,7 @@ impl PretrainConfig {
                 reason: e.to_string(),
             }
         })?;
+        config.source = ConfigSource(Some(source_name));
         Ok(config)
     }
 }

@@ -66,7 +66,7 @@ pub fn finetune_on(
     let FinetuneRequest { sequence: sequence_dir, out: run, trajectories, .. } = request;
     let trajectories = *trajectories;
     let (mut config, _) = finetune_config(request)?;
-    config.validate("finetune config")?;
+    config.validate(&config.source_name())?;
     config.model.check_text_embedding()?;
     let started = run.join("config.json").exists();
     if started && !request.resume {

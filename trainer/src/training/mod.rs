@@ -52,7 +52,7 @@ pub(crate) use adamw::trainable_parameters;
 pub use checkpoint::{CheckpointLayout, FileRecord, TrainState, list_checkpoints};
 pub use comm_cost::{CommCost, VariantTiming, comm_cost};
 pub use config::{
-    CheckpointEvery, DistributedConfig, LoopConfig, ModelConfig, OptimConfig, Precision, PretrainConfig,
+    CheckpointEvery, ConfigSource, DistributedConfig, LoopConfig, ModelConfig, OptimConfig, Precision, PretrainConfig,
     ValidationConfig,
 };
 pub use finetune::{FinetuneRequest, finetune, finetune_config, finetune_on};

@@ -7,6 +7,11 @@
 //! the watch thread) with [`forced_exit_status`]: no checkpoint is left half marked, because a
 //! checkpoint only counts once its `state.json` is in (see `checkpoint`).
 //!
+//! The first signal is only deferred while something checkpointable runs (a [`Checkpointable`]
+//! section: the training loop, `trainer nvs`'s renders and samples). Outside one (start-up:
+//! checking checkpoints on `--resume`, loading models, building pairs) there is nothing to save,
+//! and a watched signal ends the process at once with [`forced_exit_status`].
+//!
 //! Handlers are registered once per process and signal and stay registered; when no watch is
 //! alive they act as the signal's default action (terminate), so a process that is not training
 //! behaves as if none were installed.
@@ -70,6 +75,10 @@ struct Handlers {
     which: Arc<AtomicUsize>,
     /// Live watches (the flags are reset when the first one starts).
     watches: Mutex<usize>,
+    /// True while no [`Checkpointable`] section runs: a signal then ends the process at once.
+    at_once: Arc<AtomicBool>,
+    /// Live [`Checkpointable`] sections.
+    checkpointable: Mutex<usize>,
 }
 
 fn handlers() -> &'static Handlers {
@@ -79,7 +88,37 @@ fn handlers() -> &'static Handlers {
         received: Arc::new(AtomicBool::new(false)),
         which: Arc::new(AtomicUsize::new(0)),
         watches: Mutex::new(0),
+        at_once: Arc::new(AtomicBool::new(true)),
+        checkpointable: Mutex::new(0),
     })
+}
+
+/// A section of work that a preemption signal may wait for (see the module docs): while one is
+/// alive, the first watched signal only raises the flag [`PreemptWatch::received`] reads;
+/// outside every section it ends the process at once.
+#[derive(Debug)]
+pub struct Checkpointable(());
+
+impl Checkpointable {
+    /// Enters a checkpointable section until the value is dropped.
+    pub fn enter() -> Self {
+        let h = handlers();
+        let mut sections = h.checkpointable.lock().expect("no panic while held");
+        *sections += 1;
+        h.at_once.store(false, Ordering::SeqCst);
+        Self(())
+    }
+}
+
+impl Drop for Checkpointable {
+    fn drop(&mut self) {
+        let h = handlers();
+        let mut sections = h.checkpointable.lock().expect("no panic while held");
+        *sections -= 1;
+        if *sections == 0 {
+            h.at_once.store(true, Ordering::SeqCst);
+        }
+    }
 }
 
 /// Watches for preemption signals while a run trains (see the module docs).
@@ -140,6 +179,8 @@ impl PreemptWatch {
     /// sends SIGTERM to the other tasks as soon as one has exited) cannot turn its exit status
     /// into 128 + N. A further one still ends it at once.
     pub fn hold_until_exit(mut self) {
+        // The exit is the end of a checkpointable section that never closes.
+        std::mem::forget(Checkpointable::enter());
         self.stop.store(true, Ordering::SeqCst);
         if let Some(thread) = self.thread.take() {
             let _ = thread.join();
@@ -169,9 +210,11 @@ impl Drop for PreemptWatch {
 }
 
 /// The handler's actions for `sig`, in the order they run: the default action while idle; exit
-/// at once on a second signal; else raise the flag and record which signal it was.
+/// at once outside a checkpointable section or on a second signal; else raise the flag and
+/// record which signal it was.
 fn register(sig: i32, idle: &Arc<AtomicBool>, h: &Handlers) -> std::io::Result<()> {
     signal_hook::flag::register_conditional_default(sig, idle.clone())?;
+    signal_hook::flag::register_conditional_shutdown(sig, forced_exit_status(sig), h.at_once.clone())?;
     signal_hook::flag::register_conditional_shutdown(sig, forced_exit_status(sig), h.received.clone())?;
     signal_hook::flag::register(sig, h.received.clone())?;
     signal_hook::flag::register_usize(sig, h.which.clone(), sig as usize)?;

@@ -112,7 +112,7 @@ pub(super) fn train(
     let (rank, world) = pg.map_or((0, 1), |pg| (pg.rank, pg.world_size));
     let lead = rank == 0;
     // A bad config or bad shard folders fail before the run folder is touched.
-    config.validate("training config")?;
+    config.validate(&config.source_name())?;
     config.model.check_text_embedding()?;
     let data = rank_data_config(config, rank, world)?;
     let (training_clips, held_out) = super::validation::split_training_clips(config, shards)?;
@@ -244,7 +244,10 @@ pub(super) fn train(
     let stop_now = |watch: &PreemptWatch| -> Result<bool> {
         Ok(consensus::any_rank(pg, [watch.received().is_some()], "preemption")?[0])
     };
-    // A signal during start-up stops before the first step: nothing new to save.
+    // Until here a signal ended the process at once (nothing to save); from here on it stops the
+    // loop after its step, with a checkpoint.
+    let checkpointable = super::preempt::Checkpointable::enter();
+    // A signal on another rank during its start-up stops before the first step.
     let mut preempted = stop_now(&watch)?;
     while state.step < config.train.steps && !preempted {
         let started = Instant::now();
@@ -391,6 +394,7 @@ pub(super) fn train(
     if preempted {
         watch.hold_until_exit();
     }
+    drop(checkpointable);
     if preempted && lead {
         let signal = signal.map_or("a preemption signal (on another rank)".to_string(), super::preempt::signal_name);
         eprintln!(
@@ -408,7 +412,7 @@ fn rank_data_config(config: &PretrainConfig, rank: usize, world: usize) -> Resul
     let global = config.data.batch_size;
     if world > 1 && !global.is_multiple_of(world) {
         return Err(Error::InvalidConfig {
-            source_name: "training config".to_string(),
+            source_name: config.source_name(),
             field: "data.batch_size".to_string(),
             reason: format!(
                 "the global batch {global} must be a multiple of the world size {world} (each rank takes an equal share)"

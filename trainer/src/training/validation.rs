@@ -89,7 +89,7 @@ pub fn split_training_clips(config: &PretrainConfig, shards: &[PathBuf]) -> Resu
     let all = ClipIndex::open(shards)?;
     let Some(v) = &config.validation else { return Ok((all, None)) };
     let bad = |field: &str, reason: String| Error::InvalidConfig {
-        source_name: "training config".to_string(),
+        source_name: config.source_name(),
         field: field.to_string(),
         reason,
     };

@@ -1,7 +1,11 @@
 //! Hostile inputs to `trainer`: every bad config value, shard folder, safetensors
 //! file, dtype, config.json, frame size or count fails with one error naming the file and the
 //! key or tensor, before any model work and without writing anything; diffusers-accepted VAE
-//! configs and off-size conditionings are computed as diffusers / the training loader do.
+//! configs and off-size conditionings are computed as diffusers / the training loader do. On the
+//! user path (`trainer nvs`, text embeddings, released-model folders, checkpoints, held-out
+//! validation): output names that leave or clash with OUT, non-finite tensors and samples,
+//! scheduler and transformer configs out of range, checkpoint records reaching beyond their
+//! folder, signals at start-up, and flags refused by the parser.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -162,6 +166,24 @@ fn pretrain_cli_refuses_a_bad_config_before_writing_anything() {
     let good = tiny_toml(dir.path(), "good", "steps = 20", "steps = 20");
     let output = run(&[&"pretrain", &"--config", &good, &"--shards", &shards, &"--out", &out, &"--steps", &"0"]);
     assert!(!output.status.success() && stderr(&output).contains("--steps"), "{}", stderr(&output));
+    assert!(!out.exists(), "nothing is written");
+}
+
+#[test]
+fn pretrain_refuses_a_non_finite_text_embedding_before_writing_anything() {
+    let dir = tempfile::tempdir().unwrap();
+    let text = text_embedding_with(&dir.path().join("nan_text.safetensors"), f64::NAN);
+    let config = tiny_toml(
+        dir.path(),
+        "nan_text",
+        "# text_embedding = \"empty_prompt_t5.safetensors\"",
+        &format!("text_embedding = {:?}", text.display().to_string()),
+    );
+    let shards = dir.path().join("shards");
+    std::fs::create_dir_all(&shards).unwrap();
+    let out = dir.path().join("run");
+    let output = run(&[&"pretrain", &"--config", &config, &"--shards", &shards, &"--out", &out]);
+    fails_with(&output, &["encoder_hidden_states", &text.display().to_string(), "not finite"]);
     assert!(!out.exists(), "nothing is written");
 }
 
@@ -460,4 +482,509 @@ fn pretrain_steps_flag_overrides_loop_steps() {
     assert!(output.status.success(), "{}", stderr(&output));
     assert_eq!(trainer::training::read_metrics(&out).unwrap().len(), 1);
     assert!(out.join("checkpoints/step-00000001/transformer/config.json").is_file());
+}
+
+// ------------------------------------------------------------------------------------------------
+// The user path: `trainer nvs`, text embeddings, released-model folders, verified checkpoints,
+// held-out validation. Every refusal names the flag or the file and field, and comes before
+// anything is written.
+// ------------------------------------------------------------------------------------------------
+
+/// A `trainer nvs` job on the tiny released layout: the models, a 13-frame video, its two
+/// trajectories (`orbit.txt`, `shift.json`) and the arguments of a valid job without finetuning.
+struct NvsJob {
+    dir: tempfile::TempDir,
+    transformer: PathBuf,
+    base: PathBuf,
+    toml: PathBuf,
+    sequence: PathBuf,
+    trajectories: Vec<PathBuf>,
+}
+
+impl NvsJob {
+    fn new() -> Self {
+        let dir = tempfile::tempdir().unwrap();
+        let (transformer, base, toml) = super::nvs::released_layout(dir.path());
+        let sequence = dir.path().join("video");
+        let scene = datagen::synth::SynthConfig { width: 80, height: 64, frames: 13, seed: 3, ..Default::default() };
+        datagen::synth::write_sequence(&scene, &sequence, |_| {}).unwrap();
+        let trajectories = super::nvs::trajectories(dir.path(), &sequence);
+        Self { dir, transformer, base, toml, sequence, trajectories }
+    }
+
+    fn path(&self, name: &str) -> PathBuf {
+        self.dir.path().join(name)
+    }
+
+    /// The arguments of the valid job into `out` with `trajectories`, with `extra`'s flag and
+    /// value pairs replacing the valid job's value of the same flag or added.
+    fn args(
+        &self,
+        out: &Path,
+        trajectories: &[PathBuf],
+        extra: &[&dyn AsRef<std::ffi::OsStr>],
+    ) -> Vec<std::ffi::OsString> {
+        let mut a: Vec<std::ffi::OsString> = vec!["--init".into(), self.transformer.clone().into()];
+        a.extend(["--base-model".into(), self.base.clone().into(), "--sequence".into(), self.sequence.clone().into()]);
+        for p in trajectories {
+            a.extend(["--trajectory".into(), p.clone().into()]);
+        }
+        a.extend(["--out".into(), out.into()]);
+        for s in ["--steps", "0", "--sample-steps", "1", "--frames", "9"] {
+            a.push(s.into());
+        }
+        for pair in extra.chunks(2) {
+            let (flag, value) = (pair[0].as_ref().to_os_string(), pair[1].as_ref().to_os_string());
+            match a.iter().position(|x| *x == flag) {
+                Some(i) => a[i + 1] = value,
+                None => a.extend([flag, value]),
+            }
+        }
+        a
+    }
+
+    fn run(&self, out: &Path, trajectories: &[PathBuf], extra: &[&dyn AsRef<std::ffi::OsStr>]) -> Output {
+        super::nvs::nvs(&self.args(out, trajectories, extra)).output().unwrap()
+    }
+}
+
+/// Command-line flags and values of a case.
+type Flags<'a> = Vec<&'a dyn AsRef<std::ffi::OsStr>>;
+/// Config fields and their values of a case.
+type Fields<'a> = &'a [(&'a str, i64)];
+/// Files a checkpoint record lists: name, bytes, BLAKE3.
+type Listed<'a> = Vec<(&'a str, u64, String)>;
+
+/// A copy of `from` named `name` beside it.
+fn copy_as(from: &Path, name: &str) -> PathBuf {
+    let to = from.with_file_name(name);
+    std::fs::copy(from, &to).unwrap();
+    to
+}
+
+#[test]
+fn nvs_refuses_output_names_that_leave_out_or_clash_before_any_work() {
+    let job = NvsJob::new();
+    let orbit = &job.trajectories[0];
+    // A file beside OUT that a `..` name would overwrite.
+    let out = job.path("jobs/out");
+    std::fs::create_dir_all(job.path("jobs")).unwrap();
+    std::fs::write(job.path("jobs/keep.txt"), "mine").unwrap();
+    let dots = copy_as(orbit, "...txt");
+    let dot = copy_as(orbit, "..txt");
+    let mut cases: Vec<(Vec<PathBuf>, &str)> = vec![(vec![dots.clone()], "`..`"), (vec![dot], "`.`")];
+    for reserved in ["nvs.json", "nvs.json.tmp", "trainer.lock", "renders", "finetune"] {
+        cases.push((vec![copy_as(orbit, &format!("{reserved}.txt"))], reserved));
+    }
+    // Two trajectories whose outputs are the same entry of OUT.
+    let a = copy_as(orbit, "a.txt");
+    cases.push((vec![a.clone(), copy_as(orbit, "a_sheet.png.txt")], "a_sheet.png"));
+    cases.push((vec![a.clone(), copy_as(orbit, "a.mp4.txt")], "a.mp4"));
+    cases.push((vec![a.clone(), copy_as(&job.trajectories[1], "a.json")], "`a`"));
+    cases.push((vec![copy_as(orbit, &format!("{}.txt", "n".repeat(250)))], "255 bytes"));
+    for (trajectories, needle) in &cases {
+        let output = job.run(&out, trajectories, &[]);
+        let named = trajectories.last().unwrap().display().to_string();
+        fails_with(&output, &["trajectory", "--trajectory", &named, needle]);
+        assert!(!out.exists(), "{named}: nothing is written");
+    }
+    assert_eq!(std::fs::read_to_string(job.path("jobs/keep.txt")).unwrap(), "mine");
+    // A plain name beside them runs (the neighbour that must pass): `a` alone.
+    let output = job.run(&out, &[a], &[]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    assert!(out.join("a.mp4").is_file() && out.join("a/00000.png").is_file());
+}
+
+/// A text embedding `[8, 16]` (the tiny transformer's text shape) with `value` at one element.
+fn text_embedding_with(path: &Path, value: f64) -> PathBuf {
+    let tensor = Tensor::randn([8, 16], (Kind::Float, Device::Cpu));
+    let _ = tensor.get(3).get(5).fill_(value);
+    Tensor::write_safetensors(&[("encoder_hidden_states", &tensor)], path).unwrap();
+    path.to_path_buf()
+}
+
+/// The scheduler folder of `base` with `key` set to `value`, as a new base model folder
+/// (`scheduler/` only: the VAE is given with --vae).
+fn base_with_scheduler(job: &NvsJob, name: &str, key: &str, value: serde_json::Value) -> PathBuf {
+    let base = job.path(name);
+    std::fs::create_dir_all(base.join("scheduler")).unwrap();
+    let file = job.base.join("scheduler/scheduler_config.json");
+    let mut json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(file).unwrap()).unwrap();
+    json[key] = value;
+    std::fs::write(base.join("scheduler/scheduler_config.json"), json.to_string()).unwrap();
+    base
+}
+
+#[test]
+fn nvs_checks_every_argument_and_model_before_its_first_write() {
+    let job = NvsJob::new();
+    let out = job.path("out");
+    let nan_text = text_embedding_with(&job.path("nan_text.safetensors"), f64::NAN);
+    let inf_text = text_embedding_with(&job.path("inf_text.safetensors"), f64::INFINITY);
+    let lora = job.path("lora.safetensors");
+    let a = Tensor::randn([2, 32], (Kind::Float, Device::Cpu));
+    let b = Tensor::randn([32, 2], (Kind::Float, Device::Cpu));
+    let _ = b.get(1).get(1).fill_(f64::NEG_INFINITY);
+    Tensor::write_safetensors(
+        &[
+            ("transformer.transformer_blocks.0.attn1.to_q.lora_A.weight", &a),
+            ("transformer.transformer_blocks.0.attn1.to_q.lora_B.weight", &b),
+        ],
+        &lora,
+    )
+    .unwrap();
+    let vae = job.base.join("vae");
+    let huge =
+        base_with_scheduler(&job, "huge_timesteps", "num_train_timesteps", serde_json::json!(1_000_000_000_000i64));
+    let beta = base_with_scheduler(&job, "beta_end", "beta_end", serde_json::json!(5.0));
+    let spacing = base_with_scheduler(&job, "spacing", "timestep_spacing", serde_json::json!("sideways"));
+    let huge_file = huge.join("scheduler/scheduler_config.json").display().to_string();
+    let beta_file = beta.join("scheduler/scheduler_config.json").display().to_string();
+    let bad_toml = job.path("bad.toml");
+    std::fs::write(&bad_toml, std::fs::read_to_string(&job.toml).unwrap().replace("lr = 1e-3", "lr = nan")).unwrap();
+    let bad_toml_name = bad_toml.display().to_string();
+    let mistyped = job.path("released/transformr");
+    let mistyped_name = mistyped.display().to_string();
+    let nan_name = nan_text.display().to_string();
+    let inf_name = inf_text.display().to_string();
+    let lora_name = lora.display().to_string();
+    let cases: Vec<(Flags, Vec<&str>)> = vec![
+        (vec![&"--init", &mistyped], vec![&mistyped_name]),
+        (vec![&"--config", &bad_toml], vec![&bad_toml_name, "optim.lr"]),
+        (vec![&"--sample-steps", &"0"], vec!["steps", "0"]),
+        (vec![&"--sample-steps", &"1001"], vec!["steps", "1001", "1000"]),
+        (vec![&"--frames", &"8"], vec!["frames", "8"]),
+        (vec![&"--guidance", &"nan"], vec!["guidance", "NaN"]),
+        (vec![&"--fps", &"0"], vec!["fps", "0"]),
+        (vec![&"--fps", &"-1"], vec!["fps", "-1"]),
+        (vec![&"--size", &"96x64"], vec!["size", "80x64"]),
+        (vec![&"--text-embedding", &nan_text], vec![&nan_name, "encoder_hidden_states", "not finite"]),
+        (vec![&"--text-embedding", &inf_text], vec![&inf_name, "encoder_hidden_states", "not finite"]),
+        (vec![&"--lora", &lora], vec![&lora_name, "lora_B", "not finite"]),
+        (vec![&"--base-model", &huge, &"--vae", &vae], vec![&huge_file, "num_train_timesteps", "1000000000000"]),
+        (vec![&"--base-model", &beta, &"--vae", &vae], vec![&beta_file, "beta_end", "5"]),
+        (vec![&"--base-model", &spacing, &"--vae", &vae], vec!["timestep_spacing", "sideways"]),
+        (
+            vec![&"--steps", &"2", &"--config", &job.toml, &"--finetune-trajectories", &"0"],
+            vec!["finetune-trajectories"],
+        ),
+    ];
+    for (extra, needles) in &cases {
+        let output = job.run(&out, &job.trajectories, extra);
+        fails_with(&output, needles);
+        assert!(!out.exists(), "{needles:?}: nothing is written");
+    }
+    // Values the flag parser refuses, naming the flag (exit status 2).
+    for (flag, value) in [("--seed", "-1"), ("--steps", "-2"), ("--finetune-trajectories", "-1")] {
+        let output = job.run(&out, &job.trajectories, &[&flag, &value]);
+        let text = stderr(&output);
+        assert_eq!(output.status.code(), Some(2), "{text}");
+        assert!(text.contains(flag) && text.contains(value) && !text.contains("unexpected argument"), "{text}");
+        assert!(!out.exists(), "{flag}: nothing is written");
+    }
+    // An OUT that is a file is named, and kept.
+    let file = job.path("a_file");
+    std::fs::write(&file, "mine").unwrap();
+    fails_with(&job.run(&file, &job.trajectories, &[]), &["out", &file.display().to_string(), "not a folder"]);
+    assert_eq!(std::fs::read_to_string(&file).unwrap(), "mine");
+    // A new job refuses to replace what a folder without nvs.json holds.
+    let used = job.path("used");
+    std::fs::create_dir_all(&used).unwrap();
+    std::fs::write(used.join("orbit.mp4"), "mine").unwrap();
+    fails_with(&job.run(&used, &job.trajectories, &[]), &["out", "orbit.mp4", "nvs.json"]);
+    assert_eq!(std::fs::read_to_string(used.join("orbit.mp4")).unwrap(), "mine");
+    assert_eq!(std::fs::read_dir(&used).unwrap().count(), 1, "nothing is written");
+    // The corrected command on the same OUT is a new job, not "a job with other settings".
+    let output = job.run(&out, &job.trajectories, &[]);
+    assert!(output.status.success(), "{}", stderr(&output));
+    let record: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("nvs.json")).unwrap()).unwrap();
+    assert_eq!(record["complete"], true);
+}
+
+#[test]
+fn non_finite_weights_are_refused_at_load_and_a_non_finite_sample_is_never_written() {
+    let dir = tempfile::tempdir().unwrap();
+    let ckpt = tiny_checkpoint(dir.path());
+    let cond = frames(&dir.path().join("cond"), 9, (80, 64), &[]);
+    let out = dir.path().join("out.mp4");
+    let weights_file = ckpt.join("transformer").join(weights::WEIGHTS_NAME);
+    let pristine = std::fs::read(&weights_file).unwrap();
+    // One NaN in one transformer weight: named, with its file, before any sampling.
+    let tensors = read_tensors(&weights_file);
+    let name = "transformer_blocks.1.ff.net.0.proj.weight";
+    let _ = tensors[name].get(0).get(0).fill_(f64::NAN);
+    let list: Vec<(String, Tensor)> = tensors.into_iter().collect();
+    Tensor::write_safetensors(&list, &weights_file).unwrap();
+    let output = sample(&ckpt, &cond, &out);
+    fails_with(&output, &[name, &weights_file.display().to_string(), "1 of", "not finite"]);
+    assert!(!out.exists(), "nothing is written");
+    std::fs::write(&weights_file, &pristine).unwrap();
+
+    // Finite weights that overflow: the VAE's last layer scaled to f32's edge makes the decoded
+    // video inf − inf = NaN. The sample is an error, never a video.
+    let vae_file = ckpt.join("vae").join(weights::WEIGHTS_NAME);
+    let mut tensors = read_tensors(&vae_file);
+    let key = tensors.keys().find(|k| k.starts_with("decoder.conv_out") && k.ends_with("weight")).unwrap().clone();
+    let scaled = tensors[&key].sign() * 3e38;
+    tensors.insert(key, scaled);
+    let list: Vec<(String, Tensor)> = tensors.into_iter().collect();
+    Tensor::write_safetensors(&list, &vae_file).unwrap();
+    let output = sample(&ckpt, &cond, &out);
+    fails_with(&output, &["sampled video", "not finite", "nothing is written"]);
+    assert!(!out.exists(), "nothing is written");
+
+    // Library: the text embedding and a LoRA file name the file and tensor.
+    let text = text_embedding_with(&dir.path().join("text.safetensors"), f64::NAN);
+    let config = CogVideoXTransformer3DModelConfig::tiny();
+    let err = trainer::loaders::load_text_embedding(Some(&text), &config, Device::Cpu).unwrap_err().to_string();
+    assert!(err.contains("encoder_hidden_states") && err.contains(&text.display().to_string()), "{err}");
+    assert!(err.contains("1 of 128 values are not finite") && err.contains("flat index 53"), "{err}");
+    let finite = text_embedding_with(&dir.path().join("finite.safetensors"), 1e30);
+    let _ = trainer::loaders::load_text_embedding(Some(&finite), &config, Device::Cpu).unwrap();
+}
+
+#[test]
+fn scheduler_configs_outside_their_ranges_name_file_and_field() {
+    use trainer::scheduling_ddim_cogvideox::CogVideoXSchedulerConfig;
+    let valid = serde_json::to_value(CogVideoXSchedulerConfig::cogvideox_5b()).unwrap();
+    let cases: &[(&str, serde_json::Value, &str)] = &[
+        ("num_train_timesteps", serde_json::json!(1_000_000_000_000i64), "1000000000000"),
+        ("num_train_timesteps", serde_json::json!(0), "0"),
+        ("num_train_timesteps", serde_json::json!(1), "two"),
+        ("beta_end", serde_json::json!(5.0), "5"),
+        ("beta_end", serde_json::json!(1.0), "(0, 1)"),
+        ("beta_start", serde_json::json!(0.0), "(0, 1)"),
+        ("beta_start", serde_json::json!(-0.1), "-0.1"),
+        ("beta_start", serde_json::json!(0.5), "0.012"),
+        ("beta_schedule", serde_json::json!("cubic"), "cubic"),
+        ("trained_betas", serde_json::json!([0.5, 1.5]), "num_train_timesteps"),
+        ("snr_shift_scale", serde_json::json!(0.0), "0"),
+        ("steps_offset", serde_json::json!(1000), "1000"),
+        ("steps_offset", serde_json::json!(-1), "-1"),
+        ("prediction_type", serde_json::json!("noise"), "noise"),
+        ("timestep_spacing", serde_json::json!("sideways"), "sideways"),
+        ("clip_sample_range", serde_json::json!(-1.0), "-1"),
+    ];
+    for (key, value, needle) in cases {
+        let mut json = valid.clone();
+        json[*key] = value.clone();
+        let err = CogVideoXSchedulerConfig::from_json_str(&json.to_string(), "sched.json").unwrap_err().to_string();
+        let expected = if *key == "beta_start" && *needle == "0.012" { "beta_end" } else { key };
+        assert!(err.contains("sched.json") && err.contains(&format!("`{expected}`")), "{key}: {err}");
+        assert!(err.contains(needle), "{key} = {value}: `{needle}` not in {err}");
+    }
+    // Trained βs of the right length but one out of range.
+    let mut json = valid.clone();
+    json["num_train_timesteps"] = serde_json::json!(3);
+    json["rescale_betas_zero_snr"] = serde_json::json!(false);
+    json["trained_betas"] = serde_json::json!([0.1, 1.5, 0.2]);
+    let err = CogVideoXSchedulerConfig::from_json_str(&json.to_string(), "sched.json").unwrap_err().to_string();
+    assert!(err.contains("`trained_betas`") && err.contains("value 1") && err.contains("1.5"), "{err}");
+    json["trained_betas"] = serde_json::json!([0.1, 0.15, 0.2]);
+    CogVideoXSchedulerConfig::from_json_str(&json.to_string(), "sched.json").unwrap();
+
+    // `trainer sample` reads it before any model work; a training config when it is loaded.
+    let dir = tempfile::tempdir().unwrap();
+    let ckpt = tiny_checkpoint(dir.path());
+    std::fs::create_dir_all(ckpt.join("scheduler")).unwrap();
+    let file = ckpt.join("scheduler/scheduler_config.json");
+    let mut json = valid.clone();
+    json["num_train_timesteps"] = serde_json::json!(1_000_000_000_000i64);
+    std::fs::write(&file, json.to_string()).unwrap();
+    let cond = frames(&dir.path().join("cond"), 9, (80, 64), &[]);
+    let out = dir.path().join("out.mp4");
+    fails_with(&sample(&ckpt, &cond, &out), &[&file.display().to_string(), "num_train_timesteps"]);
+    assert!(!out.exists());
+    let toml = tiny_toml(
+        dir.path(),
+        "sched",
+        "vae = \"tiny\"",
+        &format!("vae = \"tiny\"\nscheduler = {:?}", ckpt.join("scheduler")),
+    );
+    let err = PretrainConfig::from_toml_file(&toml).unwrap_err().to_string();
+    assert!(err.contains(&file.display().to_string()) && err.contains("`num_train_timesteps`"), "{err}");
+}
+
+#[test]
+fn seed_and_other_negative_values_are_refused_naming_the_flag() {
+    let dir = tempfile::tempdir().unwrap();
+    let ckpt = tiny_checkpoint(dir.path());
+    let cond = frames(&dir.path().join("cond"), 9, (80, 64), &[]);
+    let out = dir.path().join("out.mp4");
+    for (flag, value) in [("--seed", "-1"), ("--steps", "-3"), ("--frames", "-9")] {
+        let output = run(&[&"sample", &"--ckpt", &ckpt, &"--cond", &cond, &"--out", &out, &flag, &value]);
+        let text = stderr(&output);
+        assert_eq!(output.status.code(), Some(2), "{text}");
+        assert!(text.contains(flag) && text.contains(value) && !text.contains("unexpected argument"), "{text}");
+    }
+    assert!(!out.exists());
+}
+
+#[test]
+fn transformer_configs_whose_sizes_overflow_name_the_config_and_fields() {
+    let dir = tempfile::tempdir().unwrap();
+    let ckpt = tiny_checkpoint(dir.path());
+    let config_path = ckpt.join("transformer/config.json");
+    let original: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&config_path).unwrap()).unwrap();
+    let cases: &[(Fields, &[&str])] = &[
+        (
+            &[("num_attention_heads", 1 << 32), ("attention_head_dim", 1 << 32)],
+            &["num_attention_heads", "attention_head_dim"],
+        ),
+        (
+            &[("num_attention_heads", 4096), ("attention_head_dim", 4096)],
+            &["num_attention_heads", "attention_head_dim"],
+        ),
+        (&[("num_layers", i64::MAX)], &["num_layers"]),
+        (
+            &[("sample_frames", 1 << 19), ("sample_height", 1 << 19), ("sample_width", 1 << 19)],
+            &["sample_frames", "positional table"],
+        ),
+    ];
+    let cond = frames(&dir.path().join("cond"), 9, (80, 64), &[]);
+    let out = dir.path().join("out.mp4");
+    for (fields, needles) in cases {
+        let mut json = original.clone();
+        for (key, value) in *fields {
+            json[*key] = serde_json::json!(value);
+        }
+        std::fs::write(&config_path, json.to_string()).unwrap();
+        let err = CogVideoXTransformer3DModelConfig::from_json_file(&config_path).unwrap_err().to_string();
+        assert!(err.contains(&config_path.display().to_string()), "{fields:?}: {err}");
+        for needle in *needles {
+            assert!(err.contains(needle), "{fields:?}: `{needle}` not in {err}");
+        }
+        let output = sample(&ckpt, &cond, &out);
+        fails_with(&output, &[&config_path.display().to_string(), needles[0]]);
+        assert!(!stderr(&output).contains("libtorch") && !out.exists(), "{}", stderr(&output));
+    }
+}
+
+#[test]
+fn an_impossible_held_out_split_names_the_config_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let shards = super::pretrain::pairs(dir.path());
+    let config =
+        tiny_toml(dir.path(), "split", "[loop]", "[validation]\nholdout_fraction = 1e-12\npairs = 1\n\n[loop]");
+    let out = dir.path().join("run");
+    let output = run(&[&"pretrain", &"--config", &config, &"--shards", &shards, &"--out", &out]);
+    fails_with(&output, &[&config.display().to_string(), "validation.holdout_fraction", "holds out none"]);
+    assert!(!out.exists(), "nothing is written");
+}
+
+/// Writes `run/checkpoints/<folder>/` with `files` (name → content) and a `state.json` of
+/// `step` listing `listed` (name → the bytes and digest it claims).
+fn checkpoint_folder(
+    run: &Path,
+    folder: &str,
+    step: u64,
+    files: &[(&str, &[u8])],
+    listed: &[(&str, u64, String)],
+) -> PathBuf {
+    use trainer::training::{FileRecord, TrainState};
+    let dir = run.join("checkpoints").join(folder);
+    std::fs::create_dir_all(&dir).unwrap();
+    for (name, bytes) in files {
+        std::fs::write(dir.join(name), bytes).unwrap();
+    }
+    let state = TrainState {
+        step,
+        data_position: Default::default(),
+        seed: 0,
+        layout: None,
+        files: listed
+            .iter()
+            .map(|(name, bytes, blake3)| (name.to_string(), FileRecord { bytes: *bytes, blake3: blake3.clone() }))
+            .collect(),
+    };
+    std::fs::write(dir.join("state.json"), serde_json::to_string(&state).unwrap()).unwrap();
+    dir
+}
+
+fn digest(bytes: &[u8]) -> String {
+    blake3::hash(bytes).to_hex().to_string()
+}
+
+#[test]
+fn checkpoint_records_name_only_regular_files_of_their_folder_and_their_own_step() {
+    use trainer::training::checkpoint::{newest_intact, read_state};
+    let dir = tempfile::tempdir().unwrap();
+    let run = dir.path().join("run");
+    let weights: &[u8] = b"weights";
+    // The intact one the resume falls back to.
+    let intact = checkpoint_folder(&run, "step-00000001", 1, &[("w.bin", weights)], &[("w.bin", 7, digest(weights))]);
+    std::fs::write(dir.path().join("outside.bin"), weights).unwrap();
+    // Newer ones, each damaged by its record alone: a device, paths out of the folder, a link
+    // to a device and one to a file outside, and a step that is not the folder's.
+    let cases: Vec<(&str, Listed, u64, &str)> = vec![
+        ("step-00000002", vec![("/dev/zero", 0, digest(b""))], 2, "/dev/zero"),
+        ("step-00000003", vec![("../../../outside.bin", 7, digest(weights))], 3, "outside.bin"),
+        ("step-00000004", vec![("sub/../../step-00000001/w.bin", 7, digest(weights))], 4, "w.bin"),
+        ("step-00000005", vec![("zero", 0, digest(b""))], 5, "not a regular file"),
+        ("step-00000006", vec![("outside", 7, digest(weights))], 6, "not a regular file"),
+        ("step-00000007", vec![("w.bin", 7, digest(weights))], 9, "step-00000007"),
+    ];
+    for (folder, listed, step, _) in &cases {
+        let files: &[(&str, &[u8])] = if listed[0].0 == "w.bin" { &[("w.bin", weights)] } else { &[] };
+        checkpoint_folder(&run, folder, *step, files, listed);
+    }
+    std::os::unix::fs::symlink("/dev/zero", run.join("checkpoints/step-00000005/zero")).unwrap();
+    std::os::unix::fs::symlink(dir.path().join("outside.bin"), run.join("checkpoints/step-00000006/outside")).unwrap();
+    for (folder, _, _, needle) in &cases {
+        let folder = run.join("checkpoints").join(folder);
+        let problems = match read_state(&folder) {
+            Err(e) => vec![e.to_string()],
+            Ok(state) => trainer::training::checkpoint::check_files(&folder, &state, true, (0, 1)),
+        };
+        assert!(problems.iter().any(|p| p.contains(needle)), "{}: {problems:?}", folder.display());
+    }
+    // The resume skips them all (without reading a device) for the intact one.
+    let (sender, receiver) = std::sync::mpsc::channel();
+    let watched = run.clone();
+    std::thread::spawn(move || sender.send(newest_intact(&watched, None).map(|found| found.map(|(d, s)| (d, s.step)))));
+    let found = receiver.recv_timeout(std::time::Duration::from_secs(60)).expect("the resume check hangs").unwrap();
+    assert_eq!(found, Some((intact, 1)));
+}
+
+#[test]
+fn a_signal_while_nothing_checkpointable_runs_ends_the_process_at_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let shards = super::pretrain::pairs(dir.path());
+    let config = tiny_toml(dir.path(), "ok", "steps = 20", "steps = 20");
+    let run = dir.path().join("run");
+    // A checkpoint whose one listed file takes a while to hash: a large sparse file (its digest
+    // is wrong, so the resume would fail after hashing it, exit 1).
+    let folder = run.join("checkpoints/step-00000001");
+    checkpoint_folder(&run, "step-00000001", 1, &[], &[("big.bin", 32 << 30, digest(b"not it"))]);
+    let big = std::fs::File::create(folder.join("big.bin")).unwrap();
+    big.set_len(32 << 30).unwrap();
+    let mut job = Command::new(env!("CARGO_BIN_EXE_trainer"))
+        .args(["pretrain".as_ref(), "--config".as_ref(), config.as_os_str(), "--shards".as_ref(), shards.as_os_str()])
+        .args(["--out".as_ref(), run.as_os_str(), "--resume".as_ref()])
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Signalled once the resume check reads the file.
+    let fd_dir = PathBuf::from(format!("/proc/{}/fd", job.id()));
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
+    let reading = || {
+        std::fs::read_dir(&fd_dir)
+            .into_iter()
+            .flatten()
+            .flatten()
+            .any(|e| std::fs::read_link(e.path()).is_ok_and(|target| target.ends_with("big.bin")))
+    };
+    while !reading() {
+        assert!(job.try_wait().unwrap().is_none(), "the job ended before reading the checkpoint");
+        assert!(std::time::Instant::now() < deadline, "the resume check never read the file");
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+    let signalled = std::time::Instant::now();
+    Command::new("kill").args(["-TERM", &job.id().to_string()]).status().unwrap();
+    let status = job.wait().unwrap();
+    let took = signalled.elapsed();
+    // 128 + SIGTERM, from the handler: not the preemption path, and not after the hash.
+    assert_eq!(status.code(), Some(143), "{status:?}");
+    assert!(took < std::time::Duration::from_secs(5), "the signal waited {took:?} for the hash");
 }

@@ -14,7 +14,7 @@ use super::parity::assert_success;
 
 /// The released layout in small: `released/transformer/` (tiny CogNVS-shaped, 80 × 64) and
 /// `CogVideoX/{vae,scheduler}/`, and a training TOML naming them.
-fn released_layout(dir: &Path) -> (PathBuf, PathBuf, PathBuf) {
+pub(super) fn released_layout(dir: &Path) -> (PathBuf, PathBuf, PathBuf) {
     let transformer_dir = dir.join("released/transformer");
     let base = dir.join("CogVideoX");
     super::parity::save_tiny_models(&CogVideoXTransformer3DModelConfig::tiny(), &transformer_dir, &base.join("vae"));
@@ -37,7 +37,7 @@ fn released_layout(dir: &Path) -> (PathBuf, PathBuf, PathBuf) {
 
 /// Two camera paths for `sequence`: `trajs/orbit.txt` in the public format and `shift.json`, the
 /// source poses moved sideways.
-fn trajectories(dir: &Path, sequence: &Path) -> Vec<PathBuf> {
+pub(super) fn trajectories(dir: &Path, sequence: &Path) -> Vec<PathBuf> {
     std::fs::create_dir_all(dir.join("trajs")).unwrap();
     let orbit = dir.join("trajs/orbit.txt");
     std::fs::write(&orbit, "0 -20\n0 5\n0 -0.1\n").unwrap();
@@ -55,7 +55,7 @@ fn trajectories(dir: &Path, sequence: &Path) -> Vec<PathBuf> {
     vec![orbit, shift]
 }
 
-fn nvs(args: &[std::ffi::OsString]) -> Command {
+pub(super) fn nvs(args: &[std::ffi::OsString]) -> Command {
     let mut cmd = Command::new(env!("CARGO_BIN_EXE_trainer"));
     cmd.arg("nvs").args(args);
     cmd

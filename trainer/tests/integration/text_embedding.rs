@@ -1,6 +1,7 @@
 //! The text input: `scripts/encode_prompt.py` writes what diffusers' CogVideoX prompt encoder
-//! computes (on a tiny T5 and a tokenizer trained at test time), and a transformer of the
-//! released models' T5-XXL text shape refuses to sample or train on zeros unless asked.
+//! computes (on a tiny T5 and a tokenizer trained at test time) and refuses incomplete or
+//! mismatched model folders, and a transformer of the released models' T5-XXL text shape refuses
+//! to sample or train on zeros unless asked.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -57,6 +58,88 @@ fn encode_prompt_equals_the_cogvideox_prompt_encoder() {
     let ours = read_tensors(&bf16)["encoder_hidden_states"].to_kind(Kind::Float);
     let (abs, rel) = super::parity::errors(&ours, &reference["prompt_0"]);
     assert!(rel < 0.05, "bf16 encoding: max abs {abs}, rel {rel}");
+}
+
+/// `encode_prompt.py` with the text encoder and tokenizer folders given apart.
+fn encode_with(encoder: &Path, tokenizer: &Path, out: &Path) -> Output {
+    Command::new(python())
+        .arg(repo_root().join("scripts/encode_prompt.py"))
+        .arg("--text-encoder")
+        .arg(encoder)
+        .arg("--tokenizer")
+        .arg(tokenizer)
+        .args(["--prompt", "a dog runs", "--dtype", "fp32", "--device", "cpu", "--out"])
+        .arg(out)
+        .output()
+        .unwrap()
+}
+
+/// Copies the files of folder `from` into a new folder `to`.
+fn copy_folder(from: &Path, to: &Path) -> PathBuf {
+    std::fs::create_dir_all(to).unwrap();
+    for entry in std::fs::read_dir(from).unwrap() {
+        let entry = entry.unwrap();
+        std::fs::copy(entry.path(), to.join(entry.file_name())).unwrap();
+    }
+    to.to_path_buf()
+}
+
+#[test]
+fn encode_prompt_refuses_incomplete_or_mismatched_folders_naming_what_is_missing() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = dir.path().join("model");
+    run_python("goldens_text_embedding.py", &[model.as_os_str()]);
+    let (encoder, tokenizer) = (model.join("text_encoder"), model.join("tokenizer"));
+    let out = dir.path().join("out.safetensors");
+    // The complete pair encodes.
+    assert_success(&encode_with(&encoder, &tokenizer, &out));
+    std::fs::remove_file(&out).unwrap();
+
+    let empty = dir.path().join("empty");
+    std::fs::create_dir_all(&empty).unwrap();
+    // A tokenizer folder without its vocabulary (it loads as one that knows no word).
+    let no_vocabulary = copy_folder(&tokenizer, &dir.path().join("no_vocabulary"));
+    std::fs::remove_file(no_vocabulary.join("spiece.model")).unwrap();
+    // Another tokenizer's size: 100 extra ids make 140 tokens for the encoder's 40 rows.
+    let other = copy_folder(&tokenizer, &dir.path().join("other_tokenizer"));
+    std::fs::write(
+        other.join("tokenizer_config.json"),
+        r#"{"tokenizer_class": "T5Tokenizer", "model_max_length": 226, "extra_ids": 100}"#,
+    )
+    .unwrap();
+    // An encoder without weights, of another model type, and with a weight missing.
+    let no_weights = copy_folder(&encoder, &dir.path().join("no_weights"));
+    std::fs::remove_file(no_weights.join("model.safetensors")).unwrap();
+    let not_t5 = copy_folder(&encoder, &dir.path().join("not_t5"));
+    let mut config: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(not_t5.join("config.json")).unwrap()).unwrap();
+    config["model_type"] = "bert".into();
+    std::fs::write(not_t5.join("config.json"), config.to_string()).unwrap();
+    let partial = copy_folder(&encoder, &dir.path().join("partial"));
+    let mut tensors = read_tensors(&partial.join("model.safetensors"));
+    let dropped = tensors.keys().find(|k| k.contains("block.1.")).unwrap().clone();
+    tensors.remove(&dropped);
+    let kept: Vec<(String, Tensor)> = tensors.into_iter().collect();
+    Tensor::write_safetensors(&kept, partial.join("model.safetensors")).unwrap();
+
+    let cases: [(&Path, &Path, &[&str]); 7] = [
+        (&encoder, &empty, &["tokenizer folder", "empty", "spiece.model"]),
+        (&encoder, &no_vocabulary, &["no_vocabulary", "no vocabulary", "spiece.model"]),
+        (&encoder, &other, &["other_tokenizer", "140 tokens", "vocab_size 40"]),
+        (&empty, &tokenizer, &["text encoder folder", "empty", "config.json"]),
+        (&no_weights, &tokenizer, &["no_weights", "no weights", "model.safetensors"]),
+        (&not_t5, &tokenizer, &["not_t5/config.json", "model_type", "bert"]),
+        (&partial, &tokenizer, &["partial", "weights missing", &dropped]),
+    ];
+    for (encoder, tokenizer, needles) in cases {
+        let output = encode_with(encoder, tokenizer, &out);
+        let text = String::from_utf8_lossy(&output.stderr);
+        assert!(!output.status.success(), "{} + {} was accepted: {text}", encoder.display(), tokenizer.display());
+        for needle in needles {
+            assert!(text.contains(needle), "`{needle}` not in:\n{text}");
+        }
+        assert!(!out.exists(), "nothing is written");
+    }
 }
 
 /// A transformer folder of the released text shape (226 × 4096) but tiny otherwise, with a tiny

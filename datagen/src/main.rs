@@ -7,6 +7,7 @@ use clap::{Args, Parser, Subcommand};
 use datagen::config_file::Validate;
 use datagen::corpus::build::{BuildConfig, Progress};
 use datagen::corpus::partition::Worker;
+use datagen::io::sequence::LayoutName;
 use datagen::pairs::generator::PairsConfig;
 use datagen::synth::{SynthConfig, write_sequence};
 use schemas::InputStatus;
@@ -32,7 +33,8 @@ enum Command {
     /// Generate a synthetic dynamic scene (ray traced, exact ground truth) as a sequence folder in
     /// the cog-nvs layout: gt_rgb.mp4, cam_info/megasam_*.npy, masks/, plus a contact sheet.
     Synth(SynthArgs),
-    /// Turn one sequence folder (cog-nvs, MegaSAM npz or generic layout) into training pairs:
+    /// Turn one sequence folder (cog-nvs, MegaSAM npz, generic, or a ViPE, VGGT, COLMAP, GEN3C or
+    /// depth-only tool's output) into training pairs:
     /// one finished shard holding each clip once and one entry per trajectory.
     Pairs(PairsArgs),
     /// Render a sequence from a novel camera path: the inference-time conditioning
@@ -119,6 +121,10 @@ struct SynthCorpusArgs {
 struct PairsArgs {
     /// The sequence folder.
     seq_dir: PathBuf,
+    /// Layout of the folder (cog-nvs, megasam, generic, vipe, vggt, colmap, gen3c, depth-only)
+    /// [default: detected from its files; a folder matching several is an error listing them].
+    #[arg(long, value_parser = parse_layout)]
+    layout: Option<LayoutName>,
     /// Output folder; the shard is written as <OUT>/<sequence name>.parquet.
     #[arg(long)]
     out: PathBuf,
@@ -155,6 +161,10 @@ struct PairsArgs {
 struct RenderArgs {
     /// The sequence folder.
     seq_dir: PathBuf,
+    /// Layout of the folder (cog-nvs, megasam, generic, vipe, vggt, colmap, gen3c, depth-only)
+    /// [default: detected from its files; a folder matching several is an error listing them].
+    #[arg(long, value_parser = parse_layout)]
+    layout: Option<LayoutName>,
     /// The novel camera path (.npy, .json or trajs/*.txt).
     #[arg(long)]
     trajectory: PathBuf,
@@ -233,6 +243,10 @@ struct ValidateArgs {
     deep: bool,
 }
 
+fn parse_layout(name: &str) -> Result<LayoutName, String> {
+    name.parse()
+}
+
 fn pairs(args: PairsArgs) -> anyhow::Result<()> {
     let mut config = match &args.config {
         Some(path) => PairsConfig::from_toml_file(path)?,
@@ -242,7 +256,7 @@ fn pairs(args: PairsArgs) -> anyhow::Result<()> {
     let started = std::time::Instant::now();
     // The input's content hash (for the stats marker) is taken while the sequence is read.
     let (sequence, content_hash) = rayon::join(
-        || datagen::io::sequence::read_sequence(&args.seq_dir),
+        || datagen::io::sequence::read_sequence_as(&args.seq_dir, args.layout),
         || datagen::corpus::build::hash_tree(&args.seq_dir),
     );
     let mut sequence = sequence?;
@@ -310,7 +324,7 @@ fn render(args: RenderArgs) -> anyhow::Result<()> {
         Some(path) => PairsConfig::from_toml_file(path)?,
         None => PairsConfig::default(),
     };
-    let sequence = datagen::io::sequence::read_sequence(&args.seq_dir)?;
+    let sequence = datagen::io::sequence::read_sequence_as(&args.seq_dir, args.layout)?;
     let summary = datagen::pairs::generator::render_sequence(
         &sequence,
         &args.trajectory,

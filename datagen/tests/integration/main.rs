@@ -18,5 +18,6 @@ mod report;
 mod sequence;
 mod static_background;
 mod synth;
+mod tool_layouts;
 mod trajectory_bank;
 mod validate;

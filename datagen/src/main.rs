@@ -37,6 +37,10 @@ enum Command {
     /// depth-only tool's output) into training pairs:
     /// one finished shard holding each clip once and one entry per trajectory.
     Pairs(PairsArgs),
+    /// Check a reconstruction before spending GPU hours on it: the convention and units, the
+    /// camera path (length, speed, jumps), the valid-depth share and the multi-frame consistency
+    /// of static geometry, with a verdict `ok` or `suspect` and the reasons.
+    Check(CheckArgs),
     /// Render a sequence from a novel camera path: the inference-time conditioning
     /// (render.mp4, frames/%05d.png and holes/%05d.png, 255 = hole).
     Render(RenderArgs),
@@ -155,6 +159,22 @@ struct PairsArgs {
     /// (N, H, W) .npy, one map per frame (implies --depth-noise).
     #[arg(long)]
     second_depth: Option<PathBuf>,
+}
+
+#[derive(Debug, Args)]
+struct CheckArgs {
+    /// The sequence folder.
+    seq_dir: PathBuf,
+    /// Layout of the folder [default: detected from its files].
+    #[arg(long, value_parser = parse_layout)]
+    layout: Option<LayoutName>,
+    /// Print the report as JSON (verdict, reasons, static_depth_consistency, per-pair shares, ...).
+    #[arg(long)]
+    json: bool,
+    /// TOML with the check's settings (depth_tolerance, min_consistency, min_valid_depth_share,
+    /// frame_gaps, pixel_stride, jump_factor), as the [check] table of a corpus TOML.
+    #[arg(long)]
+    config: Option<PathBuf>,
 }
 
 #[derive(Debug, Args)]
@@ -316,6 +336,20 @@ fn pairs(args: PairsArgs) -> anyhow::Result<()> {
     // Tens of MB of encoded frames in hundreds of buffers: the process's exit gives them back
     // at once, faster than freeing them one by one.
     std::mem::forget(records);
+    Ok(())
+}
+
+fn check(args: CheckArgs) -> anyhow::Result<()> {
+    let config = match &args.config {
+        Some(path) => datagen::config_file::load_toml(path)?,
+        None => datagen::geometry::consistency::CheckConfig::default(),
+    };
+    let report = datagen::geometry::consistency::check_folder(&args.seq_dir, args.layout, &config)?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        print!("{}", report.to_text());
+    }
     Ok(())
 }
 
@@ -642,6 +676,7 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Synth(args) => synth(args),
         Command::Pairs(args) => pairs(args),
+        Command::Check(args) => check(args),
         Command::Render(args) => render(args),
         Command::Inspect(args) => inspect(args),
         Command::Build(args) => build(args),

@@ -321,6 +321,12 @@ fn layout_candidates(dir: &Path) -> Result<Vec<(Layout, String)>> {
     Ok(found)
 }
 
+/// Whether `dir` holds the files of any layout (one or several: an ambiguous folder is still a
+/// sequence folder, whose reading then fails listing what was found).
+pub fn has_layout_files(dir: &Path) -> bool {
+    layout_candidates(dir).is_ok_and(|found| !found.is_empty())
+}
+
 /// What each layout needs, for the error on a folder that matches none.
 const EXPECTED_LAYOUTS: &str = "expected gt_rgb.mp4 + cam_info/ (cog-nvs), *_sgd_cvd_hr.npz (MegaSAM), frames/ + depth/ + cameras.json (generic), \
      rgb/ + pose/ + intrinsics/ + depth/ (ViPE), predictions.npz (VGGT), images/ + sparse/ + stereo/depth_maps/ (COLMAP), \

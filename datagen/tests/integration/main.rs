@@ -13,6 +13,7 @@ mod inspect;
 mod novel_view;
 mod pairs;
 mod pairs_golden;
+mod reconstruction_check;
 mod render;
 mod report;
 mod sequence;

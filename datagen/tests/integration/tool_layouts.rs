@@ -18,26 +18,32 @@ pub struct Truth {
     pub height: usize,
     pub frames: Vec<RgbImage>,
     pub depth: Vec<Vec<f32>>,
+    /// Moving-object ids (0 static).
+    pub masks: Vec<image::GrayImage>,
     pub k: DMat3,
     pub world_from_camera: Vec<DMat4>,
 }
 
 impl Truth {
     pub fn new(frames: u32) -> Self {
-        let config = SynthConfig { width: 64, height: 48, frames, ..SynthConfig::default() };
+        Self::of(SynthConfig { width: 64, height: 48, frames, ..SynthConfig::default() })
+    }
+
+    pub fn of(config: SynthConfig) -> Self {
         let scene = SynthScene::new(&config).unwrap();
-        let rendered: Vec<_> = (0..frames).map(|f| scene.render_frame(f)).collect();
+        let rendered: Vec<_> = (0..config.frames).map(|f| scene.render_frame(f)).collect();
         Self {
-            width: 64,
-            height: 48,
+            width: config.width as usize,
+            height: config.height as usize,
             frames: rendered.iter().map(|r| r.rgb.clone()).collect(),
             depth: rendered.iter().map(|r| r.depth.clone()).collect(),
+            masks: rendered.iter().map(|r| r.mask_ids.clone()).collect(),
             k: config.intrinsics(),
-            world_from_camera: (0..frames).map(|f| scene.world_from_camera(f)).collect(),
+            world_from_camera: (0..config.frames).map(|f| scene.world_from_camera(f)).collect(),
         }
     }
 
-    fn n(&self) -> usize {
+    pub fn n(&self) -> usize {
         self.frames.len()
     }
 

@@ -41,6 +41,11 @@ enum Command {
     /// camera path (length, speed, jumps), the valid-depth share and the multi-frame consistency
     /// of static geometry, with a verdict `ok` or `suspect` and the reasons.
     Check(CheckArgs),
+    /// Write a sequence (and the pairs of a shard made from it) as a recording for the Rerun
+    /// viewer (`pip install rerun-sdk`, then `rerun FILE.rrd`): per frame the coloured point
+    /// cloud, the source camera with its image, the novel trajectories as camera frusta and their
+    /// co-visibility masks.
+    View(ViewArgs),
     /// Render a sequence from a novel camera path: the inference-time conditioning
     /// (render.mp4, frames/%05d.png and holes/%05d.png, 255 = hole).
     Render(RenderArgs),
@@ -175,6 +180,31 @@ struct CheckArgs {
     /// frame_gaps, pixel_stride, jump_factor), as the [check] table of a corpus TOML.
     #[arg(long)]
     config: Option<PathBuf>,
+}
+
+#[derive(Debug, Args)]
+struct ViewArgs {
+    /// The sequence folder.
+    seq_dir: PathBuf,
+    /// Layout of the folder [default: detected from its files].
+    #[arg(long, value_parser = parse_layout)]
+    layout: Option<LayoutName>,
+    /// A shard of pairs made from this sequence (`datagen pairs`): its novel trajectories and
+    /// co-visibility masks go into the recording.
+    #[arg(long)]
+    pairs: Option<PathBuf>,
+    /// The recording to write (.rrd).
+    #[arg(long)]
+    out: PathBuf,
+    /// Python interpreter with rerun-sdk installed.
+    #[arg(long, default_value = "python3")]
+    python: PathBuf,
+    /// The script writing the recording [default: scripts/rerun_view.py of this source tree].
+    #[arg(long)]
+    script: Option<PathBuf>,
+    /// Every N-th pixel in x and y becomes a point of the cloud.
+    #[arg(long, default_value_t = datagen::inspect::view::DEFAULT_POINT_STRIDE)]
+    point_stride: u32,
 }
 
 #[derive(Debug, Args)]
@@ -350,6 +380,25 @@ fn check(args: CheckArgs) -> anyhow::Result<()> {
     } else {
         print!("{}", report.to_text());
     }
+    Ok(())
+}
+
+fn view(args: ViewArgs) -> anyhow::Result<()> {
+    let sequence = datagen::io::sequence::read_sequence_as(&args.seq_dir, args.layout)?;
+    let options = datagen::inspect::view::ViewOptions {
+        python: args.python,
+        script: args.script.unwrap_or_else(|| PathBuf::from(datagen::inspect::view::DEFAULT_SCRIPT)),
+        point_stride: args.point_stride,
+    };
+    let summary = datagen::inspect::view::write_recording(&sequence, args.pairs.as_deref(), &args.out, &options)?;
+    println!(
+        "wrote {} ({} frames, {} points, {} novel trajectories); open it with `rerun {}`",
+        args.out.display(),
+        summary.frames,
+        summary.points,
+        summary.trajectories,
+        args.out.display()
+    );
     Ok(())
 }
 
@@ -677,6 +726,7 @@ fn main() -> ExitCode {
         Command::Synth(args) => synth(args),
         Command::Pairs(args) => pairs(args),
         Command::Check(args) => check(args),
+        Command::View(args) => view(args),
         Command::Render(args) => render(args),
         Command::Inspect(args) => inspect(args),
         Command::Build(args) => build(args),

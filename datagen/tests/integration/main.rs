@@ -22,3 +22,4 @@ mod synth;
 mod tool_layouts;
 mod trajectory_bank;
 mod validate;
+mod view;

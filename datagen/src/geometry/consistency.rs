@@ -310,6 +310,11 @@ fn consistency_pairs(sequence: &Sequence, poses: &[DMat4], config: &CheckConfig)
     jobs.into_par_iter().map(|(from, to)| pair_consistency(sequence, poses, from, to, config)).collect()
 }
 
+/// Valid depth: finite and positive (docs/ARCHITECTURE.md, Conventions).
+fn is_valid_depth(depth: f64) -> bool {
+    depth.is_finite() && depth > 0.0
+}
+
 fn is_static(sequence: &Sequence, frame: usize, index: usize) -> bool {
     sequence.dynamic_masks.as_ref().is_none_or(|masks| masks[frame].as_raw()[index] == 0)
 }
@@ -334,12 +339,12 @@ fn pair_consistency(
         for u in (0..width).step_by(stride) {
             let index = v * width + u;
             let d = depth_from[index];
-            if !(d.is_finite() && d > 0.0) || !is_static(sequence, from, index) {
+            if !is_valid_depth(f64::from(d)) || !is_static(sequence, from, index) {
                 continue;
             }
             let point = source.unproject(u as f64, v as f64, f64::from(d));
             let in_target: DVec3 = target_from_world.transform_point3(point);
-            if !(in_target.z > 0.0) {
+            if in_target.z.is_nan() || in_target.z <= 0.0 {
                 continue;
             }
             let exact = pixel_of(&target_k, in_target);
@@ -363,7 +368,7 @@ fn pair_consistency(
             for (x, y) in neighbours {
                 let target_index = y * width + x;
                 let seen = f64::from(depth_to[target_index]);
-                if !(seen.is_finite() && seen > 0.0) || !is_static(sequence, to, target_index) {
+                if !is_valid_depth(seen) || !is_static(sequence, to, target_index) {
                     continue;
                 }
                 any_valid = true;
@@ -411,7 +416,7 @@ fn camera_path(sequence: &Sequence, median_depth: f64, config: &CheckConfig) -> 
         length,
         length_in_median_depths: if median_depth > 0.0 { length / median_depth } else { 0.0 },
         mean_step,
-        speed_per_second: (sequence.fps > 0.0).then(|| mean_step * sequence.fps),
+        speed_per_second: (sequence.fps > 0.0).then_some(mean_step * sequence.fps),
         max_step: sorted.last().copied().unwrap_or(0.0),
         rotation_deg,
         jumps,

@@ -141,9 +141,12 @@ fn check_camera_types(path: &Path) -> Result<()> {
     Ok(())
 }
 
+/// A depth map's width and height.
+type MapSize = (usize, usize);
+
 /// The per-frame EXR maps of a ViPE depth zip, in frame order: members must be `00000.exr`,
 /// `00001.exr`, ... (one per frame, none missing) and all of one size.
-fn read_depth_zip(path: &Path, frames: usize) -> Result<((usize, usize), Vec<Vec<f32>>)> {
+fn read_depth_zip(path: &Path, frames: usize) -> Result<(MapSize, Vec<Vec<f32>>)> {
     let file = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
     let mut archive = zip::ZipArchive::new(std::io::BufReader::new(file))
         .map_err(|e| Error::invalid(path, "zip", format!("not a readable zip archive: {e}")))?;

@@ -330,6 +330,33 @@ fn vggt_predictions_read_to_the_scene() {
     let seq = write_vggt(&truth, &dir.path().join("vggt"));
     // float32 extrinsics inverted in f64: ~1e-6 of the scene's few-unit translations.
     truth.assert_read(&seq, None, 1e-6, true);
+
+    // Depth whose confidence is below the median is masked: every third pixel here.
+    let (n, h, w) = (truth.n() as u64, truth.height as u64, truth.width as u64);
+    let plane = (h * w) as usize;
+    let conf: Vec<f32> = (0..n as usize * plane).map(|i| if (i % plane) % 3 == 0 { 1.0 } else { 3.0 }).collect();
+    let mut archive = datagen::io::npy::NpzReader::open(&seq.join("predictions.npz")).unwrap();
+    let read_member = |archive: &mut datagen::io::npy::NpzReader, name: &str| {
+        archive.read_f32(name, &[datagen::io::npy::Axis::Any; 4])
+    };
+    let extrinsic = archive.read_f32("extrinsic", &[datagen::io::npy::Axis::Any; 3]).unwrap().data;
+    let intrinsic = archive.read_f32("intrinsic", &[datagen::io::npy::Axis::Any; 3]).unwrap().data;
+    let depth = read_member(&mut archive, "depth").unwrap().data;
+    let images = read_member(&mut archive, "images").unwrap().data;
+    write_npz(
+        &seq.join("predictions.npz"),
+        vec![
+            ("extrinsic", vec![n, 3, 4], Values::F32(extrinsic)),
+            ("intrinsic", vec![n, 3, 3], Values::F32(intrinsic)),
+            ("depth", vec![n, h, w, 1], Values::F32(depth)),
+            ("depth_conf", vec![n, h, w], Values::F32(conf)),
+            ("images", vec![n, 3, h, w], Values::F32(images)),
+        ],
+    );
+    let read = read_sequence(&seq).unwrap();
+    for (i, value) in read.depth[2].values.iter().enumerate() {
+        assert_eq!(value.is_nan(), i % 3 == 0, "pixel {i}: {value}");
+    }
 }
 
 #[test]
@@ -339,10 +366,14 @@ fn gen3c_archive_reads_to_the_scene() {
     let seq = write_gen3c(&truth, &dir.path().join("gen3c"));
     // float16 depth: 2^-11 relative.
     truth.assert_read(&seq, Some(LayoutName::Gen3c), 1e-3, false);
+    // mask.npz false (here every 7th pixel) is invalid depth, true keeps it.
+    let (n, h, w) = (truth.n() as u64, truth.height as u64, truth.width as u64);
+    let mask: Vec<bool> = (0..n * h * w).map(|i| i % 7 != 0).collect();
+    write_npz(&seq.join("mask.npz"), vec![("mask", vec![n, h, w], Values::Bool(mask))]);
     let read = read_sequence(&seq).unwrap();
-    let no_surface = truth.depth[0].iter().position(|&d| d <= 0.0);
-    if let Some(i) = no_surface {
-        assert!(!(read.depth[0].values[i] > 0.0), "mask.npz false is invalid depth");
+    for (i, value) in read.depth[1].values.iter().enumerate() {
+        let flat = (h * w) as usize + i;
+        assert_eq!(value.is_nan(), flat % 7 == 0, "pixel {i}: {value}");
     }
 }
 

@@ -89,6 +89,9 @@ struct CollectArgs {
     /// [pairs.clip], R from its [pairs.trajectory] pivot_scale.
     #[arg(long, conflicts_with = "seq_dir")]
     config: Option<PathBuf>,
+    /// For a sequence folder: its layout [default: detected from its files].
+    #[arg(long, value_parser = parse_layout, requires = "seq_dir")]
+    layout: Option<LayoutName>,
     /// For a sequence folder: TOML with [clip] and [trajectory] (as for `datagen pairs`).
     #[arg(long, requires = "seq_dir")]
     pairs_config: Option<PathBuf>,
@@ -475,7 +478,7 @@ fn trajectories(command: TrajectoriesCommand) -> anyhow::Result<()> {
                         Some(path) => PairsConfig::from_toml_file(path)?,
                         None => PairsConfig::default(),
                     };
-                    let sequence = datagen::io::sequence::read_sequence(seq_dir)?;
+                    let sequence = datagen::io::sequence::read_sequence_as(seq_dir, args.layout)?;
                     let mut summary = datagen::pairs::trajectory_bank::CollectSummary::default();
                     datagen::pairs::trajectory_bank::collect_from_sequence(
                         &sequence,

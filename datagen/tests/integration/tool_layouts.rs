@@ -334,7 +334,8 @@ fn vggt_predictions_read_to_the_scene() {
     // Depth whose confidence is below the median is masked: every third pixel here.
     let (n, h, w) = (truth.n() as u64, truth.height as u64, truth.width as u64);
     let plane = (h * w) as usize;
-    let conf: Vec<f32> = (0..n as usize * plane).map(|i| if (i % plane) % 3 == 0 { 1.0 } else { 3.0 }).collect();
+    let conf: Vec<f32> =
+        (0..n as usize * plane).map(|i| if (i % plane).is_multiple_of(3) { 1.0 } else { 3.0 }).collect();
     let mut archive = datagen::io::npy::NpzReader::open(&seq.join("predictions.npz")).unwrap();
     let read_member = |archive: &mut datagen::io::npy::NpzReader, name: &str| {
         archive.read_f32(name, &[datagen::io::npy::Axis::Any; 4])
@@ -355,7 +356,7 @@ fn vggt_predictions_read_to_the_scene() {
     );
     let read = read_sequence(&seq).unwrap();
     for (i, value) in read.depth[2].values.iter().enumerate() {
-        assert_eq!(value.is_nan(), i % 3 == 0, "pixel {i}: {value}");
+        assert_eq!(value.is_nan(), i.is_multiple_of(3), "pixel {i}: {value}");
     }
 }
 
@@ -368,12 +369,12 @@ fn gen3c_archive_reads_to_the_scene() {
     truth.assert_read(&seq, Some(LayoutName::Gen3c), 1e-3, false);
     // mask.npz false (here every 7th pixel) is invalid depth, true keeps it.
     let (n, h, w) = (truth.n() as u64, truth.height as u64, truth.width as u64);
-    let mask: Vec<bool> = (0..n * h * w).map(|i| i % 7 != 0).collect();
+    let mask: Vec<bool> = (0..n * h * w).map(|i| !i.is_multiple_of(7)).collect();
     write_npz(&seq.join("mask.npz"), vec![("mask", vec![n, h, w], Values::Bool(mask))]);
     let read = read_sequence(&seq).unwrap();
     for (i, value) in read.depth[1].values.iter().enumerate() {
         let flat = (h * w) as usize + i;
-        assert_eq!(value.is_nan(), flat % 7 == 0, "pixel {i}: {value}");
+        assert_eq!(value.is_nan(), flat.is_multiple_of(7), "pixel {i}: {value}");
     }
 }
 

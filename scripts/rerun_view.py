@@ -29,6 +29,8 @@ from PIL import Image
 
 # Pixel centres: integers here, half-integers in Rerun's image space.
 PIXEL_CENTRE_OFFSET = 0.5
+# RGBA of co-visible pixels in the mask overlay: green, half transparent.
+COVISIBLE_TINT = (0, 200, 0, 128)
 
 
 def pinhole(k_row_major, width, height):
@@ -49,6 +51,12 @@ def main(parts: Path, out: Path) -> None:
     recording = rr.RecordingStream(f"datagen view {view['source_id']}")
     recording.save(str(out))
     recording.log("world", rr.ViewCoordinates.RDF, static=True)
+    # Hidden pixels (0) stay see-through; co-visible ones (1) are tinted over the source image.
+    recording.log(
+        "world/source/covisibility",
+        rr.AnnotationContext([(0, "hidden", (0, 0, 0, 0)), (1, "co-visible", COVISIBLE_TINT)]),
+        static=True,
+    )
     for i in range(view["frames"]):
         recording.set_time("frame", sequence=i)
         points = np.load(parts / f"points_{i:05d}.npy")

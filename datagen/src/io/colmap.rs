@@ -478,7 +478,7 @@ fn parse_images_bin(path: &Path) -> Result<BTreeMap<String, ColmapImage>> {
         let name = String::from_utf8(rest[..end].to_vec())
             .map_err(|_| Error::invalid(path, field.as_str(), "name is not UTF-8"))?;
         cursor.at += end + 1;
-        let points = cursor.count(&format!("{name}: num_points2D"), POINT2D_BYTES)?;
+        let points = cursor.count(&format!("{field} ({name}): num_points2D"), POINT2D_BYTES)?;
         cursor.take((points * POINT2D_BYTES) as usize, &field)?;
         if images.insert(name.clone(), ColmapImage { camera_id: i64::from(camera_id), qvec: q, tvec: t }).is_some() {
             return Err(Error::invalid(path, field, format!("image name {name} registered twice")));
@@ -558,4 +558,66 @@ fn parse_images_txt(path: &Path) -> Result<BTreeMap<String, ColmapImage>> {
         rows.next();
     }
     Ok(images)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_lying_record_count_is_refused_before_allocation() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("cameras.bin");
+        std::fs::write(&path, u64::MAX.to_le_bytes()).unwrap();
+        let error = parse_cameras_bin(&path).unwrap_err().to_string();
+        assert!(
+            error.contains("cameras.bin") && error.contains("num_cameras") && error.contains("declares"),
+            "{error}"
+        );
+    }
+
+    #[test]
+    fn a_truncated_image_record_names_the_record() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("images.bin");
+        let mut bytes = 1u64.to_le_bytes().to_vec();
+        bytes.extend(1i32.to_le_bytes());
+        bytes.extend([0u8; 7 * 8 + 4]);
+        bytes.extend(b"a.png-no-terminator");
+        std::fs::write(&path, &bytes).unwrap();
+        let error = parse_images_bin(&path).unwrap_err().to_string();
+        assert!(error.contains("images.bin") && error.contains("image[0]") && error.contains("NUL"), "{error}");
+    }
+
+    #[test]
+    fn depth_map_headers_and_sizes_are_checked() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("a.png.geometric.bin");
+        let mut bytes = b"2&2&1&".to_vec();
+        bytes.extend([1.0f32, 2.0, 3.0, 4.0].iter().flat_map(|v| v.to_le_bytes()));
+        std::fs::write(&path, &bytes).unwrap();
+        assert_eq!(read_depth_map(&path).unwrap(), (2, 2, vec![1.0, 2.0, 3.0, 4.0]));
+        std::fs::write(&path, &bytes[..bytes.len() - 4]).unwrap();
+        assert!(read_depth_map(&path).unwrap_err().to_string().contains("12 bytes after the header"));
+        std::fs::write(&path, b"2&2&3&").unwrap();
+        assert!(read_depth_map(&path).unwrap_err().to_string().contains("3 channels"));
+        std::fs::write(&path, b"99999&2&1&").unwrap();
+        assert!(read_depth_map(&path).unwrap_err().to_string().contains("outside"));
+        std::fs::write(&path, b"no header").unwrap();
+        assert!(read_depth_map(&path).unwrap_err().to_string().contains("width&height&channels&"));
+    }
+
+    #[test]
+    fn zero_distortion_is_a_pinhole_and_principal_points_move_to_integer_centres() {
+        let camera =
+            |model: &str, params: Vec<f64>| ColmapCamera { model: model.into(), width: 64, height: 48, params };
+        let path = Path::new("cameras.txt");
+        let k = pinhole_k(path, "camera 1", &camera("SIMPLE_RADIAL", vec![50.0, 32.0, 24.0, 0.0])).unwrap();
+        assert_eq!(k, [50.0, 0.0, 31.5, 0.0, 50.0, 23.5, 0.0, 0.0, 1.0]);
+        let k =
+            pinhole_k(path, "camera 1", &camera("OPENCV", vec![50.0, 60.0, 32.0, 24.0, 0.0, 0.0, 0.0, 0.0])).unwrap();
+        assert_eq!((k[0], k[4]), (50.0, 60.0));
+        let error = pinhole_k(path, "camera 1", &camera("RADIAL", vec![50.0, 32.0, 24.0, 0.0, 0.01])).unwrap_err();
+        assert!(error.to_string().contains("RADIAL has distortion"), "{error}");
+    }
 }

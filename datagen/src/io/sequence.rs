@@ -335,6 +335,9 @@ const EXPECTED_LAYOUTS: &str = "expected gt_rgb.mp4 + cam_info/ (cog-nvs), *_sgd
 /// Detects the layout of `dir` from its files; a folder matching none or several is an error
 /// saying what was expected or listing what was found.
 pub fn detect_layout(dir: &Path) -> Result<Layout> {
+    if let Some(artifact) = crate::io::vipe::vipe_artifact_of_file(dir) {
+        return Ok(Layout::Vipe(artifact));
+    }
     if !dir.is_dir() {
         return Err(Error::io(dir, std::io::Error::new(std::io::ErrorKind::NotFound, "sequence folder not found")));
     }
@@ -356,6 +359,11 @@ pub fn detect_layout(dir: &Path) -> Result<Layout> {
 /// The layout `name` of `dir`, when the user names it: its files must be there (a ViPE output
 /// folder with several videos, or several depth-only archives, is still ambiguous).
 pub fn layout_named(dir: &Path, name: LayoutName) -> Result<Layout> {
+    if name == LayoutName::Vipe
+        && let Some(artifact) = crate::io::vipe::vipe_artifact_of_file(dir)
+    {
+        return Ok(Layout::Vipe(artifact));
+    }
     if !dir.is_dir() {
         return Err(Error::io(dir, std::io::Error::new(std::io::ErrorKind::NotFound, "sequence folder not found")));
     }
@@ -464,6 +472,11 @@ pub fn read_sequence_as(dir: &Path, layout: Option<LayoutName>) -> Result<Sequen
         Some(name) => layout_named(dir, name)?,
         None => detect_layout(dir)?,
     };
+    // A ViPE output folder holds its videos by name: the video's name is the sequence's id.
+    let source_id = match &layout {
+        Layout::Vipe(artifact) => artifact.name.clone(),
+        _ => dir.file_name().unwrap_or_default().to_string_lossy().into_owned(),
+    };
     let (fps, frames, depth_arrays, cameras) = match layout {
         Layout::CogNvs => read_cog_nvs(dir)?,
         Layout::MegaSam(npz) => read_megasam(&npz)?,
@@ -474,7 +487,6 @@ pub fn read_sequence_as(dir: &Path, layout: Option<LayoutName>) -> Result<Sequen
         Layout::Gen3c => assemble_tool(crate::io::gen3c::read_gen3c(dir)?)?,
         Layout::DepthOnly(path) => read_depth_only_folder(dir, &path)?,
     };
-    let source_id = dir.file_name().unwrap_or_default().to_string_lossy().into_owned();
     let dynamic_masks = read_masks(dir, &frames)?;
     Ok(Sequence {
         source_id,
@@ -539,7 +551,9 @@ pub fn read_with_frames(
     frames: Vec<RgbImage>,
     frames_path: &Path,
 ) -> Result<Sequence> {
-    let parts = if reconstruction.is_file() {
+    let parts = if let Some(artifact) = crate::io::vipe::vipe_artifact_of_file(reconstruction) {
+        tool_reconstruction(crate::io::vipe::read_vipe_reconstruction(&artifact)?).1
+    } else if reconstruction.is_file() {
         megasam_reconstruction(reconstruction, false)?.1
     } else {
         match detect_layout(reconstruction)? {

@@ -10,7 +10,8 @@
 //! - `depth/NAME.zip`: one OpenEXR per frame, `FFFFF.exr`, channel `Z` (half float): metric
 //!   z-depth in metres.
 //!
-//! Every frame must have its pose, intrinsics and depth (`inds` = 0, 1, ..., N − 1): a frame
+//! A folder with several videos is read one video at a time, named by its `pose/NAME.npz` or
+//! `rgb/NAME.mp4` ([`vipe_artifact_of_file`]). Every frame must have its pose, intrinsics and depth (`inds` = 0, 1, ..., N − 1): a frame
 //! ViPE skipped is an error, never given an invented pose. Not read: `mask/NAME.zip` (instance
 //! masks), `flow/`, `vipe/NAME_info.pkl` (a pickle), the visualisations.
 
@@ -53,6 +54,21 @@ pub fn vipe_artifacts(root: &Path) -> Result<Vec<VipeArtifact>> {
         .collect();
     names.sort();
     Ok(names.into_iter().map(|name| VipeArtifact { root: root.to_owned(), name }).collect())
+}
+
+/// The artifact a file of ViPE's output names (`ROOT/pose/NAME.npz` or `ROOT/rgb/NAME.mp4`): how
+/// one video of an output folder holding several is chosen.
+pub fn vipe_artifact_of_file(path: &Path) -> Option<VipeArtifact> {
+    let folder = path.parent()?;
+    let kind = folder.file_name()?.to_str()?;
+    let extension = path.extension()?.to_str()?;
+    if !matches!((kind, extension), ("pose", "npz") | ("rgb", "mp4")) {
+        return None;
+    }
+    let root = folder.parent()?;
+    let name = path.file_stem()?.to_str()?.to_owned();
+    (root.join("pose").is_dir() && root.join("intrinsics").is_dir())
+        .then(|| VipeArtifact { root: root.to_owned(), name })
 }
 
 /// Reads the artifact, decoding `rgb/NAME.mp4`.

@@ -384,6 +384,21 @@ fn vipe_output_reads_to_the_scene() {
     let dir = tempfile::tempdir().unwrap();
     let root = write_vipe(&truth, &dir.path().join("vipe_results"), "clip");
     truth.assert_read(&root, None, 1e-3, false);
+    assert_eq!(read_sequence(&root).unwrap().source_id, "clip", "the video's name, not the output folder's");
+
+    // A second video in the same output folder: detection lists both, naming one is still ambiguous.
+    write_vipe(&truth, &root, "other");
+    let error = error_of(&root, None);
+    assert!(
+        error.contains("pose/clip.npz") && error.contains("pose/other.npz") && error.contains("ambiguous"),
+        "{error}"
+    );
+    let error = error_of(&root, Some(LayoutName::Vipe));
+    assert!(error.contains("clip, other") && error.contains("one per folder"), "{error}");
+    // One video is named by its pose file (or its rgb/NAME.mp4).
+    truth.assert_read(&root.join("pose/other.npz"), None, 1e-3, false);
+    let read = read_sequence_as(&root.join("rgb/clip.mp4"), Some(LayoutName::Vipe)).unwrap();
+    assert_eq!(read.source_id, "clip");
 }
 
 #[test]

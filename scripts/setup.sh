@@ -38,14 +38,15 @@ APT_PACKAGES=(
 # nvidia-cuda-cccl: headers only (crt/, cuda/std), which the NCCL half of the c10d shim needs
 # beside the CUDA runtime and NCCL headers the torch wheel already pulls in (same CUDA 13.0);
 # transformers + sentencepiece: scripts/encode_prompt.py (T5 text embeddings) and its reference;
-# opencv-python-headless: reference resizes of the public CogNVS demo (cv2.INTER_AREA/LINEAR).
+# opencv-python-headless: reference resizes of the public CogNVS demo (cv2.INTER_AREA/LINEAR);
+# rerun-sdk: scripts/rerun_view.py writes `datagen view`'s .rrd recordings, and the test opens them.
 PY_PACKAGES=(
   "torch==${TORCH_VERSION}" "diffusers>=0.35" "safetensors>=0.4"
   "numpy>=1.26" "pyarrow>=17" "duckdb>=1.1" "datasets>=3" "pillow>=10" "pycocotools>=2"
   "scikit-image>=0.22" "peft>=0.15"
   "torchvision==0.28.0" "lpips==0.1.4" "clean-fid==0.1.35" "tensorboard>=2.16"
   "nvidia-cuda-nvcc==13.0.88" "nvidia-cuda-cccl==13.0.85"
-  "transformers>=4.44" "sentencepiece>=0.2" "opencv-python-headless>=4.8"
+  "transformers>=4.44" "sentencepiece>=0.2" "opencv-python-headless>=4.8" "rerun-sdk>=0.41"
 )
 
 step "Debian packages: ${APT_PACKAGES[*]}"

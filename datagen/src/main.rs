@@ -7,6 +7,7 @@ use clap::{Args, Parser, Subcommand};
 use datagen::config_file::Validate;
 use datagen::corpus::build::{BuildConfig, Progress};
 use datagen::corpus::partition::Worker;
+use datagen::io::sequence::LayoutName;
 use datagen::pairs::generator::PairsConfig;
 use datagen::synth::{SynthConfig, write_sequence};
 use schemas::InputStatus;
@@ -32,9 +33,19 @@ enum Command {
     /// Generate a synthetic dynamic scene (ray traced, exact ground truth) as a sequence folder in
     /// the cog-nvs layout: gt_rgb.mp4, cam_info/megasam_*.npy, masks/, plus a contact sheet.
     Synth(SynthArgs),
-    /// Turn one sequence folder (cog-nvs, MegaSAM npz or generic layout) into training pairs:
+    /// Turn one sequence folder (cog-nvs, MegaSAM npz, generic, or a ViPE, VGGT, COLMAP, GEN3C or
+    /// depth-only tool's output) into training pairs:
     /// one finished shard holding each clip once and one entry per trajectory.
     Pairs(PairsArgs),
+    /// Check a reconstruction before spending GPU hours on it: the convention and units, the
+    /// camera path (length, speed, jumps), the valid-depth share and the multi-frame consistency
+    /// of static geometry, with a verdict `ok` or `suspect` and the reasons.
+    Check(CheckArgs),
+    /// Write a sequence (and the pairs of a shard made from it) as a recording for the Rerun
+    /// viewer (`pip install rerun-sdk`, then `rerun FILE.rrd`): per frame the coloured point
+    /// cloud, the source camera with its image, the novel trajectories as camera frusta and their
+    /// co-visibility masks.
+    View(ViewArgs),
     /// Render a sequence from a novel camera path: the inference-time conditioning
     /// (render.mp4, frames/%05d.png and holes/%05d.png, 255 = hole).
     Render(RenderArgs),
@@ -78,6 +89,9 @@ struct CollectArgs {
     /// [pairs.clip], R from its [pairs.trajectory] pivot_scale.
     #[arg(long, conflicts_with = "seq_dir")]
     config: Option<PathBuf>,
+    /// For a sequence folder: its layout [default: detected from its files].
+    #[arg(long, value_parser = parse_layout, requires = "seq_dir")]
+    layout: Option<LayoutName>,
     /// For a sequence folder: TOML with [clip] and [trajectory] (as for `datagen pairs`).
     #[arg(long, requires = "seq_dir")]
     pairs_config: Option<PathBuf>,
@@ -119,6 +133,10 @@ struct SynthCorpusArgs {
 struct PairsArgs {
     /// The sequence folder.
     seq_dir: PathBuf,
+    /// Layout of the folder (cog-nvs, megasam, generic, vipe, vggt, colmap, gen3c, depth-only)
+    /// [default: detected from its files; a folder matching several is an error listing them].
+    #[arg(long, value_parser = parse_layout)]
+    layout: Option<LayoutName>,
     /// Output folder; the shard is written as <OUT>/<sequence name>.parquet.
     #[arg(long)]
     out: PathBuf,
@@ -152,9 +170,54 @@ struct PairsArgs {
 }
 
 #[derive(Debug, Args)]
+struct CheckArgs {
+    /// The sequence folder.
+    seq_dir: PathBuf,
+    /// Layout of the folder [default: detected from its files].
+    #[arg(long, value_parser = parse_layout)]
+    layout: Option<LayoutName>,
+    /// Print the report as JSON (verdict, reasons, static_depth_consistency, per-pair shares, ...).
+    #[arg(long)]
+    json: bool,
+    /// TOML with the check's settings (depth_tolerance, min_consistency, min_valid_depth_share,
+    /// frame_gaps, pixel_stride, jump_factor), as the [check] table of a corpus TOML.
+    #[arg(long)]
+    config: Option<PathBuf>,
+}
+
+#[derive(Debug, Args)]
+struct ViewArgs {
+    /// The sequence folder.
+    seq_dir: PathBuf,
+    /// Layout of the folder [default: detected from its files].
+    #[arg(long, value_parser = parse_layout)]
+    layout: Option<LayoutName>,
+    /// A shard of pairs made from this sequence (`datagen pairs`): its novel trajectories and
+    /// co-visibility masks go into the recording.
+    #[arg(long)]
+    pairs: Option<PathBuf>,
+    /// The recording to write (.rrd).
+    #[arg(long)]
+    out: PathBuf,
+    /// Python interpreter with rerun-sdk installed.
+    #[arg(long, default_value = "python3")]
+    python: PathBuf,
+    /// The script writing the recording [default: scripts/rerun_view.py of this source tree].
+    #[arg(long)]
+    script: Option<PathBuf>,
+    /// Every N-th pixel in x and y becomes a point of the cloud.
+    #[arg(long, default_value_t = datagen::inspect::view::DEFAULT_POINT_STRIDE)]
+    point_stride: u32,
+}
+
+#[derive(Debug, Args)]
 struct RenderArgs {
     /// The sequence folder.
     seq_dir: PathBuf,
+    /// Layout of the folder (cog-nvs, megasam, generic, vipe, vggt, colmap, gen3c, depth-only)
+    /// [default: detected from its files; a folder matching several is an error listing them].
+    #[arg(long, value_parser = parse_layout)]
+    layout: Option<LayoutName>,
     /// The novel camera path (.npy, .json or trajs/*.txt).
     #[arg(long)]
     trajectory: PathBuf,
@@ -233,6 +296,10 @@ struct ValidateArgs {
     deep: bool,
 }
 
+fn parse_layout(name: &str) -> Result<LayoutName, String> {
+    name.parse()
+}
+
 fn pairs(args: PairsArgs) -> anyhow::Result<()> {
     let mut config = match &args.config {
         Some(path) => PairsConfig::from_toml_file(path)?,
@@ -242,7 +309,7 @@ fn pairs(args: PairsArgs) -> anyhow::Result<()> {
     let started = std::time::Instant::now();
     // The input's content hash (for the stats marker) is taken while the sequence is read.
     let (sequence, content_hash) = rayon::join(
-        || datagen::io::sequence::read_sequence(&args.seq_dir),
+        || datagen::io::sequence::read_sequence_as(&args.seq_dir, args.layout),
         || datagen::corpus::build::hash_tree(&args.seq_dir),
     );
     let mut sequence = sequence?;
@@ -305,12 +372,45 @@ fn pairs(args: PairsArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+fn check(args: CheckArgs) -> anyhow::Result<()> {
+    let config = match &args.config {
+        Some(path) => datagen::config_file::load_toml(path)?,
+        None => datagen::geometry::consistency::CheckConfig::default(),
+    };
+    let report = datagen::geometry::consistency::check_folder(&args.seq_dir, args.layout, &config)?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        print!("{}", report.to_text());
+    }
+    Ok(())
+}
+
+fn view(args: ViewArgs) -> anyhow::Result<()> {
+    let sequence = datagen::io::sequence::read_sequence_as(&args.seq_dir, args.layout)?;
+    let options = datagen::inspect::view::ViewOptions {
+        python: args.python,
+        script: args.script.unwrap_or_else(|| PathBuf::from(datagen::inspect::view::DEFAULT_SCRIPT)),
+        point_stride: args.point_stride,
+    };
+    let summary = datagen::inspect::view::write_recording(&sequence, args.pairs.as_deref(), &args.out, &options)?;
+    println!(
+        "wrote {} ({} frames, {} points, {} novel trajectories); open it with `rerun {}`",
+        args.out.display(),
+        summary.frames,
+        summary.points,
+        summary.trajectories,
+        args.out.display()
+    );
+    Ok(())
+}
+
 fn render(args: RenderArgs) -> anyhow::Result<()> {
     let config = match &args.config {
         Some(path) => PairsConfig::from_toml_file(path)?,
         None => PairsConfig::default(),
     };
-    let sequence = datagen::io::sequence::read_sequence(&args.seq_dir)?;
+    let sequence = datagen::io::sequence::read_sequence_as(&args.seq_dir, args.layout)?;
     let summary = datagen::pairs::generator::render_sequence(
         &sequence,
         &args.trajectory,
@@ -378,7 +478,7 @@ fn trajectories(command: TrajectoriesCommand) -> anyhow::Result<()> {
                         Some(path) => PairsConfig::from_toml_file(path)?,
                         None => PairsConfig::default(),
                     };
-                    let sequence = datagen::io::sequence::read_sequence(seq_dir)?;
+                    let sequence = datagen::io::sequence::read_sequence_as(seq_dir, args.layout)?;
                     let mut summary = datagen::pairs::trajectory_bank::CollectSummary::default();
                     datagen::pairs::trajectory_bank::collect_from_sequence(
                         &sequence,
@@ -648,6 +748,8 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Synth(args) => synth(args),
         Command::Pairs(args) => pairs(args),
+        Command::Check(args) => check(args),
+        Command::View(args) => view(args),
         Command::Render(args) => render(args),
         Command::Inspect(args) => inspect(args),
         Command::Build(args) => build(args),

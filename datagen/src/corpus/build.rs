@@ -87,6 +87,9 @@ pub struct BuildConfig {
     /// Clip windows, trajectory ranges, occlusion test (every field checked at load).
     #[serde(default)]
     pub pairs: crate::pairs::generator::PairsConfig,
+    /// The reconstruction filter: inputs below a static depth consistency are skipped.
+    #[serde(default)]
+    pub check: super::quality::BuildCheckConfig,
 }
 
 fn default_trajectories() -> u32 {
@@ -111,7 +114,8 @@ impl Validate for BuildConfig {
         }
         self.output.validate().map_err(|e| e.under("output"))?;
         check_count("trajectories", self.trajectories, 1, crate::pairs::generator::MAX_TRAJECTORIES.into())?;
-        self.pairs.validate().map_err(|e| e.under("pairs"))
+        self.pairs.validate().map_err(|e| e.under("pairs"))?;
+        self.check.validate().map_err(|e| e.under("check"))
     }
 }
 

@@ -523,10 +523,11 @@ fn tao_frame_folders(source: &SourceConfig, split: &str) -> Result<Vec<VideoEntr
     Ok(entries)
 }
 
-/// Whether `dir` looks like a sequence folder in the cog-nvs, MegaSAM or generic layout
-/// ([`crate::io::sequence`]).
+/// Whether `dir` looks like a sequence folder in the cog-nvs, MegaSAM or generic layout, or a
+/// reconstruction tool's output ([`crate::io::sequence`]).
 pub fn is_sequence_folder(dir: &Path) -> bool {
-    dir.join("gt_rgb.mp4").is_file()
+    crate::io::sequence::has_layout_files(dir)
+        || dir.join("gt_rgb.mp4").is_file()
         || dir.join("cam_info").is_dir()
         || (dir.join("frames").is_dir() && dir.join("depth").is_dir())
         || std::fs::read_dir(dir)

@@ -119,6 +119,11 @@ impl InputProcessor for SequenceProcessor<'_> {
             sequence.load_second_depth(&path)?;
         }
         let load_seconds = started.elapsed().as_secs_f64();
+        if let Some(reason) =
+            super::quality::filter(&self.config.check, &self.config.output.dir, &entry.key(), &sequence)?
+        {
+            return Ok(Outcome::Skipped(reason));
+        }
         let request = TrajectoryRequest { sampled: self.config.trajectories, explicit: Vec::new() };
         let (clips, phases) =
             generate_clips_timed(&sequence, entry.dataset.name(), &self.config.pairs, &request, self.config.seed)?;

@@ -409,6 +409,18 @@ pub fn write_report(dir: &Path, out: &Path, options: &ReportOptions) -> Result<R
             let _ = write!(html, "</table>");
         }
     }
+    let checks = crate::corpus::quality::read_scores(dir)?;
+    if !checks.is_empty() {
+        let d = Distribution::of(&checks);
+        let _ = write!(
+            html,
+            "</section><section id=\"checks\"><h2>Reconstruction checks</h2><p>{} inputs checked; static depth \
+             consistency mean {:.3}, q1 {:.3}, median {:.3}, q3 {:.3} (inputs below the build's \
+             min_static_depth_consistency are skipped and listed above)</p>",
+            d.count, d.mean, d.q1, d.median, d.q3
+        );
+        html.push_str(&svg_histogram("static depth consistency", "share", &[("inputs", &checks)]));
+    }
     let _ = write!(html, "</section><section id=\"histograms\"><h2>Distributions</h2><div class=\"histograms\">");
     for (name, unit, series) in values.series() {
         html.push_str(&svg_histogram(name, unit, &[("pairs", &series)]));

@@ -1,11 +1,19 @@
 //! Reading and writing the files a sequence is made of: NumPy arrays, depth as OpenEXR, video
 //! through FFmpeg, dataset annotations (run-length encoded masks, palette PNGs, boxes), and whole
-//! sequence folders in their three layouts, and synchronised multi-camera scenes made of them.
+//! sequence folders in their layouts, including the outputs of the reconstruction tools in use
+//! (ViPE, VGGT, COLMAP, GEN3C, depth-only tools), each converted at the door, and synchronised
+//! multi-camera scenes made of them.
 
 pub mod annotations;
+pub mod colmap;
 pub mod depth_exr;
+pub mod depth_only;
+pub mod gen3c;
 pub mod multiview;
 pub mod npy;
 pub mod rle;
 pub mod sequence;
+pub mod tool_output;
+pub mod vggt;
 pub mod video;
+pub mod vipe;

@@ -12,6 +12,13 @@
 //!   float channel), `cameras.json`: `{"intrinsics": K or [K per frame], "world_from_camera":
 //!   [4×4 per frame]}` with matrices as nested row lists or 9/16 row-major values.
 //!
+//! - the reconstruction tools' own outputs, read by their modules and converted at the door:
+//!   **ViPE** ([`super::vipe`]), **VGGT** ([`super::vggt`]), **COLMAP** ([`super::colmap`]), the
+//!   **GEN3C** per-video archive ([`super::gen3c`]) and **depth-only** tools (Video Depth
+//!   Anything, DepthCrafter: [`super::depth_only`], with `cameras.json` for the cameras).
+//!
+//! The layout is detected from the files ([`detect_layout`]) or named ([`LayoutName`], the
+//! `--layout` flag); a folder that matches several layouts is an error listing what was found.
 //! Optional `masks/*.png` (palette or greyscale ids: 0 static, >0 object, 255 void) in any layout.
 //! Every check failure names the file and the field.
 
@@ -25,6 +32,8 @@ use crate::error::{Error, Result};
 use crate::geometry::camera::{PinholeCamera, checked_intrinsics, checked_pose};
 use crate::io::depth_exr::DepthMap;
 use crate::io::npy::{Axis, NdArray, NpzReader, read_npy_f32_planes, read_npy_f64, read_npy_f64_shaped};
+use crate::io::tool_output::{ToolFrames, ToolOutput};
+use crate::io::vipe::VipeArtifact;
 
 /// Focal length in pixels (at the depth resolution) assumed when intrinsics are missing: the
 /// public cog-nvs code's fallback.
@@ -147,30 +156,261 @@ pub enum Layout {
     MegaSam(PathBuf),
     /// `frames/` or a video, `depth/*.exr`, `cameras.json`.
     Generic,
+    /// One video of ViPE's output folder.
+    Vipe(VipeArtifact),
+    /// VGGT's `predictions.npz`.
+    Vggt(PathBuf),
+    /// A COLMAP workspace: `images/`, `sparse/`, `stereo/depth_maps/`.
+    Colmap,
+    /// GEN3C's per-video archive: `rgb.mp4`, `depth.npz`, `mask.npz`, `camera.npz`.
+    Gen3c,
+    /// A depth-only tool's archive (this file) with `cameras.json` for the cameras.
+    DepthOnly(PathBuf),
 }
 
-/// Detects the layout of `dir`, or says what is missing.
+/// The layouts by the names the `--layout` flag takes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LayoutName {
+    /// `cog-nvs`
+    CogNvs,
+    /// `megasam`
+    MegaSam,
+    /// `generic`
+    Generic,
+    /// `vipe`
+    Vipe,
+    /// `vggt`
+    Vggt,
+    /// `colmap`
+    Colmap,
+    /// `gen3c`
+    Gen3c,
+    /// `depth-only`
+    DepthOnly,
+}
+
+impl LayoutName {
+    /// Every layout, in the order `--help` lists them.
+    pub const ALL: [Self; 8] = [
+        Self::CogNvs,
+        Self::MegaSam,
+        Self::Generic,
+        Self::Vipe,
+        Self::Vggt,
+        Self::Colmap,
+        Self::Gen3c,
+        Self::DepthOnly,
+    ];
+
+    /// The name as the flag spells it.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::CogNvs => "cog-nvs",
+            Self::MegaSam => "megasam",
+            Self::Generic => "generic",
+            Self::Vipe => "vipe",
+            Self::Vggt => "vggt",
+            Self::Colmap => "colmap",
+            Self::Gen3c => "gen3c",
+            Self::DepthOnly => "depth-only",
+        }
+    }
+}
+
+impl std::str::FromStr for LayoutName {
+    type Err = String;
+
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        Self::ALL.into_iter().find(|l| l.as_str() == s).ok_or_else(|| {
+            let names: Vec<&str> = Self::ALL.iter().map(|l| l.as_str()).collect();
+            format!("unknown layout `{s}`; one of: {}", names.join(", "))
+        })
+    }
+}
+
+impl Layout {
+    /// The layout's name.
+    pub fn name(&self) -> LayoutName {
+        match self {
+            Self::CogNvs => LayoutName::CogNvs,
+            Self::MegaSam(_) => LayoutName::MegaSam,
+            Self::Generic => LayoutName::Generic,
+            Self::Vipe(_) => LayoutName::Vipe,
+            Self::Vggt(_) => LayoutName::Vggt,
+            Self::Colmap => LayoutName::Colmap,
+            Self::Gen3c => LayoutName::Gen3c,
+            Self::DepthOnly(_) => LayoutName::DepthOnly,
+        }
+    }
+
+    /// What the layout's files declare and how they were converted: axes, pose direction, depth
+    /// kind and units, as `datagen check` reports them.
+    pub fn conventions(&self) -> &'static str {
+        match self {
+            Self::CogNvs | Self::MegaSam(_) => {
+                "OpenCV axes; poses world_from_camera (MegaSAM cam_c2w), read as is; z-depth in MegaSAM's units (not metric)"
+            }
+            Self::Generic => {
+                "OpenCV axes; poses world_from_camera (cameras.json), read as is; z-depth in the file's units"
+            }
+            Self::Vipe(_) => {
+                "OpenCV axes; poses world_from_camera (ViPE cam2world), read as is; K from [fx, fy, cx, cy]; metric z-depth (metres)"
+            }
+            Self::Vggt(_) => {
+                "OpenCV axes; extrinsic camera_from_world, inverted; z-depth in VGGT's normalised scene scale (not metric), masked below the median depth_conf"
+            }
+            Self::Colmap => {
+                "OpenCV axes; qvec/tvec camera_from_world, inverted; pixel centres moved by -0.5; z-depth in the SfM model's units (not metric)"
+            }
+            Self::Gen3c => {
+                "OpenCV axes; w2c camera_from_world, inverted; z-depth (near-metric), masked where mask.npz is false"
+            }
+            Self::DepthOnly(_) => {
+                "OpenCV axes; poses world_from_camera from cameras.json (another tool); z-depth as declared by depth_kind"
+            }
+        }
+    }
+}
+
+/// Whether the generic layout's files are in `dir`: `depth/*.exr`, or `cameras.json` with a
+/// `depth/` folder or without a depth-only tool's archive beside it.
+fn looks_generic(dir: &Path) -> Result<bool> {
+    let depth = dir.join("depth");
+    if depth.is_dir() && !with_extension(&depth, &["exr"])?.is_empty() {
+        return Ok(true);
+    }
+    Ok(dir.join("cameras.json").is_file()
+        && (depth.is_dir() || crate::io::depth_only::depth_only_files(dir)?.is_empty()))
+}
+
+/// Every layout whose files are in `dir`, with the evidence, for detection and its errors.
+fn layout_candidates(dir: &Path) -> Result<Vec<(Layout, String)>> {
+    let mut found = Vec::new();
+    // The three original layouts keep their order of precedence among themselves.
+    if dir.join("cam_info").is_dir() || dir.join("gt_rgb.mp4").is_file() {
+        found.push((Layout::CogNvs, "cog-nvs (gt_rgb.mp4 / cam_info/)".to_owned()));
+    } else if let Some(npz) = list(dir)?.into_iter().find(|p| p.to_string_lossy().ends_with("_sgd_cvd_hr.npz")) {
+        let evidence = format!("megasam ({})", npz.file_name().unwrap_or_default().to_string_lossy());
+        found.push((Layout::MegaSam(npz), evidence));
+    } else if looks_generic(dir)? {
+        found.push((Layout::Generic, "generic (depth/*.exr or cameras.json)".to_owned()));
+    }
+    let predictions = dir.join(crate::io::vggt::PREDICTIONS_FILE);
+    if predictions.is_file() {
+        found.push((Layout::Vggt(predictions), "vggt (predictions.npz)".to_owned()));
+    }
+    if dir.join(crate::io::gen3c::CAMERA_FILE).is_file() {
+        found.push((Layout::Gen3c, "gen3c (camera.npz)".to_owned()));
+    }
+    if dir.join("pose").is_dir() && dir.join("intrinsics").is_dir() {
+        for artifact in crate::io::vipe::vipe_artifacts(dir)? {
+            let evidence = format!("vipe (pose/{}.npz)", artifact.name);
+            found.push((Layout::Vipe(artifact), evidence));
+        }
+    }
+    if crate::io::colmap::sparse_model_dir(dir).is_some() {
+        found.push((Layout::Colmap, "colmap (sparse model)".to_owned()));
+    }
+    if dir.join("cameras.json").is_file() && !dir.join("depth").is_dir() {
+        for file in crate::io::depth_only::depth_only_files(dir)? {
+            let evidence =
+                format!("depth-only ({} + cameras.json)", file.file_name().unwrap_or_default().to_string_lossy());
+            found.push((Layout::DepthOnly(file), evidence));
+        }
+    }
+    Ok(found)
+}
+
+/// Whether `dir` holds the files of any layout (one or several: an ambiguous folder is still a
+/// sequence folder, whose reading then fails listing what was found).
+pub fn has_layout_files(dir: &Path) -> bool {
+    layout_candidates(dir).is_ok_and(|found| !found.is_empty())
+}
+
+/// What each layout needs, for the error on a folder that matches none.
+const EXPECTED_LAYOUTS: &str = "expected gt_rgb.mp4 + cam_info/ (cog-nvs), *_sgd_cvd_hr.npz (MegaSAM), frames/ + depth/ + cameras.json (generic), \
+     rgb/ + pose/ + intrinsics/ + depth/ (ViPE), predictions.npz (VGGT), images/ + sparse/ + stereo/depth_maps/ (COLMAP), \
+     rgb.mp4 + depth.npz + camera.npz (GEN3C) or a depth-only tool's .npz + cameras.json";
+
+/// Detects the layout of `dir` from its files; a folder matching none or several is an error
+/// saying what was expected or listing what was found.
 pub fn detect_layout(dir: &Path) -> Result<Layout> {
+    if let Some(artifact) = crate::io::vipe::vipe_artifact_of_file(dir) {
+        return Ok(Layout::Vipe(artifact));
+    }
     if !dir.is_dir() {
         return Err(Error::io(dir, std::io::Error::new(std::io::ErrorKind::NotFound, "sequence folder not found")));
     }
-    if dir.join("cam_info").is_dir() || dir.join("gt_rgb.mp4").is_file() {
-        return Ok(Layout::CogNvs);
+    let mut found = layout_candidates(dir)?;
+    match found.len() {
+        0 => Err(Error::invalid(dir, "layout", format!("not a sequence folder: {EXPECTED_LAYOUTS}"))),
+        1 => Ok(found.remove(0).0),
+        _ => {
+            let listed: Vec<String> = found.into_iter().map(|(_, evidence)| evidence).collect();
+            Err(Error::invalid(
+                dir,
+                "layout",
+                format!("ambiguous: the folder holds the files of {}; name one with --layout", listed.join(", ")),
+            ))
+        }
     }
-    let mut npz: Vec<PathBuf> =
-        list(dir)?.into_iter().filter(|p| p.to_string_lossy().ends_with("_sgd_cvd_hr.npz")).collect();
-    npz.sort();
-    if let Some(first) = npz.into_iter().next() {
-        return Ok(Layout::MegaSam(first));
+}
+
+/// The layout `name` of `dir`, when the user names it: its files must be there (a ViPE output
+/// folder with several videos, or several depth-only archives, is still ambiguous).
+pub fn layout_named(dir: &Path, name: LayoutName) -> Result<Layout> {
+    if name == LayoutName::Vipe
+        && let Some(artifact) = crate::io::vipe::vipe_artifact_of_file(dir)
+    {
+        return Ok(Layout::Vipe(artifact));
     }
-    if dir.join("depth").is_dir() || dir.join("cameras.json").is_file() {
-        return Ok(Layout::Generic);
+    if !dir.is_dir() {
+        return Err(Error::io(dir, std::io::Error::new(std::io::ErrorKind::NotFound, "sequence folder not found")));
     }
-    Err(Error::invalid(
-        dir,
-        "layout",
-        "not a sequence folder: expected gt_rgb.mp4 + cam_info/ (cog-nvs), *_sgd_cvd_hr.npz (MegaSAM) or frames/ + depth/ + cameras.json (generic)",
-    ))
+    let mut matching: Vec<(Layout, String)> = match name {
+        LayoutName::CogNvs => vec![(Layout::CogNvs, String::new())],
+        LayoutName::Generic => vec![(Layout::Generic, String::new())],
+        LayoutName::Colmap => vec![(Layout::Colmap, String::new())],
+        LayoutName::Gen3c => vec![(Layout::Gen3c, String::new())],
+        LayoutName::Vggt => vec![(Layout::Vggt(dir.join(crate::io::vggt::PREDICTIONS_FILE)), String::new())],
+        LayoutName::MegaSam => list(dir)?
+            .into_iter()
+            .filter(|p| p.to_string_lossy().ends_with("_sgd_cvd_hr.npz"))
+            .take(1)
+            .map(|p| (Layout::MegaSam(p), String::new()))
+            .collect(),
+        LayoutName::Vipe => crate::io::vipe::vipe_artifacts(dir)?
+            .into_iter()
+            .map(|a| {
+                let name = a.name.clone();
+                (Layout::Vipe(a), name)
+            })
+            .collect(),
+        LayoutName::DepthOnly => crate::io::depth_only::depth_only_files(dir)?
+            .into_iter()
+            .map(|p| {
+                let name = p.display().to_string();
+                (Layout::DepthOnly(p), name)
+            })
+            .collect(),
+    };
+    match matching.len() {
+        0 => Err(Error::invalid(dir, "layout", format!("no {} files found: {EXPECTED_LAYOUTS}", name.as_str()))),
+        1 => Ok(matching.remove(0).0),
+        _ => {
+            let listed: Vec<String> = matching.into_iter().map(|(_, what)| what).collect();
+            Err(Error::invalid(
+                dir,
+                "layout",
+                format!(
+                    "{} holds several {} outputs ({}): give one per folder",
+                    dir.display(),
+                    name.as_str(),
+                    listed.join(", ")
+                ),
+            ))
+        }
+    }
 }
 
 fn list(dir: &Path) -> Result<Vec<PathBuf>> {
@@ -223,12 +463,30 @@ pub fn read_frames(paths: &[PathBuf]) -> Result<Vec<RgbImage>> {
 
 /// Reads the sequence folder `dir` in whichever layout it is.
 pub fn read_sequence(dir: &Path) -> Result<Sequence> {
-    let (fps, frames, depth_arrays, cameras) = match detect_layout(dir)? {
+    read_sequence_as(dir, None)
+}
+
+/// Reads the sequence folder `dir` in layout `layout`, or the detected one when `None`.
+pub fn read_sequence_as(dir: &Path, layout: Option<LayoutName>) -> Result<Sequence> {
+    let layout = match layout {
+        Some(name) => layout_named(dir, name)?,
+        None => detect_layout(dir)?,
+    };
+    // A ViPE output folder holds its videos by name: the video's name is the sequence's id.
+    let source_id = match &layout {
+        Layout::Vipe(artifact) => artifact.name.clone(),
+        _ => dir.file_name().unwrap_or_default().to_string_lossy().into_owned(),
+    };
+    let (fps, frames, depth_arrays, cameras) = match layout {
         Layout::CogNvs => read_cog_nvs(dir)?,
         Layout::MegaSam(npz) => read_megasam(&npz)?,
         Layout::Generic => read_generic(dir)?,
+        Layout::Vipe(artifact) => assemble_tool(crate::io::vipe::read_vipe(&artifact)?)?,
+        Layout::Vggt(path) => assemble_tool(crate::io::vggt::read_vggt(&path)?)?,
+        Layout::Colmap => assemble_tool(crate::io::colmap::read_colmap(dir)?)?,
+        Layout::Gen3c => assemble_tool(crate::io::gen3c::read_gen3c(dir)?)?,
+        Layout::DepthOnly(path) => read_depth_only_folder(dir, &path)?,
     };
-    let source_id = dir.file_name().unwrap_or_default().to_string_lossy().into_owned();
     let dynamic_masks = read_masks(dir, &frames)?;
     Ok(Sequence {
         source_id,
@@ -293,13 +551,20 @@ pub fn read_with_frames(
     frames: Vec<RgbImage>,
     frames_path: &Path,
 ) -> Result<Sequence> {
-    let parts = if reconstruction.is_file() {
+    let parts = if let Some(artifact) = crate::io::vipe::vipe_artifact_of_file(reconstruction) {
+        tool_reconstruction(crate::io::vipe::read_vipe_reconstruction(&artifact)?).1
+    } else if reconstruction.is_file() {
         megasam_reconstruction(reconstruction, false)?.1
     } else {
         match detect_layout(reconstruction)? {
             Layout::CogNvs => cog_nvs_reconstruction(reconstruction)?,
             Layout::MegaSam(npz) => megasam_reconstruction(&npz, false)?.1,
             Layout::Generic => generic_reconstruction(reconstruction)?,
+            Layout::Vipe(artifact) => tool_reconstruction(crate::io::vipe::read_vipe_reconstruction(&artifact)?).1,
+            Layout::Vggt(path) => tool_reconstruction(crate::io::vggt::read_vggt(&path)?).1,
+            Layout::Colmap => tool_reconstruction(crate::io::colmap::read_colmap_reconstruction(reconstruction)?).1,
+            Layout::Gen3c => tool_reconstruction(crate::io::gen3c::read_gen3c_reconstruction(reconstruction)?).1,
+            Layout::DepthOnly(path) => depth_only_reconstruction(reconstruction, &path)?,
         }
     };
     let (fps, frames, depth, cameras) = assemble(fps, frames, frames_path, parts)?;
@@ -466,22 +731,24 @@ fn json_poses(path: &Path, value: &serde_json::Value) -> Result<NdArray<f64>> {
     Ok(NdArray { shape: vec![items.len(), 4, 4], data })
 }
 
-fn read_generic(dir: &Path) -> Result<Parts> {
+/// The frames of `dir`: `frames/*.png|jpg`, else its (first) video file.
+fn read_frames_or_video(dir: &Path) -> Result<(f64, Vec<RgbImage>, PathBuf)> {
     let frames_dir = dir.join("frames");
-    let read_frames_or_video = || -> Result<(f64, Vec<RgbImage>, PathBuf)> {
-        if frames_dir.is_dir() {
-            let files = with_extension(&frames_dir, &["png", "jpg", "jpeg"])?;
-            return Ok((0.0, read_frames(&files)?, frames_dir.clone()));
-        }
-        let video = with_extension(dir, &["mp4", "mov", "mkv", "avi", "webm"])?
-            .into_iter()
-            .next()
-            .ok_or_else(|| Error::invalid(dir, "frames", "no frames/ folder and no video file"))?;
-        let decoded = crate::io::video::decode_video(&video)?;
-        Ok((decoded.fps, decoded.frames, video))
-    };
+    if frames_dir.is_dir() {
+        let files = with_extension(&frames_dir, &["png", "jpg", "jpeg"])?;
+        return Ok((0.0, read_frames(&files)?, frames_dir));
+    }
+    let video = with_extension(dir, &["mp4", "mov", "mkv", "avi", "webm"])?
+        .into_iter()
+        .next()
+        .ok_or_else(|| Error::invalid(dir, "frames", "no frames/ folder and no video file"))?;
+    let decoded = crate::io::video::decode_video(&video)?;
+    Ok((decoded.fps, decoded.frames, video))
+}
+
+fn read_generic(dir: &Path) -> Result<Parts> {
     // Decoding is mostly serial: read the reconstruction meanwhile.
-    let (frames, reconstruction) = rayon::join(read_frames_or_video, || generic_reconstruction(dir));
+    let (frames, reconstruction) = rayon::join(|| read_frames_or_video(dir), || generic_reconstruction(dir));
     let (fps, frames, frames_source) = frames?;
     assemble(fps, frames, &frames_source, reconstruction?)
 }
@@ -489,6 +756,97 @@ fn read_generic(dir: &Path) -> Result<Parts> {
 fn generic_reconstruction(dir: &Path) -> Result<Reconstruction> {
     let depth_dir = dir.join("depth");
     let depth = read_exr_folder(&depth_dir)?;
+    let (cameras_path, _, intrinsics, poses) = read_cameras_json(dir)?;
+    let intrinsics = Some((cameras_path.clone(), intrinsics));
+    Ok(Reconstruction { depth_path: depth_dir, depth, intrinsics, poses: Some((cameras_path, poses)) })
+}
+
+/// A tool's output as the parts [`assemble`] checks: its frames (if it has them) and the
+/// reconstruction, with K moved from the size it is given at to the depth maps' size.
+fn tool_reconstruction(output: ToolOutput) -> (Option<ToolFrames>, Reconstruction) {
+    let ToolOutput {
+        frames,
+        depth_path,
+        depth_size: (width, height),
+        depth,
+        intrinsics_path,
+        intrinsics_size,
+        intrinsics,
+        poses_path,
+        world_from_camera,
+    } = output;
+    let n = depth.len();
+    let k_at_depth: Vec<f64> = intrinsics
+        .iter()
+        .flat_map(|k| {
+            let camera = PinholeCamera {
+                width: intrinsics_size.0,
+                height: intrinsics_size.1,
+                intrinsics: crate::geometry::camera::mat3_from_row_major(k),
+                world_from_camera: DMat4::IDENTITY,
+            };
+            let at_depth = if intrinsics_size == (width as u32, height as u32) {
+                camera
+            } else {
+                camera.resized(width as u32, height as u32)
+            };
+            crate::geometry::camera::mat3_to_row_major(&at_depth.intrinsics)
+        })
+        .collect();
+    let reconstruction = Reconstruction {
+        depth_path,
+        depth: DepthStack { shape: vec![n, height, width], planes: depth },
+        intrinsics: Some((intrinsics_path, NdArray { shape: vec![intrinsics.len(), 3, 3], data: k_at_depth })),
+        poses: Some((
+            poses_path,
+            NdArray { shape: vec![world_from_camera.len(), 4, 4], data: world_from_camera.concat() },
+        )),
+    };
+    (frames, reconstruction)
+}
+
+/// A tool's output that holds its frames, checked and assembled like any layout.
+fn assemble_tool(output: ToolOutput) -> Result<Parts> {
+    let (frames, reconstruction) = tool_reconstruction(output);
+    let frames = frames.expect("the tools' full readers decode their frames");
+    assemble(frames.fps, frames.frames, &frames.path, reconstruction)
+}
+
+/// A depth-only tool's archive `depth_path` with the cameras of `cameras.json` in `dir`.
+fn depth_only_reconstruction(dir: &Path, depth_path: &Path) -> Result<Reconstruction> {
+    let cameras_file = dir.join("cameras.json");
+    if !cameras_file.is_file() {
+        return Err(Error::invalid(
+            &cameras_file,
+            "cameras",
+            format!(
+                "missing: {} holds depth only; depth-only tools give no cameras and none are invented: \
+                 add cameras.json with `intrinsics` and `world_from_camera` from another tool",
+                depth_path.display()
+            ),
+        ));
+    }
+    let (cameras_path, cameras, intrinsics, poses) = read_cameras_json(dir)?;
+    crate::io::depth_only::check_depth_kind(&cameras_path, &cameras, depth_path)?;
+    let (shape, planes) = crate::io::depth_only::read_depth_only(depth_path)?;
+    Ok(Reconstruction {
+        depth_path: depth_path.to_owned(),
+        depth: DepthStack { shape, planes },
+        intrinsics: Some((cameras_path.clone(), intrinsics)),
+        poses: Some((cameras_path, poses)),
+    })
+}
+
+fn read_depth_only_folder(dir: &Path, depth_path: &Path) -> Result<Parts> {
+    let (frames, reconstruction) =
+        rayon::join(|| read_frames_or_video(dir), || depth_only_reconstruction(dir, depth_path));
+    let (fps, frames, frames_source) = frames?;
+    assemble(fps, frames, &frames_source, reconstruction?)
+}
+
+/// `cameras.json` of `dir`: its path, the parsed document, and its `intrinsics` and
+/// `world_from_camera` arrays.
+fn read_cameras_json(dir: &Path) -> Result<(PathBuf, serde_json::Value, NdArray<f64>, NdArray<f64>)> {
     let cameras_path = dir.join("cameras.json");
     let text = std::fs::read_to_string(&cameras_path).map_err(|e| Error::io(&cameras_path, e))?;
     let cameras: serde_json::Value = serde_json::from_str(&text)
@@ -507,8 +865,7 @@ fn generic_reconstruction(dir: &Path) -> Result<Reconstruction> {
     };
     let intrinsics = json_intrinsics(&cameras_path, key("intrinsics")?)?;
     let poses = json_poses(&cameras_path, key("world_from_camera")?)?;
-    let intrinsics = Some((cameras_path.clone(), intrinsics));
-    Ok(Reconstruction { depth_path: depth_dir, depth, intrinsics, poses: Some((cameras_path, poses)) })
+    Ok((cameras_path, cameras, intrinsics, poses))
 }
 
 /// Checks counts and values across the parts and builds frame-resolution depth and cameras.

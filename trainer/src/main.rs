@@ -149,7 +149,7 @@ struct NvsArgs {
     #[arg(long = "finetune-trajectories", default_value_t = 5)]
     finetune_trajectories: u32,
     /// Training TOML for finetuning (required for a checkpoint that is not a trainer run's:
-    /// configs/finetune_cognvs_lora.toml or configs/finetune_cognvs_full.toml).
+    /// configs/finetune_5b_lora_1gpu.toml, finetune_5b_full_1gpu.toml or finetune_5b_full.toml).
     #[arg(long)]
     config: Option<PathBuf>,
     #[command(flatten)]
@@ -207,7 +207,7 @@ struct FinetuneArgs {
     #[arg(long, default_value_t = 2)]
     trajectories: u32,
     /// Training TOML overriding the init run's settings (required for a checkpoint that is not
-    /// a trainer run's, such as the released CogNVS transformer: configs/finetune_cognvs_*.toml).
+    /// a trainer run's, such as the released CogNVS transformer: configs/finetune_5b_*.toml).
     #[arg(long)]
     config: Option<PathBuf>,
     #[command(flatten)]

@@ -62,7 +62,8 @@ pub fn read_gen3c_reconstruction(dir: &Path) -> Result<ToolOutput> {
     let mask_path = dir.join(MASK_FILE);
     if mask_path.is_file() {
         let mut archive = NpzReader::open(&mask_path)?;
-        let mask = archive.read_f32("mask", &[n, Axis::Is(height), Axis::Is(width)])?;
+        // A mask, not a measurement: read as f64, where booleans are accepted (0 or 1).
+        let mask = archive.read_f64("mask", &[n, Axis::Is(height), Axis::Is(width)])?;
         for (plane, valid) in planes.iter_mut().zip(mask.into_planes()) {
             for (d, v) in plane.iter_mut().zip(valid) {
                 if v == 0.0 {

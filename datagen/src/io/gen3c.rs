@@ -16,7 +16,7 @@ use std::path::Path;
 
 use crate::error::{Error, Result};
 use crate::io::npy::{Axis, NpzReader};
-use crate::io::tool_output::{ToolFrames, ToolOutput, check_depth_sign, invert_camera_from_world};
+use crate::io::tool_output::{ToolOutput, check_depth_sign, invert_camera_from_world, with_video};
 
 /// The archive's camera file: its presence marks the layout.
 pub const CAMERA_FILE: &str = "camera.npz";
@@ -29,13 +29,7 @@ pub const VIDEO_FILE: &str = "rgb.mp4";
 
 /// Reads the GEN3C archive folder `dir`, decoding `rgb.mp4`.
 pub fn read_gen3c(dir: &Path) -> Result<ToolOutput> {
-    let video_path = dir.join(VIDEO_FILE);
-    let (video, reconstruction) =
-        rayon::join(|| crate::io::video::decode_video(&video_path), || read_gen3c_reconstruction(dir));
-    let video = video?;
-    let mut output = reconstruction?;
-    output.frames = Some(ToolFrames { fps: video.fps, frames: video.frames, path: video_path });
-    Ok(output)
+    with_video(dir.join(VIDEO_FILE), || read_gen3c_reconstruction(dir))
 }
 
 /// The reconstruction of the GEN3C archive folder `dir` (no frames).

@@ -48,6 +48,16 @@ pub struct ToolOutput {
     pub world_from_camera: Vec<[f64; 16]>,
 }
 
+/// A tool's output with its frames decoded from `video_path`, the video decoded while `read`
+/// reads the reconstruction (decoding is mostly serial).
+pub fn with_video(video_path: PathBuf, read: impl FnOnce() -> Result<ToolOutput> + Send) -> Result<ToolOutput> {
+    let (video, reconstruction) = rayon::join(|| crate::io::video::decode_video(&video_path), read);
+    let video = video?;
+    let mut output = reconstruction?;
+    output.frames = Some(ToolFrames { fps: video.fps, frames: video.frames, path: video_path });
+    Ok(output)
+}
+
 /// The `world_from_camera` of a `camera_from_world` given as 12 (a 3×4 `[R | t]`) or 16
 /// row-major values: the given matrix is checked rigid first (the error names `field` of `path`
 /// as the file spells it), then inverted.

@@ -20,7 +20,7 @@ use std::path::{Path, PathBuf};
 
 use crate::error::{Error, Result};
 use crate::io::npy::{Axis, MAX_SIDE_PX, NpzReader};
-use crate::io::tool_output::{ToolFrames, ToolOutput, check_depth_sign, check_frame_indices};
+use crate::io::tool_output::{ToolOutput, check_depth_sign, check_frame_indices, with_video};
 
 /// Largest EXR member read from a depth zip: a [`MAX_SIDE_PX`]² map of 32-bit floats stored
 /// uncompressed, plus room for its header and line offsets.
@@ -73,13 +73,7 @@ pub fn vipe_artifact_of_file(path: &Path) -> Option<VipeArtifact> {
 
 /// Reads the artifact, decoding `rgb/NAME.mp4`.
 pub fn read_vipe(artifact: &VipeArtifact) -> Result<ToolOutput> {
-    let video_path = artifact.file("rgb", ".mp4");
-    let (video, reconstruction) =
-        rayon::join(|| crate::io::video::decode_video(&video_path), || read_vipe_reconstruction(artifact));
-    let video = video?;
-    let mut output = reconstruction?;
-    output.frames = Some(ToolFrames { fps: video.fps, frames: video.frames, path: video_path });
-    Ok(output)
+    with_video(artifact.file("rgb", ".mp4"), || read_vipe_reconstruction(artifact))
 }
 
 /// The artifact's reconstruction (no frames).

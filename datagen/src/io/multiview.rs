@@ -13,6 +13,8 @@
 
 use std::path::{Path, PathBuf};
 
+use image::GrayImage;
+
 use crate::error::{Error, Result};
 use crate::io::sequence::{Sequence, detect_layout, read_sequence};
 
@@ -23,12 +25,33 @@ pub const TIMESTAMP_TOLERANCE: f64 = 0.25;
 /// One camera of a [`MultiViewScene`].
 #[derive(Debug, Clone)]
 pub struct CameraView {
-    /// The camera's id (its sub-folder's name).
+    /// The camera's id (its sub-folder's name, or the dataset's camera id).
     pub id: String,
-    /// Its video and reconstruction.
+    /// Its video and reconstruction. Where the dataset ships no depth for this camera
+    /// (`has_depth` false: DyCheck's held-out cameras), every depth value is 0 (invalid).
     pub sequence: Sequence,
     /// Seconds of each frame, if its files give them.
     pub timestamps: Option<Vec<f64>>,
+    /// The scene instant of each frame: frame k of this camera and frame j of another film the
+    /// same instant when `time_ids[k] == time_ids[j]`. `0..n` in the generic layout, where every
+    /// camera films every instant; datasets that drop frames of some cameras (DyCheck's
+    /// held-out cameras) list the instants kept.
+    pub time_ids: Vec<usize>,
+    /// Whether `sequence.depth` is the dataset's depth (false: all invalid, none shipped).
+    pub has_depth: bool,
+    /// Per-frame co-visibility masks the dataset ships for this camera (non-zero = seen by the
+    /// input camera; DyCheck's `covisible/`), at the frames' size.
+    pub covisible: Option<Vec<GrayImage>>,
+}
+
+/// The evaluation protocol a benchmark dataset fixes for a scene: the camera the method sees and
+/// the held-out cameras it is judged on.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct EvalSplit {
+    /// The input (training) camera's id.
+    pub input: String,
+    /// The held-out cameras' ids.
+    pub held_out: Vec<String>,
 }
 
 /// A synchronised multi-camera scene.
@@ -40,10 +63,12 @@ pub struct MultiViewScene {
     pub path: PathBuf,
     /// Its cameras, by id.
     pub cameras: Vec<CameraView>,
+    /// The dataset's evaluation split, where the format has one.
+    pub split: Option<EvalSplit>,
 }
 
 impl MultiViewScene {
-    /// Frames per camera.
+    /// Frames of the first camera (in the generic layout, of every camera).
     pub fn frames(&self) -> usize {
         self.cameras.first().map_or(0, |c| c.sequence.len())
     }
@@ -92,7 +117,8 @@ pub fn read_multiview(dir: &Path) -> Result<MultiViewScene> {
         let id = folder.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
         let sequence = read_sequence(folder)?;
         let timestamps = read_timestamps(folder, sequence.len())?;
-        cameras.push(CameraView { id, sequence, timestamps });
+        let time_ids = (0..sequence.len()).collect();
+        cameras.push(CameraView { id, sequence, timestamps, time_ids, has_depth: true, covisible: None });
     }
     let first = &cameras[0];
     for camera in &cameras[1..] {
@@ -112,7 +138,7 @@ pub fn read_multiview(dir: &Path) -> Result<MultiViewScene> {
     }
     check_timestamps(&cameras)?;
     let scene_id = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    Ok(MultiViewScene { scene_id, path: dir.to_owned(), cameras })
+    Ok(MultiViewScene { scene_id, path: dir.to_owned(), cameras, split: None })
 }
 
 /// `timestamps` of the camera's `cameras.json`, if it has one: `frames` finite, increasing numbers.

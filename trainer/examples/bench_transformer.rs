@@ -11,8 +11,10 @@
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use trainer::cogvideox_transformer_3d::{self as transformer, CogVideoXTransformer3DModelConfig, TransformerInput};
 use trainer::diffusers_config::DiffusersConfig;
+use trainer::models::cogvideox_transformer_3d::{
+    self as transformer, CogVideoXTransformer3DModelConfig, TransformerInput,
+};
 use trainer::tch::{self, Device, Kind, Tensor};
 
 fn main() -> Result<()> {

@@ -13,11 +13,33 @@ use crate::error::{Error, Result};
 pub trait DiffusersConfig: DeserializeOwned {
     /// What the config describes, for messages ("VAE", "scheduler").
     const KIND: &'static str;
+    /// The classes (`_class_name`) a file of this kind may name.
+    const CLASS_NAMES: &'static [&'static str];
     /// File name inside a model folder (`config.json`, `scheduler_config.json`).
     const FILE_NAME: &'static str;
 
-    /// Rejects invalid values and combinations, naming the field; `source_name` names the file.
-    fn validate(&self, source_name: &str) -> Result<()>;
+    /// Rejects invalid values and combinations of the fields, naming the field; `source_name`
+    /// names the file.
+    fn validate_fields(&self, source_name: &str) -> Result<()>;
+
+    /// Checks the class name the file gives (if any) and then the fields: what every config read
+    /// passes through, as diffusers' `ConfigMixin` checks a config before building from it.
+    fn validate(&self, source_name: &str) -> Result<()> {
+        if let Some(class) = self.extra().get("_class_name").and_then(|v| v.as_str())
+            && !Self::CLASS_NAMES.contains(&class)
+        {
+            let expected = match Self::CLASS_NAMES {
+                [one] => format!("`{one}`"),
+                many => format!("one of {many:?}"),
+            };
+            return Err(Error::InvalidConfig {
+                source_name: source_name.to_string(),
+                field: "_class_name".to_string(),
+                reason: format!("is `{class}`, expected {expected}"),
+            });
+        }
+        self.validate_fields(source_name)
+    }
 
     /// Keys the struct does not know, as parsed.
     fn extra(&self) -> &BTreeMap<String, serde_json::Value>;

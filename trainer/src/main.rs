@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::Context;
 use clap::{Args, Parser, Subcommand, ValueEnum};
-use trainer::forward::{self, ForwardRequest, Module};
+use trainer::pipelines::forward::{self, ForwardRequest, Module};
 
 /// CogNVS video-to-video diffusion in tch: the CogVideoX transformer, VAE and schedulers,
 /// weight-compatible with diffusers.
@@ -277,7 +277,7 @@ struct SamplingArgs {
     no_vae_tiling: bool,
     /// Frames sampled: the first N of the conditioning (fewer when it is shorter: the most
     /// that make 1 + 4k).
-    #[arg(long, default_value_t = trainer::sampling::DEMO_FRAMES)]
+    #[arg(long, default_value_t = trainer::pipelines::sampling::DEMO_FRAMES)]
     frames: usize,
     /// How frames of another size reach the model's size: area (stretch with an area average,
     /// as the demo) or crop (scale to cover and crop the centre, as the training loader).
@@ -290,17 +290,17 @@ struct SamplingArgs {
     #[arg(long)]
     keep_model_size: bool,
     /// Frame rate of mp4 outputs.
-    #[arg(long, default_value_t = trainer::sampling::DEMO_FPS)]
+    #[arg(long, default_value_t = trainer::pipelines::sampling::DEMO_FPS)]
     fps: f64,
 }
 
 impl SamplingArgs {
-    fn framing(&self) -> trainer::sampling::Framing {
-        trainer::sampling::Framing {
+    fn framing(&self) -> trainer::pipelines::sampling::Framing {
+        trainer::pipelines::sampling::Framing {
             frames: self.frames,
             resize: match self.resize {
-                ResizeArg::Area => trainer::video_processor::ResizeMode::Area,
-                ResizeArg::Crop => trainer::video_processor::ResizeMode::Crop,
+                ResizeArg::Area => trainer::pipelines::video_processor::ResizeMode::Area,
+                ResizeArg::Crop => trainer::pipelines::video_processor::ResizeMode::Crop,
             },
             size: self.size,
             restore_size: !self.keep_model_size,
@@ -308,8 +308,12 @@ impl SamplingArgs {
         }
     }
 
-    fn load(&self, device: tch::Device) -> trainer::sampling::LoadOptions {
-        trainer::sampling::LoadOptions { device, precision: self.dtype.precision(), vae_tiling: !self.no_vae_tiling }
+    fn load(&self, device: tch::Device) -> trainer::pipelines::sampling::LoadOptions {
+        trainer::pipelines::sampling::LoadOptions {
+            device,
+            precision: self.dtype.precision(),
+            vae_tiling: !self.no_vae_tiling,
+        }
     }
 }
 
@@ -744,9 +748,9 @@ fn run_finetune(args: FinetuneArgs) -> anyhow::Result<bool> {
 }
 
 fn run_nvs(args: NvsArgs) -> anyhow::Result<bool> {
-    use trainer::nvs::Progress;
+    use trainer::pipelines::nvs::Progress;
     let device = forward::parse_device(&args.device)?;
-    let request = trainer::nvs::NvsRequest {
+    let request = trainer::pipelines::nvs::NvsRequest {
         model: args.model.source(args.init),
         sequence: args.sequence,
         trajectories: args.trajectories,
@@ -772,7 +776,7 @@ fn run_nvs(args: NvsArgs) -> anyhow::Result<bool> {
     let (device, pg) = join_job(device, timeout)?;
     let lead = pg.as_ref().is_none_or(|pg| pg.rank == 0);
     let mut bar = indicatif::ProgressBar::hidden();
-    let outcome = trainer::nvs::run(&request, device, pg.as_ref(), &mut |event| {
+    let outcome = trainer::pipelines::nvs::run(&request, device, pg.as_ref(), &mut |event| {
         if !lead {
             return;
         }
@@ -822,7 +826,7 @@ fn run_sample(args: SampleArgs) -> anyhow::Result<()> {
     let device = forward::parse_device(&args.device)?;
     let mut model = args.model.source(args.ckpt);
     model.negative_text_embedding = args.negative_text_embedding;
-    let request = trainer::sampling::SampleRequest {
+    let request = trainer::pipelines::sampling::SampleRequest {
         model,
         condition: args.cond,
         out: args.out.clone(),
@@ -833,9 +837,13 @@ fn run_sample(args: SampleArgs) -> anyhow::Result<()> {
         framing: args.sampling.framing(),
     };
     let paths = request.model.resolve()?;
-    trainer::plan::check_sampling_fits(&trainer::plan::sampling_plan_for(&paths, request.load, &request.framing)?)?;
+    trainer::training::plan::check_sampling_fits(&trainer::training::plan::sampling_plan_for(
+        &paths,
+        request.load,
+        &request.framing,
+    )?)?;
     let bar = progress_bar(request.steps as u64, "denoising");
-    let report = trainer::sampling::sample(&request, &paths, &mut |i, _| bar.set_position(i as u64))?;
+    let report = trainer::pipelines::sampling::sample(&request, &paths, &mut |i, _| bar.set_position(i as u64))?;
     bar.finish_and_clear();
     if report.source_size != report.model_size {
         let ((w, h), (mw, mh)) = (report.source_size, report.model_size);
@@ -912,13 +920,13 @@ fn run_pretrain(args: PretrainArgs) -> anyhow::Result<bool> {
 
 fn run_plan(args: PlanArgs) -> anyhow::Result<()> {
     let config = trainer::training::PretrainConfig::from_toml_file(&args.config)?;
-    let device = trainer::plan::parse_device(&args.device)?;
+    let device = trainer::training::plan::parse_device(&args.device)?;
     if args.sampling {
         let (transformer, vae) = config.model.configs(true)?;
-        let tiles = trainer::autoencoder_kl_cogvideox::TilingConfig::for_config(&vae);
+        let tiles = trainer::models::autoencoder_kl_cogvideox::TilingConfig::for_config(&vae);
         let aligned = !args.no_vae_tiling && tiles.lands_on_latent_pixels(vae.spatial_compression_ratio());
         let d = &config.data;
-        let plan = trainer::plan::sampling_plan(
+        let plan = trainer::training::plan::sampling_plan(
             &transformer,
             &vae,
             (d.frames as u64, u64::from(d.height), u64::from(d.width)),
@@ -941,9 +949,9 @@ fn make_plan(
     config: &trainer::training::PretrainConfig,
     world_size: Option<usize>,
     device: tch::Device,
-) -> anyhow::Result<trainer::plan::MemoryPlan> {
-    let world_size = world_size.or_else(trainer::plan::launcher_world_size).unwrap_or(config.data.world_size);
-    Ok(trainer::plan::plan(config, &trainer::plan::PlanOptions { world_size, device })?)
+) -> anyhow::Result<trainer::training::plan::MemoryPlan> {
+    let world_size = world_size.or_else(trainer::training::plan::launcher_world_size).unwrap_or(config.data.world_size);
+    Ok(trainer::training::plan::plan(config, &trainer::training::plan::PlanOptions { world_size, device })?)
 }
 
 /// Prints a training run's memory plan to stderr (rank 0) and, on CUDA, refuses a plan that
@@ -958,7 +966,7 @@ fn check_plan(
     if pg.is_none_or(|pg| pg.rank == 0) {
         eprintln!("{plan}");
     }
-    trainer::plan::check_fits(&plan, source_name)?;
+    trainer::training::plan::check_fits(&plan, source_name)?;
     Ok(())
 }
 
@@ -971,11 +979,11 @@ fn run_eval(args: EvalArgs) -> anyhow::Result<()> {
         Ok(())
     };
     // One pair: a video file, or a folder holding frames itself (not videos).
-    let single = args.pred.is_file() || trainer::metrics::read_frames(&args.pred).is_ok_and(|f| !f.is_empty());
+    let single = args.pred.is_file() || trainer::eval::metrics::read_frames(&args.pred).is_ok_and(|f| !f.is_empty());
     let wants = |m: MetricArg| args.metrics.contains(&m);
     let networks = args.lpips_weights.is_some() || args.inception_weights.is_some() || !args.metrics.is_empty();
     if single && !networks && args.protocol.is_none() && args.top_k.is_none() {
-        let result = trainer::metrics::evaluate(&args.pred, &args.target, args.mask.as_deref())?;
+        let result = trainer::eval::metrics::evaluate(&args.pred, &args.target, args.mask.as_deref())?;
         let json = serde_json::to_string_pretty(&result)?;
         write(&args.out, &json)?;
         println!("{json}");

@@ -340,7 +340,7 @@ impl FlatState {
                 ] {
                     match tensors.get(&file_key) {
                         Some(t) => {
-                            crate::weights::check_shape(&file_key, t, &p.size())?;
+                            crate::models::weights::check_shape(&file_key, t, &p.size())?;
                             map.insert(key.to_string(), t.f_reshape([-1])?.f_to_kind(Kind::Float)?);
                         }
                         None if key == "master" => {}

@@ -20,7 +20,7 @@ use super::fid::{frechet_distance, kernel_distance};
 use super::inception::FidInception;
 use super::lpips::{Lpips, LpipsNet, frames_to_input};
 use crate::error::{Error, Result};
-use crate::metrics::{read_masks, read_named_frames, video_metrics};
+use crate::eval::metrics::{read_masks, read_named_frames, video_metrics};
 
 /// Frames per LPIPS / Inception batch (bounds memory at DyCheck's 960×720 with VGG).
 const BATCH: usize = 4;
@@ -311,7 +311,7 @@ pub fn run(req: &BenchmarkRequest, mut progress: impl FnMut(usize, usize)) -> Re
             }
             None => vec![pred_path.clone()],
         };
-        let mut best: Option<(f64, usize, Vec<RgbImage>, crate::metrics::VideoMetrics)> = None;
+        let mut best: Option<(f64, usize, Vec<RgbImage>, crate::eval::metrics::VideoMetrics)> = None;
         for (i, sample) in samples.iter().enumerate() {
             let pred = load_checked(sample, &target, target_path, req.protocol)?;
             let m = video_metrics(&pred, &target, masks.as_deref()).map_err(|e| match e {

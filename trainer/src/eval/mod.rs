@@ -1,7 +1,7 @@
 //! Evaluation as the paper reports it (CogNVS §5, its Tables 1–3 and the appendix's top-k
 //! ablation): LPIPS as the `lpips` package computes it, FID and KID as `clean-fid` computes
 //! them, and the benchmark table over folders of videos. PSNR/SSIM live in
-//! [`crate::metrics`] (scikit-image conventions).
+//! [`crate::eval::metrics`] (scikit-image conventions).
 //!
 //! Network weights come from files users already have, converted once by
 //! `scripts/convert_eval_weights.py`; nothing is downloaded.
@@ -10,6 +10,7 @@ pub mod benchmark;
 pub mod fid;
 pub mod inception;
 pub mod lpips;
+pub mod metrics;
 pub mod resize;
 
 use std::collections::BTreeMap;
@@ -39,7 +40,7 @@ impl WeightFile {
                 reason: format!("no such file; {how}"),
             });
         }
-        let tensors = crate::weights::read_safetensors(path)?;
+        let tensors = crate::models::weights::read_safetensors(path)?;
         Ok(Self { path: path.to_path_buf(), tensors, device })
     }
 
@@ -57,7 +58,7 @@ impl WeightFile {
                 actual: tensor.size(),
             });
         }
-        crate::weights::check_floating(&self.path, name, tensor)?;
+        crate::models::weights::check_floating(&self.path, name, tensor)?;
         Ok(tensor.to_kind(Kind::Float).to_device(self.device))
     }
 

@@ -54,8 +54,8 @@ pub fn save(
     values: &BTreeMap<String, Tensor>,
     scale: f64,
     path: &Path,
-) -> Result<crate::weights::WrittenFile> {
-    crate::weights::write_safetensors(path, &file_tensors(lora_vs, values, scale)?)
+) -> Result<crate::models::weights::WrittenFile> {
+    crate::models::weights::write_safetensors(path, &file_tensors(lora_vs, values, scale)?)
 }
 
 /// A LoRA file's adapters by module: `(A, B·s)` with the file's scale applied (1 for the files
@@ -77,7 +77,7 @@ impl LoraFile {
             reason,
         };
         // Checked header first: a truncated or foreign file is an error naming it.
-        let tensors = crate::weights::read_safetensors(path)?;
+        let tensors = crate::models::weights::read_safetensors(path)?;
         let scale = metadata_scale(&read_file_metadata(path)?, path)?;
         let mut parts: BTreeMap<String, (Option<Tensor>, Option<Tensor>)> = BTreeMap::new();
         for (key, tensor) in tensors {
@@ -231,23 +231,29 @@ pub fn lora_checkpoint(checkpoint: &Path) -> Result<Option<(std::path::PathBuf, 
 /// a full diffusers transformer folder. Everything is read and checked before `out` is written.
 /// Returns the number of layers merged.
 pub fn merge_lora(base: &Path, lora: &Path, out: &Path) -> Result<usize> {
-    use crate::cogvideox_transformer_3d::{self as transformer, CogVideoXTransformer3DModelConfig};
     use crate::diffusers_config::DiffusersConfig;
+    use crate::models::cogvideox_transformer_3d::{self as transformer, CogVideoXTransformer3DModelConfig};
     let base = match lora_checkpoint(base)? {
         Some((kept, _)) => kept,
         None => super::transformer_dir(base),
     };
     let config = CogVideoXTransformer3DModelConfig::from_json_file(&base)?;
-    crate::weights::check_against(
+    crate::models::weights::check_against(
         &transformer::variable_shapes(&config)?,
-        &crate::weights::read_checkpoint_info(&base)?,
+        &crate::models::weights::read_checkpoint_info(&base)?,
         &base,
     )?;
     let file = LoraFile::read(lora)?;
     let (vs, _model) = transformer::build(&config, tch::Device::Cpu, Kind::Float)?;
-    crate::weights::load(&vs, &base)?;
+    crate::models::weights::load(&vs, &base)?;
     file.merge_into(&vs, lora)?;
-    crate::weights::save(&vs, &config, transformer::CLASS_NAME, out, crate::weights::DEFAULT_MAX_SHARD_BYTES)?;
+    crate::models::weights::save(
+        &vs,
+        &config,
+        transformer::CLASS_NAME,
+        out,
+        crate::models::weights::DEFAULT_MAX_SHARD_BYTES,
+    )?;
     Ok(file.adapters.len())
 }
 

@@ -12,11 +12,11 @@ use std::path::{Path, PathBuf};
 
 use tch::{Device, Kind, Tensor};
 
-use crate::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
 use crate::diffusers_config::DiffusersConfig;
 use crate::error::{Error, Result};
-use crate::scheduling_ddim_cogvideox::CogVideoXSchedulerConfig;
-use crate::weights;
+use crate::models::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
+use crate::models::weights;
+use crate::schedulers::CogVideoXSchedulerConfig;
 
 /// The text shape of the released CogVideoX-5B / CogNVS transformers: T5-XXL's 226 tokens of
 /// 4096 channels (`max_text_seq_length`, `text_embed_dim`). Such a model never saw zeros there.

@@ -356,7 +356,7 @@ impl AdamW {
     /// rank holds the whole state; under ZeRO-2 every rank's slices with the ranges they cover
     /// (`optimizer-rank-R-of-N.safetensors`, masters always). Returns the file this rank wrote,
     /// with its size and digest (None where it writes none).
-    pub fn save(&self, dir: &Path, with_params: bool) -> Result<Option<crate::weights::WrittenFile>> {
+    pub fn save(&self, dir: &Path, with_params: bool) -> Result<Option<crate::models::weights::WrittenFile>> {
         let (rank, world) = self.layout.world();
         let (path, named) = if self.layout.sharded() {
             let flat: Vec<i64> = self.layout.owned_ranges().iter().flat_map(|&(s, l, o)| [s, l, o]).collect();
@@ -392,7 +392,7 @@ impl AdamW {
         } else {
             return Ok(None);
         };
-        Ok(Some(crate::weights::write_safetensors(&path, &named)?))
+        Ok(Some(crate::models::weights::write_safetensors(&path, &named)?))
     }
 
     /// Loads the state of checkpoint `dir`, written by either layout at any world size. With

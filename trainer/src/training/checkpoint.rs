@@ -22,11 +22,11 @@ use tch::{Kind, Tensor};
 use super::CogNvsModel;
 use super::consensus;
 use super::parallel::StepOptimizer;
-use crate::cogvideox_transformer_3d as transformer;
-use crate::data::DataPosition;
 use crate::distributed::ProcessGroup;
 use crate::error::{Error, Result};
-use crate::weights::{self, WrittenFile};
+use crate::models::cogvideox_transformer_3d as transformer;
+use crate::models::weights::{self, WrittenFile};
+use crate::training::data::DataPosition;
 
 /// `state.json` of a checkpoint.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -13,9 +13,9 @@ use tch::{Device, Kind, Tensor};
 
 use super::parallel::StepOptimizer;
 use super::{Backward, CogNvsModel, Draws, PretrainConfig, learning_rate};
-use crate::data::{Batch, DataPosition};
 use crate::distributed::ProcessGroup;
 use crate::error::{Error, Result};
+use crate::training::data::{Batch, DataPosition};
 
 /// The ZeRO stages compared.
 const STAGES: [u8; 2] = [0, 2];

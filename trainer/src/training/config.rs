@@ -5,13 +5,13 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use crate::autoencoder_kl_cogvideox::AutoencoderKLCogVideoXConfig;
-use crate::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
-use crate::data::DataConfig;
 use crate::diffusers_config;
 use crate::error::{Error, Result};
-use crate::lora::LoraConfig;
+use crate::models::autoencoder_kl_cogvideox::AutoencoderKLCogVideoXConfig;
+use crate::models::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
+use crate::models::lora::LoraConfig;
 pub use crate::precision::Precision;
+use crate::training::data::DataConfig;
 
 /// Which models to train and with what.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -456,7 +456,7 @@ impl PretrainConfig {
                 format!("{} must be in [0, {MAX_ABS_LOG_SIGMA}]", t.condition_noise_log_std),
             ));
         }
-        let timesteps = crate::scheduling_ddim_cogvideox::CogVideoXSchedulerConfig::cogvideox_5b().num_train_timesteps;
+        let timesteps = crate::schedulers::CogVideoXSchedulerConfig::cogvideox_5b().num_train_timesteps;
         if t.validation_steps == 0 || t.validation_steps as i64 > timesteps {
             return Err(bad(
                 "loop.validation_steps",
@@ -495,7 +495,7 @@ impl PretrainConfig {
         }
         if let Some(lora) = &self.lora {
             // Targets and rank against the transformer's layers, before any run folder exists.
-            crate::cogvideox_transformer_3d::check_lora(&transformer, lora).map_err(|e| match e {
+            crate::models::cogvideox_transformer_3d::check_lora(&transformer, lora).map_err(|e| match e {
                 Error::InvalidConfig { field, reason, .. } => {
                     Error::InvalidConfig { source_name: source_name.to_string(), field, reason }
                 }
@@ -635,11 +635,11 @@ impl ModelConfig {
     }
 
     /// The noise schedule's config: the `scheduler` folder's, else CogVideoX-5B's.
-    pub fn scheduler_config(&self) -> Result<crate::scheduling_ddim_cogvideox::CogVideoXSchedulerConfig> {
+    pub fn scheduler_config(&self) -> Result<crate::schedulers::CogVideoXSchedulerConfig> {
         use crate::diffusers_config::DiffusersConfig;
         match &self.scheduler {
-            Some(path) => crate::scheduling_ddim_cogvideox::CogVideoXSchedulerConfig::from_json_file(path),
-            None => Ok(crate::scheduling_ddim_cogvideox::CogVideoXSchedulerConfig::cogvideox_5b()),
+            Some(path) => crate::schedulers::CogVideoXSchedulerConfig::from_json_file(path),
+            None => Ok(crate::schedulers::CogVideoXSchedulerConfig::cogvideox_5b()),
         }
     }
 }

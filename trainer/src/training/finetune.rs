@@ -81,7 +81,7 @@ pub fn finetune_on(
     // Every rank has checked the folder before rank 0 locks and writes into it.
     let lock = super::RunLock::acquire_on(run, "trainer finetune", pg)?;
     let pairs_dir = run.join("pairs");
-    let built = request.resume && crate::data::ClipIndex::open(std::slice::from_ref(&pairs_dir)).is_ok();
+    let built = request.resume && crate::training::data::ClipIndex::open(std::slice::from_ref(&pairs_dir)).is_ok();
     if rank == 0 && !built {
         let sequence = datagen::io::sequence::read_sequence(sequence_dir)?;
         let frames = config.data.frames as u32;
@@ -108,7 +108,7 @@ pub fn finetune_on(
     }
     // Small test videos have few clips: never ask for more per batch than there are, and with
     // several ranks keep the global batch a multiple of the world size.
-    let clips = crate::data::ClipIndex::open(std::slice::from_ref(&pairs_dir))?.len();
+    let clips = crate::training::data::ClipIndex::open(std::slice::from_ref(&pairs_dir))?.len();
     if clips < world {
         return Err(Error::InvalidArgument {
             name: "world size".to_string(),

@@ -5,9 +5,9 @@ use std::path::{Path, PathBuf};
 
 use tch::{Device, Kind, Tensor, nn};
 
-use crate::autoencoder_kl_cogvideox::AutoencoderKLCogVideoX;
-use crate::data::{Batch, DataConfig};
 use crate::error::{Error, Result};
+use crate::models::autoencoder_kl_cogvideox::AutoencoderKLCogVideoX;
+use crate::training::data::{Batch, DataConfig};
 
 /// Precomputed VAE latents, so that small runs encode each pair once and train many epochs:
 /// per sample (clip, trajectory, window — the batch's provenance — at the configured size) the

@@ -37,14 +37,17 @@ pub mod checkpoint;
 mod comm_cost;
 mod config;
 pub mod consensus;
+pub mod data;
 mod finetune;
 mod latent_cache;
 mod lr_schedule;
 mod objective;
 mod parallel;
+pub mod plan;
 pub mod preempt;
 mod pretrain;
 pub mod run_lock;
+pub mod tensorboard;
 pub mod validation;
 
 pub use adamw::AdamW;

@@ -6,14 +6,16 @@ use std::path::Path;
 use tch::{Device, Kind, Tensor, nn};
 
 use super::{LatentCache, ModelConfig};
-use crate::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoX};
-use crate::cogvideox_transformer_3d::{self as transformer, BlockTape, CogVideoXTransformer3DModel, TransformerInput};
-use crate::data::Batch;
 use crate::error::Result;
 use crate::loaders::lora::LoraFile;
-use crate::lora::LoraConfig;
-use crate::scheduling_ddim_cogvideox::NoiseSchedule;
-use crate::weights;
+use crate::models::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoX};
+use crate::models::cogvideox_transformer_3d::{
+    self as transformer, BlockTape, CogVideoXTransformer3DModel, TransformerInput,
+};
+use crate::models::lora::LoraConfig;
+use crate::models::weights;
+use crate::schedulers::NoiseSchedule;
+use crate::training::data::Batch;
 
 /// The trained transformer, the frozen VAE, the noise schedule and the text input.
 pub struct CogNvsModel {

@@ -11,7 +11,7 @@ use tch::Tensor;
 use super::{AdamW, CogNvsModel, PretrainConfig, trainable_parameters};
 use crate::distributed::{FlatLayout, GradientExchange, ProcessGroup};
 use crate::error::Result;
-use crate::weights::WrittenFile;
+use crate::models::weights::WrittenFile;
 
 /// The run's optimizer and, with several ranks, how gradients meet.
 pub(super) struct StepOptimizer {

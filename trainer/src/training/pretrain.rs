@@ -19,11 +19,11 @@ use super::{
     Backward, CheckpointEvery, CheckpointLayout, CogNvsModel, Draws, LatentCache, PretrainConfig, TrainState,
     consensus, learning_rate,
 };
-use crate::autoencoder_kl_cogvideox as vae;
-use crate::data::{DataConfig, DataPosition, ShardLoader};
 use crate::distributed::ProcessGroup;
 use crate::error::{Error, Result};
-use crate::weights;
+use crate::models::autoencoder_kl_cogvideox as vae;
+use crate::models::weights;
+use crate::training::data::{DataConfig, DataPosition, ShardLoader};
 
 /// One line of `metrics.jsonl`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -120,7 +120,7 @@ pub(super) fn train(
         eprintln!("data: training on {} clips; {} held out for validation", training_clips.len(), held_out.len());
     }
     let training_clips = Arc::new(training_clips);
-    crate::data::batches_per_epoch(training_clips.clone(), &data)?;
+    crate::training::data::batches_per_epoch(training_clips.clone(), &data)?;
     let run_config = run.join("config.json");
     // Read by every rank before the agreement, so before rank 0 writes the folder.
     let holds_a_run = run_config.exists();
@@ -230,7 +230,7 @@ pub(super) fn train(
         }
         Ok(())
     };
-    let mut events = if lead { Some(crate::tensorboard::EventWriter::create(run)?) } else { None };
+    let mut events = if lead { Some(crate::training::tensorboard::EventWriter::create(run)?) } else { None };
     let mut loader = ShardLoader::new(training_clips, data.clone(), state.data_position)?;
     let mut last_checkpoint = latest.map(|(d, _)| d);
     let accumulation = config.optim.grad_accumulation;
@@ -437,7 +437,7 @@ fn write_run_models(run: &Path, config: &PretrainConfig, model: &CogNvsModel) ->
         weights::save(
             &model.vs,
             model.transformer.config(),
-            crate::cogvideox_transformer_3d::CLASS_NAME,
+            crate::models::cogvideox_transformer_3d::CLASS_NAME,
             &base_dir,
             weights::DEFAULT_MAX_SHARD_BYTES,
         )?;

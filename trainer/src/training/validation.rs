@@ -24,10 +24,10 @@ use serde::{Deserialize, Serialize};
 use tch::Device;
 
 use super::{CogNvsModel, PretrainConfig, consensus};
-use crate::data::{Batch, ClipIndex, DataConfig, DataPosition, ShardLoader};
 use crate::distributed::ProcessGroup;
 use crate::error::{Error, Result};
 use crate::eval::lpips::Lpips;
+use crate::training::data::{Batch, ClipIndex, DataConfig, DataPosition, ShardLoader};
 
 /// Means over the validation pairs, as logged (`metrics.jsonl`: `{"step": N, "validation": …}`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -232,7 +232,15 @@ fn sample_pair(model: &CogNvsModel, batch: &Batch, seed: i64, steps: usize) -> R
     let device = model.text.device();
     let condition = batch.condition.f_narrow(0, 0, 1)?.f_to_device(device)?;
     tch::manual_seed(seed);
-    let video = crate::sampling::generate(&model.transformer, &model.vae, &condition, &model.text, None, steps, 1.0)?;
+    let video = crate::pipelines::sampling::generate(
+        &model.transformer,
+        &model.vae,
+        &condition,
+        &model.text,
+        None,
+        steps,
+        1.0,
+    )?;
     let mask = batch.mask.f_narrow(0, 0, 1)?.f_squeeze_dims([0, 1])?;
     let (frames, height, width) = (mask.size()[0], mask.size()[1] as u32, mask.size()[2] as u32);
     let masks = (0..frames)
@@ -243,9 +251,9 @@ fn sample_pair(model: &CogNvsModel, batch: &Batch, seed: i64, steps: usize) -> R
         })
         .collect::<Result<_>>()?;
     Ok(Sampled {
-        sample: crate::sampling::to_frames(&video)?,
-        target: crate::sampling::to_frames(&batch.target.f_narrow(0, 0, 1)?)?,
-        condition: crate::sampling::to_frames(&condition)?,
+        sample: crate::pipelines::sampling::to_frames(&video)?,
+        target: crate::pipelines::sampling::to_frames(&batch.target.f_narrow(0, 0, 1)?)?,
+        condition: crate::pipelines::sampling::to_frames(&condition)?,
         masks,
     })
 }
@@ -285,7 +293,7 @@ struct Sums {
 
 impl Sums {
     fn add(&mut self, s: &Sampled, lpips: Option<&Lpips>, device: Device) -> Result<()> {
-        let m = crate::metrics::video_metrics(&s.sample, &s.target, Some(&s.masks))?;
+        let m = crate::eval::metrics::video_metrics(&s.sample, &s.target, Some(&s.masks))?;
         let (lpips, lpips_covisible) = match lpips {
             Some(model) => {
                 let (plain, masked) =

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use tch::Device;
-use trainer::data::{DataPosition, ShardLoader};
+use trainer::training::data::{DataPosition, ShardLoader};
 use trainer::training::{CogNvsModel, LatentCache, PretrainConfig, read_metrics};
 
 use super::parity::{assert_success, read_tensors, repo_root};

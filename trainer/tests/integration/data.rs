@@ -5,8 +5,8 @@ use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
-use trainer::data::{DataConfig, DataPosition, ShardLoader};
 use trainer::tch::Kind;
+use trainer::training::data::{DataConfig, DataPosition, ShardLoader};
 
 /// Two shards of synthetic pairs: 3 videos × 2 clips, 2 trajectories each (generated once).
 fn shards() -> &'static Path {

@@ -117,7 +117,7 @@ fn eval_benchmark_table_on_synthetic_scenes() {
         let row = &report["videos"][v];
         assert_eq!(row["name"], *name);
         assert_eq!(row["sample"], *chosen);
-        let single = trainer::metrics::evaluate(
+        let single = trainer::eval::metrics::evaluate(
             &root.join("pred").join(name).join(format!("s{chosen}")),
             &root.join("target").join(name),
             Some(&root.join("mask").join(name)),

@@ -35,7 +35,7 @@ fn expected() -> serde_json::Value {
 }
 
 fn frames(dir: &str) -> Vec<image::RgbImage> {
-    trainer::metrics::read_frames(&goldens().join(dir)).unwrap()
+    trainer::eval::metrics::read_frames(&goldens().join(dir)).unwrap()
 }
 
 /// Goldens: `lpips.LPIPS(pnet_rand=True, net=alex|vgg, version="0.1")` with the wheel's v0.1
@@ -45,7 +45,7 @@ fn frames(dir: &str) -> Vec<image::RgbImage> {
 fn eval_lpips_matches_lpips_package() {
     let _guard = trainer::tch::no_grad_guard();
     let (pred, target) = (frames("pred"), frames("target"));
-    let masks = trainer::metrics::read_masks(&goldens().join("mask")).unwrap();
+    let masks = trainer::eval::metrics::read_masks(&goldens().join("mask")).unwrap();
     let want = expected();
     for (net, key) in [(LpipsNet::Alex, "alex"), (LpipsNet::Vgg, "vgg")] {
         let model = Lpips::load(&goldens().join(format!("lpips_{key}.safetensors")), net, Device::Cpu).unwrap();

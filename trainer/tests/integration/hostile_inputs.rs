@@ -11,12 +11,12 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 use image::{Rgb, RgbImage};
-use trainer::autoencoder_kl_cogvideox::AutoencoderKLCogVideoXConfig;
-use trainer::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
 use trainer::diffusers_config::DiffusersConfig;
+use trainer::models::autoencoder_kl_cogvideox::AutoencoderKLCogVideoXConfig;
+use trainer::models::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
+use trainer::models::weights;
 use trainer::tch::{Device, Kind, Tensor};
 use trainer::training::PretrainConfig;
-use trainer::weights;
 
 use super::parity::{assert_close, python, read_tensors, repo_root};
 
@@ -746,7 +746,7 @@ fn non_finite_weights_are_refused_at_load_and_a_non_finite_sample_is_never_writt
 
 #[test]
 fn scheduler_configs_outside_their_ranges_name_file_and_field() {
-    use trainer::scheduling_ddim_cogvideox::CogVideoXSchedulerConfig;
+    use trainer::schedulers::CogVideoXSchedulerConfig;
     let valid = serde_json::to_value(CogVideoXSchedulerConfig::cogvideox_5b()).unwrap();
     let cases: &[(&str, serde_json::Value, &str)] = &[
         ("num_train_timesteps", serde_json::json!(1_000_000_000_000i64), "1000000000000"),

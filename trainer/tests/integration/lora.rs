@@ -8,9 +8,11 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use tch::{Device, Kind, Tensor};
-use trainer::cogvideox_transformer_3d::{self as transformer, CogVideoXTransformer3DModelConfig, TransformerInput};
 use trainer::loaders::lora::LORA_WEIGHTS_NAME;
-use trainer::lora::LoraConfig;
+use trainer::models::cogvideox_transformer_3d::{
+    self as transformer, CogVideoXTransformer3DModelConfig, TransformerInput,
+};
+use trainer::models::lora::LoraConfig;
 use trainer::training::read_metrics;
 
 use super::parity::{errors, read_tensors, repo_root, run_python};
@@ -168,7 +170,14 @@ fn lora_file_loads_in_diffusers_with_our_outputs_and_merge_round_trips() {
     let lora = LoraConfig { rank: RANK, alpha: ALPHA, ..LoraConfig::default() };
     tch::manual_seed(3);
     let (vs, lora_vs, model) = transformer::build_with_lora(&c, &lora, Device::Cpu, Kind::Float).unwrap();
-    trainer::weights::save(&vs, &c, transformer::CLASS_NAME, &base, trainer::weights::DEFAULT_MAX_SHARD_BYTES).unwrap();
+    trainer::models::weights::save(
+        &vs,
+        &c,
+        transformer::CLASS_NAME,
+        &base,
+        trainer::models::weights::DEFAULT_MAX_SHARD_BYTES,
+    )
+    .unwrap();
     // Adapters far from their zero start, so that a lost scale or a dropped layer shows.
     tch::no_grad(|| {
         for (_, mut variable) in lora_vs.variables() {
@@ -198,7 +207,7 @@ fn lora_file_loads_in_diffusers_with_our_outputs_and_merge_round_trips() {
     println!("LoRA vs diffusers+peft: max abs {abs:.3e}, relative {rel:.3e}");
     assert!(rel <= PARITY, "LoRA output differs from diffusers+peft: {abs} abs, {rel} relative");
     let (base_vs, base_model) = transformer::build(&c, Device::Cpu, Kind::Float).unwrap();
-    trainer::weights::load(&base_vs, &base).unwrap();
+    trainer::models::weights::load(&base_vs, &base).unwrap();
     let base_only = forward(&base_model, &x);
     let (_, changed) = errors(&base_only, reference);
     assert!(changed > 1e-2, "the adapter must change the output (by {changed} here)");
@@ -215,7 +224,7 @@ fn lora_file_loads_in_diffusers_with_our_outputs_and_merge_round_trips() {
         merged.as_os_str(),
     ]));
     let (merged_vs, merged_model) = transformer::build(&c, Device::Cpu, Kind::Float).unwrap();
-    trainer::weights::load(&merged_vs, &merged).unwrap();
+    trainer::models::weights::load(&merged_vs, &merged).unwrap();
     let (abs, rel) = errors(&forward(&merged_model, &x), reference);
     println!("merged vs diffusers+peft: max abs {abs:.3e}, relative {rel:.3e}");
     assert!(rel <= PARITY, "merged transformer differs: {abs} abs, {rel} relative");
@@ -227,7 +236,14 @@ fn mismatched_lora_files_and_configs_fail_naming_key_and_shapes() {
     let c = CogVideoXTransformer3DModelConfig::tiny();
     let base = dir.path().join("base");
     let (vs, _) = transformer::build(&c, Device::Cpu, Kind::Float).unwrap();
-    trainer::weights::save(&vs, &c, transformer::CLASS_NAME, &base, trainer::weights::DEFAULT_MAX_SHARD_BYTES).unwrap();
+    trainer::models::weights::save(
+        &vs,
+        &c,
+        transformer::CLASS_NAME,
+        &base,
+        trainer::models::weights::DEFAULT_MAX_SHARD_BYTES,
+    )
+    .unwrap();
     let inner = c.inner_dim();
     let write = |name: &str, tensors: &[(&str, Tensor)]| {
         let path = dir.path().join(name);

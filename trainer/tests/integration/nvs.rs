@@ -7,8 +7,8 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use trainer::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
-use trainer::scheduling_ddim_cogvideox::CogVideoXSchedulerConfig;
+use trainer::models::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
+use trainer::schedulers::CogVideoXSchedulerConfig;
 
 use super::parity::assert_success;
 

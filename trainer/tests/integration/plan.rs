@@ -8,10 +8,10 @@ use std::path::Path;
 use std::process::Command;
 
 use tch::{Device, Kind};
-use trainer::cogvideox_transformer_3d::{self as transformer, CogVideoXTransformer3DModelConfig};
-use trainer::lora::LoraConfig;
-use trainer::plan::{MemoryPlan, PlanOptions, fits, plan};
+use trainer::models::cogvideox_transformer_3d::{self as transformer, CogVideoXTransformer3DModelConfig};
+use trainer::models::lora::LoraConfig;
 use trainer::training::PretrainConfig;
+use trainer::training::plan::{MemoryPlan, PlanOptions, fits, plan};
 
 use super::parity::repo_root;
 
@@ -56,9 +56,12 @@ fn parameter_counts_equal_the_built_models() {
     config.lora = Some(lora);
     let adapted = plan_of(&config, 1, Device::Cpu);
     assert_eq!(adapted.trainable_parameters, count(&lora_vs));
-    let (vae_vs, _) =
-        trainer::autoencoder_kl_cogvideox::build(&config.model.configs(false).unwrap().1, Device::Cpu, Kind::Float)
-            .unwrap();
+    let (vae_vs, _) = trainer::models::autoencoder_kl_cogvideox::build(
+        &config.model.configs(false).unwrap().1,
+        Device::Cpu,
+        Kind::Float,
+    )
+    .unwrap();
     assert_eq!(adapted.vae_parameters, count(&vae_vs));
 }
 
@@ -169,10 +172,10 @@ fn test_time_finetuning_presets_fit_where_they_are_meant_to_run() {
 fn sampling_the_5b_model_in_bf16_fits_a_24_gb_gpu_with_tiles() {
     let config = preset("finetune_5b_lora_1gpu.toml");
     let (transformer, vae) = config.model.configs(false).unwrap();
-    let tiles = trainer::autoencoder_kl_cogvideox::TilingConfig::for_config(&vae);
+    let tiles = trainer::models::autoencoder_kl_cogvideox::TilingConfig::for_config(&vae);
     assert!(tiles.lands_on_latent_pixels(vae.spatial_compression_ratio()));
     let plan = |tiling, guided| {
-        trainer::plan::sampling_plan(
+        trainer::training::plan::sampling_plan(
             &transformer,
             &vae,
             (49, 480, 720),
@@ -191,7 +194,7 @@ fn sampling_the_5b_model_in_bf16_fits_a_24_gb_gpu_with_tiles() {
 }
 
 fn count_of(config: &CogVideoXTransformer3DModelConfig) -> u64 {
-    trainer::cogvideox_transformer_3d::variable_shapes(config)
+    trainer::models::cogvideox_transformer_3d::variable_shapes(config)
         .unwrap()
         .values()
         .map(|s| s.iter().map(|&d| d as u64).product::<u64>())

@@ -115,8 +115,8 @@ fn area_and_linear_resizes_match_opencv() {
         let source = read(case["source"].as_str().unwrap());
         let (w, h) = (case["width"].as_u64().unwrap() as u32, case["height"].as_u64().unwrap() as u32);
         let ours = match case["mode"].as_str().unwrap() {
-            "area" => trainer::video_processor::resize_area(&source, w, h),
-            _ => trainer::video_processor::resize_linear(&source, w, h),
+            "area" => trainer::pipelines::video_processor::resize_area(&source, w, h),
+            _ => trainer::pipelines::video_processor::resize_linear(&source, w, h),
         };
         let (mean, beyond, max) = differences(&[ours], &[read(case["file"].as_str().unwrap())]);
         println!(

@@ -4,8 +4,8 @@
 //! Reference values come from `scripts/goldens_vae_scheduler.py` (see `vae.rs`'s `goldens`).
 
 use trainer::diffusers_config::DiffusersConfig;
-use trainer::scheduling_ddim_cogvideox::{CogVideoXDDIMScheduler, CogVideoXSchedulerConfig};
-use trainer::scheduling_dpm_cogvideox::CogVideoXDPMScheduler;
+use trainer::schedulers::{CogVideoXDDIMScheduler, CogVideoXSchedulerConfig};
+use trainer::schedulers::{CogVideoXDPMScheduler, Scheduler};
 use trainer::tch::Tensor;
 
 use super::parity::{assert_close, read_tensors};

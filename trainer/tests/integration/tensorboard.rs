@@ -1,9 +1,9 @@
-//! TensorBoard event files written by `trainer::tensorboard` read back by the `tensorboard` package's own readers.
+//! TensorBoard event files written by `trainer::training::tensorboard` read back by the `tensorboard` package's own readers.
 
 use std::path::Path;
 use std::time::{SystemTime, UNIX_EPOCH};
 
-use trainer::tensorboard::EventWriter;
+use trainer::training::tensorboard::EventWriter;
 
 use super::parity::run_python;
 

@@ -9,12 +9,12 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
 use std::sync::OnceLock;
 
-use trainer::cogvideox_transformer_3d::{
+use trainer::diffusers_config::DiffusersConfig;
+use trainer::models::cogvideox_transformer_3d::{
     self as transformer, CogVideoXTransformer3DModel, CogVideoXTransformer3DModelConfig, TransformerInput,
 };
-use trainer::diffusers_config::DiffusersConfig;
+use trainer::models::weights;
 use trainer::tch::{self, Device, Kind, Tensor, nn};
-use trainer::weights;
 
 use super::parity::{assert_close, read_tensors, repo_root, run_python, run_script};
 

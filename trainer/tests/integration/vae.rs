@@ -8,10 +8,10 @@ use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
 use std::sync::OnceLock;
 
-use trainer::autoencoder_kl_cogvideox::{
+use trainer::diffusers_config::DiffusersConfig;
+use trainer::models::autoencoder_kl_cogvideox::{
     self as vae, AutoencoderKLCogVideoX, AutoencoderKLCogVideoXConfig, TilingConfig,
 };
-use trainer::diffusers_config::DiffusersConfig;
 use trainer::tch::{self, Device, Kind, Tensor, nn};
 
 use super::parity::{assert_close, errors, read_tensors, run_script};

@@ -6,7 +6,7 @@
 
 use std::path::{Path, PathBuf};
 
-use trainer::data::{DataConfig, DataPosition, ShardLoader};
+use trainer::training::data::{DataConfig, DataPosition, ShardLoader};
 use trainer::training::validation::{ValidationMetrics, is_held_out, split_training_clips};
 use trainer::training::{PretrainConfig, read_metrics, read_validation};
 

@@ -8,9 +8,9 @@
 
 use tch::Tensor;
 
-use crate::embeddings::RotaryEmbedding;
 use crate::error::{Error, Result};
-use crate::vars::{LayerNorm, Linear, Vars};
+use crate::models::embeddings::RotaryEmbedding;
+use crate::models::vars::{LayerNorm, Linear, Vars};
 
 /// Epsilon of the per-head query/key LayerNorms (diffusers' `CogVideoXBlock` passes `eps=1e-6`).
 const QK_NORM_EPS: f64 = 1e-6;

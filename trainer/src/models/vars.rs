@@ -8,8 +8,8 @@
 use tch::{Device, Kind, Tensor, nn};
 
 use crate::error::Result;
-use crate::lora::{LoraAdapter, LoraConfig};
-use crate::weights::check_shape;
+use crate::models::lora::{LoraAdapter, LoraConfig};
+use crate::models::weights::check_shape;
 
 /// How a parameter starts before any checkpoint is loaded.
 #[derive(Debug, Clone, Copy)]

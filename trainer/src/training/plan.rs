@@ -16,17 +16,17 @@
 //! - activations per block: what autograd saves for the backward in [`CogVideoXBlock`]'s forward
 //!   (see [`BlockTerm`]), in units of one `[B, L, D]` tensor (L = text + video tokens, D = width).
 //!
-//! [`CogVideoXBlock`]: crate::cogvideox_transformer_3d::CogVideoXBlock
+//! [`CogVideoXBlock`]: crate::models::cogvideox_transformer_3d::CogVideoXBlock
 
 use std::fmt;
 
 use tch::{Device, Kind};
 
-use crate::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoXConfig};
-use crate::cogvideox_transformer_3d::{CogVideoXTransformer3DModelConfig, variable_shapes};
 use crate::diffusers_config::DiffusersConfig;
 use crate::error::{Error, Result};
-use crate::lora::LoraConfig;
+use crate::models::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoXConfig};
+use crate::models::cogvideox_transformer_3d::{CogVideoXTransformer3DModelConfig, variable_shapes};
+use crate::models::lora::LoraConfig;
 use crate::training::PretrainConfig;
 
 /// Bytes of one fp32 value (AdamW moments, master weights, the loader's frames).
@@ -95,7 +95,7 @@ pub enum Needs {
     FfOut,
 }
 
-/// What [`CogVideoXBlock::forward`](crate::cogvideox_transformer_3d::CogVideoXBlock::forward)
+/// What [`CogVideoXBlock::forward`](crate::models::cogvideox_transformer_3d::CogVideoXBlock::forward)
 /// keeps for the backward, in order (read off `cogvideox_transformer_3d.rs`, `attention.rs`,
 /// `normalization.rs`; SDPA runs a flash kernel on CUDA and on the CPU, which saves q, k, v, the
 /// output and a per-row log-sum-exp, never the L × L scores). The rotary embedding multiplies by
@@ -713,7 +713,7 @@ const INFERENCE_LIVE_UNITS: u64 = 2 + 2 * FF_MULT;
 /// tiles' overlaps, about half as much again at diffusers' default overlaps.
 const TILED_OUTPUT_COPIES: f64 = 1.5;
 
-/// What one device holds to sample a video with [`crate::sampling::CogNvsPipeline`].
+/// What one device holds to sample a video with [`crate::pipelines::sampling::CogNvsPipeline`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct SamplingPlan {
     /// The device.
@@ -858,8 +858,8 @@ impl fmt::Display for SamplingPlan {
 /// `framing.frames`), guided when a negative prompt is given; reads the configs only.
 pub fn sampling_plan_for(
     paths: &crate::loaders::ModelPaths,
-    options: crate::sampling::LoadOptions,
-    framing: &crate::sampling::Framing,
+    options: crate::pipelines::sampling::LoadOptions,
+    framing: &crate::pipelines::sampling::Framing,
 ) -> Result<SamplingPlan> {
     let config = CogVideoXTransformer3DModelConfig::from_json_file(&paths.transformer)?;
     let vae_config = AutoencoderKLCogVideoXConfig::from_json_file(&paths.vae)?;

@@ -32,7 +32,7 @@ use tch::Device;
 
 use crate::error::{Error, Result};
 use crate::loaders::ModelSource;
-use crate::sampling::{CogNvsPipeline, Framing, LoadOptions};
+use crate::pipelines::sampling::{CogNvsPipeline, Framing, LoadOptions};
 use crate::training::preempt::Checkpointable;
 use crate::training::{FinetuneRequest, StepMetrics};
 
@@ -277,21 +277,28 @@ pub fn run(
             return stopped(record);
         }
         let paths = model.resolve()?;
-        crate::plan::check_sampling_fits(&crate::plan::sampling_plan_for(&paths, request.load, &request.framing)?)?;
+        crate::training::plan::check_sampling_fits(&crate::training::plan::sampling_plan_for(
+            &paths,
+            request.load,
+            &request.framing,
+        )?)?;
         let pipeline = CogNvsPipeline::load(&paths, request.load)?;
         for i in pending {
             let name = record.outputs[i].name.clone();
             let render = request.out.join(&record.outputs[i].render);
-            let condition = crate::sampling::prepare_condition(&render, &pipeline, &request.framing)?;
-            let video =
-                crate::video_processor::frames_to_video(&condition.frames, pipeline.kind(), request.load.device)?;
+            let condition = crate::pipelines::sampling::prepare_condition(&render, &pipeline, &request.framing)?;
+            let video = crate::pipelines::video_processor::frames_to_video(
+                &condition.frames,
+                pipeline.kind(),
+                request.load.device,
+            )?;
             let started = Instant::now();
             let sampled =
                 pipeline.generate(&video, request.sample_steps, request.guidance, request.seed, &mut |s, n| {
                     progress(Progress::Denoise(s, n))
                 })?;
             let seconds = started.elapsed().as_secs_f64();
-            let frames = crate::sampling::finish_frames(&sampled, &condition, &request.framing)?;
+            let frames = crate::pipelines::sampling::finish_frames(&sampled, &condition, &request.framing)?;
             let output = write_outputs(&request.out, &name, &frames, &sequence.frames, &render, request.framing.fps)?;
             record.outputs[i] = Output { sample_seconds: Some(seconds), ..output.with_render(&record.outputs[i]) };
             write_record(&record_path, &record)?;
@@ -383,9 +390,13 @@ fn preflight(request: &NvsRequest) -> Result<Preflight> {
         config.model.check_text_embedding()?;
     }
     let paths = request.model.resolve()?;
-    let checked = crate::sampling::CheckedModels::read(&paths, Device::Cpu)?;
+    let checked = crate::pipelines::sampling::CheckedModels::read(&paths, Device::Cpu)?;
     checked.check_sampling("sample-steps", request.sample_steps, request.guidance, &request.framing)?;
-    crate::plan::check_sampling_fits(&crate::plan::sampling_plan_for(&paths, request.load, &request.framing)?)?;
+    crate::training::plan::check_sampling_fits(&crate::training::plan::sampling_plan_for(
+        &paths,
+        request.load,
+        &request.framing,
+    )?)?;
     Ok(Preflight { names, sequence, settings, inputs, train })
 }
 
@@ -463,9 +474,9 @@ fn write_outputs(
 ) -> Result<Output> {
     let video = out.join(format!("{name}.mp4"));
     let folder = out.join(name);
-    crate::sampling::write_frames(&folder, frames, fps)?;
-    crate::sampling::write_frames(&video, frames, fps)?;
-    let rendered = crate::sampling::read_condition_named(render)?.frames;
+    crate::pipelines::sampling::write_frames(&folder, frames, fps)?;
+    crate::pipelines::sampling::write_frames(&video, frames, fps)?;
+    let rendered = crate::pipelines::sampling::read_condition_named(render)?.frames;
     let sheet = out.join(format!("{name}_sheet.png"));
     contact_sheet(source, &rendered, frames).save(&sheet).map_err(|e| Error::InvalidInput {
         path: sheet.clone(),
@@ -497,7 +508,11 @@ fn contact_sheet(source: &[RgbImage], render: &[RgbImage], result: &[RgbImage]) 
     let count = result.len().min(source.len()).min(render.len());
     let (w, h) = result[0].dimensions();
     let fit = |image: &RgbImage| {
-        if image.dimensions() == (w, h) { image.clone() } else { crate::video_processor::resize_linear(image, w, h) }
+        if image.dimensions() == (w, h) {
+            image.clone()
+        } else {
+            crate::pipelines::video_processor::resize_linear(image, w, h)
+        }
     };
     let rows: Vec<Vec<RgbImage>> = (0..ROWS.min(count))
         .map(|k| k * (count - 1) / (ROWS.min(count) - 1).max(1))

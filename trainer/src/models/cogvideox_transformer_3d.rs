@@ -7,7 +7,7 @@
 //! text tokens and run through `num_layers` [`CogVideoXBlock`]s, each modulated by the timestep
 //! embedding; the final modulated norm and `proj_out` map video tokens back to
 //! `[B, F, out_channels, H, W]`. Variables live at diffusers' state-dict paths, so a diffusers
-//! checkpoint loads unchanged ([`crate::weights::load`]) and [`crate::weights::save`] writes one
+//! checkpoint loads unchanged ([`crate::models::weights::load`]) and [`crate::models::weights::save`] writes one
 //! diffusers' `from_pretrained` reads.
 
 use std::collections::BTreeMap;
@@ -15,15 +15,15 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor, nn};
 
-use crate::attention::{Activation, Attention, FeedForward};
 use crate::diffusers_config::DiffusersConfig;
-use crate::embeddings::{
+use crate::error::{Error, Result};
+use crate::models::attention::{Activation, Attention, FeedForward};
+use crate::models::embeddings::{
     CogVideoXPatchEmbed, PatchEmbedConfig, PositionalEmbedding, RotaryEmbedding, TimestepEmbedding, timestep_embedding,
 };
-use crate::error::{Error, Result};
-use crate::lora::LoraConfig;
-use crate::normalization::{AdaLayerNorm, CogVideoXLayerNormZero};
-use crate::vars::{LayerNorm, Linear, Vars};
+use crate::models::lora::LoraConfig;
+use crate::models::normalization::{AdaLayerNorm, CogVideoXLayerNormZero};
+use crate::models::vars::{LayerNorm, Linear, Vars};
 
 /// The class name diffusers writes into the transformer's `config.json` (`_class_name`).
 pub const CLASS_NAME: &str = "CogVideoXTransformer3DModel";
@@ -141,116 +141,16 @@ impl Default for CogVideoXTransformer3DModelConfig {
 
 impl DiffusersConfig for CogVideoXTransformer3DModelConfig {
     const KIND: &'static str = "transformer";
+    const CLASS_NAMES: &'static [&'static str] = &[CLASS_NAME];
     const FILE_NAME: &'static str = "config.json";
 
-    fn validate(&self, source_name: &str) -> Result<()> {
-        CogVideoXTransformer3DModelConfig::validate(self, source_name)
-    }
-
-    fn extra(&self) -> &BTreeMap<String, serde_json::Value> {
-        &self.extra
-    }
-}
-
-/// Largest value of one size field of the config (channels, heads, head width, layers, tokens,
-/// latent sizes) and of the token width heads × head_dim: far above every released model's
-/// (3072 channels, 48 heads, 226 text tokens, 42 layers, 90 latents a side), and small enough
-/// that the products the model forms from two or three of them stay inside 64-bit sizes.
-pub const MAX_DIMENSION: i64 = 1 << 20;
-
-/// Most values of the positional table (tokens × channels): the released models' is 17 550 ×
-/// 3072 ≈ 5.4e7; 2^36 (256 GiB in f32) is beyond any device, so a larger one is a config error.
-pub const MAX_TABLE_ELEMENTS: i64 = 1 << 36;
-
-impl CogVideoXTransformer3DModelConfig {
-    /// The released CogNVS transformer (its checkpoint's `config.json`)
-    /// (the CogVideoX-5B-I2V architecture: 42 × 48 heads × 64, learned + rotary positions) with
-    /// 32 input channels.
-    pub fn cognvs_5b() -> Self {
-        Self {
-            num_attention_heads: 48,
-            in_channels: 32,
-            num_layers: 42,
-            use_rotary_positional_embeddings: true,
-            use_learned_positional_embeddings: true,
-            ..Self::default()
-        }
-    }
-
-    /// The CogVideoX-2B transformer (`THUDM/CogVideoX-2b`: 30 × 30 heads × 64, sin-cos positions,
-    /// = diffusers' defaults).
-    pub fn cogvideox_2b() -> Self {
-        Self::default()
-    }
-
-    /// The CogNVS structure (32 → 16 latent channels, learned + rotary positions, QK norm,
-    /// gelu-tanh) at small widths for tests and CPU runs: 2 blocks of 2 heads × 16, 8 text tokens
-    /// of width 16, and a positional table for 9 frames of 8 × 10 latents (the tiny VAE's 64 × 80
-    /// pixels). `scripts/goldens_transformer.py` builds the same model in diffusers.
-    pub fn tiny() -> Self {
-        Self {
-            num_attention_heads: 2,
-            attention_head_dim: 16,
-            in_channels: 32,
-            out_channels: Some(16),
-            time_embed_dim: 32,
-            text_embed_dim: 16,
-            num_layers: 2,
-            sample_width: 10,
-            sample_height: 8,
-            sample_frames: 9,
-            max_text_seq_length: 8,
-            use_rotary_positional_embeddings: true,
-            use_learned_positional_embeddings: true,
-            ..Self::default()
-        }
-    }
-
-    /// A preset by name: `cognvs-5b`, `cogvideox-2b`, `tiny`.
-    pub fn preset(name: &str) -> Result<Self> {
-        match name {
-            "cognvs-5b" => Ok(Self::cognvs_5b()),
-            "cogvideox-2b" => Ok(Self::cogvideox_2b()),
-            "tiny" => Ok(Self::tiny()),
-            other => Err(Error::InvalidConfig {
-                source_name: "preset".to_string(),
-                field: "name".to_string(),
-                reason: format!("unknown transformer preset `{other}`; expected cognvs-5b, cogvideox-2b or tiny"),
-            }),
-        }
-    }
-
-    /// Token width, `heads × head_dim`.
-    pub fn inner_dim(&self) -> i64 {
-        self.num_attention_heads * self.attention_head_dim
-    }
-
-    /// Output latent channels (`out_channels`, or `in_channels` when null).
-    pub fn output_channels(&self) -> i64 {
-        self.out_channels.unwrap_or(self.in_channels)
-    }
-
-    /// Which positional embedding the patch embedding adds.
-    pub fn positional_embedding(&self) -> PositionalEmbedding {
-        match (self.use_rotary_positional_embeddings, self.use_learned_positional_embeddings) {
-            (_, true) => PositionalEmbedding::Learned,
-            (false, false) => PositionalEmbedding::SinCos,
-            (true, false) => PositionalEmbedding::None,
-        }
-    }
-
     /// Rejects values and combinations the architecture cannot build, naming the field.
-    pub fn validate(&self, source_name: &str) -> Result<()> {
+    fn validate_fields(&self, source_name: &str) -> Result<()> {
         let err = |field: &str, reason: String| Error::InvalidConfig {
             source_name: source_name.to_string(),
             field: field.to_string(),
             reason,
         };
-        if let Some(class) = self.extra.get("_class_name").and_then(|v| v.as_str())
-            && class != CLASS_NAME
-        {
-            return Err(err("_class_name", format!("is `{class}`, expected `{CLASS_NAME}`")));
-        }
         let sizes = [
             ("num_attention_heads", self.num_attention_heads),
             ("attention_head_dim", self.attention_head_dim),
@@ -373,6 +273,98 @@ impl CogVideoXTransformer3DModelConfig {
             return Err(err("norm_eps", format!("must be positive, got {}", self.norm_eps)));
         }
         Ok(())
+    }
+
+    fn extra(&self) -> &BTreeMap<String, serde_json::Value> {
+        &self.extra
+    }
+}
+
+/// Largest value of one size field of the config (channels, heads, head width, layers, tokens,
+/// latent sizes) and of the token width heads × head_dim: far above every released model's
+/// (3072 channels, 48 heads, 226 text tokens, 42 layers, 90 latents a side), and small enough
+/// that the products the model forms from two or three of them stay inside 64-bit sizes.
+pub const MAX_DIMENSION: i64 = 1 << 20;
+
+/// Most values of the positional table (tokens × channels): the released models' is 17 550 ×
+/// 3072 ≈ 5.4e7; 2^36 (256 GiB in f32) is beyond any device, so a larger one is a config error.
+pub const MAX_TABLE_ELEMENTS: i64 = 1 << 36;
+
+impl CogVideoXTransformer3DModelConfig {
+    /// The released CogNVS transformer (its checkpoint's `config.json`)
+    /// (the CogVideoX-5B-I2V architecture: 42 × 48 heads × 64, learned + rotary positions) with
+    /// 32 input channels.
+    pub fn cognvs_5b() -> Self {
+        Self {
+            num_attention_heads: 48,
+            in_channels: 32,
+            num_layers: 42,
+            use_rotary_positional_embeddings: true,
+            use_learned_positional_embeddings: true,
+            ..Self::default()
+        }
+    }
+
+    /// The CogVideoX-2B transformer (`THUDM/CogVideoX-2b`: 30 × 30 heads × 64, sin-cos positions,
+    /// = diffusers' defaults).
+    pub fn cogvideox_2b() -> Self {
+        Self::default()
+    }
+
+    /// The CogNVS structure (32 → 16 latent channels, learned + rotary positions, QK norm,
+    /// gelu-tanh) at small widths for tests and CPU runs: 2 blocks of 2 heads × 16, 8 text tokens
+    /// of width 16, and a positional table for 9 frames of 8 × 10 latents (the tiny VAE's 64 × 80
+    /// pixels). `scripts/goldens_transformer.py` builds the same model in diffusers.
+    pub fn tiny() -> Self {
+        Self {
+            num_attention_heads: 2,
+            attention_head_dim: 16,
+            in_channels: 32,
+            out_channels: Some(16),
+            time_embed_dim: 32,
+            text_embed_dim: 16,
+            num_layers: 2,
+            sample_width: 10,
+            sample_height: 8,
+            sample_frames: 9,
+            max_text_seq_length: 8,
+            use_rotary_positional_embeddings: true,
+            use_learned_positional_embeddings: true,
+            ..Self::default()
+        }
+    }
+
+    /// A preset by name: `cognvs-5b`, `cogvideox-2b`, `tiny`.
+    pub fn preset(name: &str) -> Result<Self> {
+        match name {
+            "cognvs-5b" => Ok(Self::cognvs_5b()),
+            "cogvideox-2b" => Ok(Self::cogvideox_2b()),
+            "tiny" => Ok(Self::tiny()),
+            other => Err(Error::InvalidConfig {
+                source_name: "preset".to_string(),
+                field: "name".to_string(),
+                reason: format!("unknown transformer preset `{other}`; expected cognvs-5b, cogvideox-2b or tiny"),
+            }),
+        }
+    }
+
+    /// Token width, `heads × head_dim`.
+    pub fn inner_dim(&self) -> i64 {
+        self.num_attention_heads * self.attention_head_dim
+    }
+
+    /// Output latent channels (`out_channels`, or `in_channels` when null).
+    pub fn output_channels(&self) -> i64 {
+        self.out_channels.unwrap_or(self.in_channels)
+    }
+
+    /// Which positional embedding the patch embedding adds.
+    pub fn positional_embedding(&self) -> PositionalEmbedding {
+        match (self.use_rotary_positional_embeddings, self.use_learned_positional_embeddings) {
+            (_, true) => PositionalEmbedding::Learned,
+            (false, false) => PositionalEmbedding::SinCos,
+            (true, false) => PositionalEmbedding::None,
+        }
     }
 
     fn patch_embed_config(&self) -> PatchEmbedConfig {
@@ -963,7 +955,7 @@ fn check_lora_targets(lora: &LoraConfig, lora_vs: &nn::VarStore) -> Result<usize
 pub fn variable_shapes(config: &CogVideoXTransformer3DModelConfig) -> Result<BTreeMap<String, Vec<i64>>> {
     let vs = nn::VarStore::new(Device::Cpu);
     CogVideoXTransformer3DModel::new(&Vars::shapes_only(vs.root()), config)?;
-    Ok(crate::weights::variable_shapes(&vs))
+    Ok(crate::models::weights::variable_shapes(&vs))
 }
 
 #[cfg(test)]

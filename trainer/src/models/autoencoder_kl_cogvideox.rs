@@ -151,10 +151,84 @@ impl Default for AutoencoderKLCogVideoXConfig {
 
 impl DiffusersConfig for AutoencoderKLCogVideoXConfig {
     const KIND: &'static str = "VAE";
+    const CLASS_NAMES: &'static [&'static str] = &[CLASS_NAME];
     const FILE_NAME: &'static str = "config.json";
 
-    fn validate(&self, source_name: &str) -> Result<()> {
-        AutoencoderKLCogVideoXConfig::validate(self, source_name)
+    /// Rejects combinations the architecture cannot build, naming the field.
+    fn validate_fields(&self, source_name: &str) -> Result<()> {
+        let err = |field: &str, reason: String| Error::InvalidConfig {
+            source_name: source_name.to_string(),
+            field: field.to_string(),
+            reason,
+        };
+        let levels = self.block_out_channels.len();
+        if levels == 0 {
+            return Err(err("block_out_channels", "is empty".to_string()));
+        }
+        if levels > MAX_LEVELS {
+            return Err(err(
+                "block_out_channels",
+                format!("{levels} levels: at most {MAX_LEVELS} (2^{} spatial compression)", MAX_LEVELS - 1),
+            ));
+        }
+        if self.down_block_types.len() != levels {
+            return Err(err(
+                "down_block_types",
+                format!("has {} entries but block_out_channels has {levels}", self.down_block_types.len()),
+            ));
+        }
+        if self.up_block_types.len() != levels {
+            return Err(err(
+                "up_block_types",
+                format!("has {} entries but block_out_channels has {levels}", self.up_block_types.len()),
+            ));
+        }
+        if let Some(t) = self.down_block_types.iter().find(|t| *t != DOWN_BLOCK_TYPE) {
+            return Err(err("down_block_types", format!("`{t}` is not supported (only `{DOWN_BLOCK_TYPE}`)")));
+        }
+        if let Some(t) = self.up_block_types.iter().find(|t| *t != UP_BLOCK_TYPE) {
+            return Err(err("up_block_types", format!("`{t}` is not supported (only `{UP_BLOCK_TYPE}`)")));
+        }
+        if self.act_fn != "silu" && self.act_fn != "swish" {
+            return Err(err("act_fn", format!("`{}` is not supported (only `silu`)", self.act_fn)));
+        }
+        if self.norm_num_groups <= 0 {
+            return Err(err("norm_num_groups", format!("must be positive, got {}", self.norm_num_groups)));
+        }
+        for (field, value) in [
+            ("in_channels", self.in_channels),
+            ("out_channels", self.out_channels),
+            ("latent_channels", self.latent_channels),
+            ("layers_per_block", self.layers_per_block),
+        ] {
+            if value <= 0 {
+                return Err(err(field, format!("must be positive, got {value}")));
+            }
+        }
+        if let Some(c) = self.block_out_channels.iter().find(|&&c| c <= 0 || c % self.norm_num_groups != 0) {
+            return Err(err(
+                "block_out_channels",
+                format!("{c} is not a positive multiple of norm_num_groups ({})", self.norm_num_groups),
+            ));
+        }
+        // diffusers fails on `int(np.log2(r))` for r <= 0 (and NaN); anything else it builds.
+        let ratio = self.temporal_compression_ratio;
+        if !(ratio.is_finite() && ratio > 0.0) {
+            return Err(err("temporal_compression_ratio", format!("{ratio} must be finite and > 0")));
+        }
+        if self.use_quant_conv {
+            return Err(err("use_quant_conv", "true is not supported (no CogVideoX checkpoint uses it)".to_string()));
+        }
+        if self.use_post_quant_conv {
+            return Err(err(
+                "use_post_quant_conv",
+                "true is not supported (no CogVideoX checkpoint uses it)".to_string(),
+            ));
+        }
+        if self.sample_height <= 0 || self.sample_width <= 0 {
+            return Err(err("sample_height", "sample_height and sample_width must be positive".to_string()));
+        }
+        Ok(())
     }
 
     fn extra(&self) -> &BTreeMap<String, serde_json::Value> {
@@ -237,88 +311,6 @@ impl AutoencoderKLCogVideoXConfig {
     pub fn effective_temporal_compression_ratio(&self) -> i64 {
         let downsampling = self.block_out_channels.len().saturating_sub(1);
         1 << self.temporal_compress_level().min(downsampling)
-    }
-
-    /// Rejects combinations the architecture cannot build, naming the field.
-    pub fn validate(&self, source_name: &str) -> Result<()> {
-        let err = |field: &str, reason: String| Error::InvalidConfig {
-            source_name: source_name.to_string(),
-            field: field.to_string(),
-            reason,
-        };
-        if let Some(class) = self.extra.get("_class_name").and_then(|v| v.as_str())
-            && class != CLASS_NAME
-        {
-            return Err(err("_class_name", format!("is `{class}`, expected `{CLASS_NAME}`")));
-        }
-        let levels = self.block_out_channels.len();
-        if levels == 0 {
-            return Err(err("block_out_channels", "is empty".to_string()));
-        }
-        if levels > MAX_LEVELS {
-            return Err(err(
-                "block_out_channels",
-                format!("{levels} levels: at most {MAX_LEVELS} (2^{} spatial compression)", MAX_LEVELS - 1),
-            ));
-        }
-        if self.down_block_types.len() != levels {
-            return Err(err(
-                "down_block_types",
-                format!("has {} entries but block_out_channels has {levels}", self.down_block_types.len()),
-            ));
-        }
-        if self.up_block_types.len() != levels {
-            return Err(err(
-                "up_block_types",
-                format!("has {} entries but block_out_channels has {levels}", self.up_block_types.len()),
-            ));
-        }
-        if let Some(t) = self.down_block_types.iter().find(|t| *t != DOWN_BLOCK_TYPE) {
-            return Err(err("down_block_types", format!("`{t}` is not supported (only `{DOWN_BLOCK_TYPE}`)")));
-        }
-        if let Some(t) = self.up_block_types.iter().find(|t| *t != UP_BLOCK_TYPE) {
-            return Err(err("up_block_types", format!("`{t}` is not supported (only `{UP_BLOCK_TYPE}`)")));
-        }
-        if self.act_fn != "silu" && self.act_fn != "swish" {
-            return Err(err("act_fn", format!("`{}` is not supported (only `silu`)", self.act_fn)));
-        }
-        if self.norm_num_groups <= 0 {
-            return Err(err("norm_num_groups", format!("must be positive, got {}", self.norm_num_groups)));
-        }
-        for (field, value) in [
-            ("in_channels", self.in_channels),
-            ("out_channels", self.out_channels),
-            ("latent_channels", self.latent_channels),
-            ("layers_per_block", self.layers_per_block),
-        ] {
-            if value <= 0 {
-                return Err(err(field, format!("must be positive, got {value}")));
-            }
-        }
-        if let Some(c) = self.block_out_channels.iter().find(|&&c| c <= 0 || c % self.norm_num_groups != 0) {
-            return Err(err(
-                "block_out_channels",
-                format!("{c} is not a positive multiple of norm_num_groups ({})", self.norm_num_groups),
-            ));
-        }
-        // diffusers fails on `int(np.log2(r))` for r <= 0 (and NaN); anything else it builds.
-        let ratio = self.temporal_compression_ratio;
-        if !(ratio.is_finite() && ratio > 0.0) {
-            return Err(err("temporal_compression_ratio", format!("{ratio} must be finite and > 0")));
-        }
-        if self.use_quant_conv {
-            return Err(err("use_quant_conv", "true is not supported (no CogVideoX checkpoint uses it)".to_string()));
-        }
-        if self.use_post_quant_conv {
-            return Err(err(
-                "use_post_quant_conv",
-                "true is not supported (no CogVideoX checkpoint uses it)".to_string(),
-            ));
-        }
-        if self.sample_height <= 0 || self.sample_width <= 0 {
-            return Err(err("sample_height", "sample_height and sample_width must be positive".to_string()));
-        }
-        Ok(())
     }
 }
 

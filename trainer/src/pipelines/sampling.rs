@@ -29,21 +29,21 @@ use std::time::Instant;
 use image::RgbImage;
 use tch::{Device, Kind, Tensor, nn};
 
-use crate::autoencoder_kl_cogvideox::{
-    self as vae, AutoencoderKLCogVideoX, AutoencoderKLCogVideoXConfig, TilingConfig,
-};
-use crate::cogvideox_transformer_3d::{
-    self as transformer, CogVideoXTransformer3DModel, CogVideoXTransformer3DModelConfig, TransformerInput,
-};
 use crate::diffusers_config::DiffusersConfig;
-use crate::embeddings::RotaryEmbedding;
 use crate::error::{Error, Result};
 use crate::loaders::{ModelPaths, ModelSource, load_text_embedding, scheduler_config};
+use crate::models::autoencoder_kl_cogvideox::{
+    self as vae, AutoencoderKLCogVideoX, AutoencoderKLCogVideoXConfig, TilingConfig,
+};
+use crate::models::cogvideox_transformer_3d::{
+    self as transformer, CogVideoXTransformer3DModel, CogVideoXTransformer3DModelConfig, TransformerInput,
+};
+use crate::models::embeddings::RotaryEmbedding;
+use crate::models::weights;
+use crate::pipelines::video_processor::{self, ResizeMode};
 use crate::precision::Precision;
-use crate::scheduling_ddim_cogvideox::CogVideoXSchedulerConfig;
-use crate::scheduling_dpm_cogvideox::CogVideoXDPMScheduler;
-use crate::video_processor::{self, ResizeMode};
-use crate::weights;
+use crate::schedulers::CogVideoXSchedulerConfig;
+use crate::schedulers::{CogVideoXDPMScheduler, Scheduler};
 
 /// How a pipeline is loaded.
 #[derive(Debug, Clone, Copy)]
@@ -548,7 +548,9 @@ pub fn prepare_condition(path: &Path, pipeline: &CogNvsPipeline, framing: &Frami
     let used = video_processor::take_frames(named.frames.len(), framing.frames, temporal).ok_or_else(|| {
         Error::InvalidInput { path: path.to_path_buf(), what: "frames".to_string(), reason: "no frame".to_string() }
     })?;
-    if used > crate::data::MAX_FRAMES || source_size.0 > crate::data::MAX_SIDE || source_size.1 > crate::data::MAX_SIDE
+    if used > crate::training::data::MAX_FRAMES
+        || source_size.0 > crate::training::data::MAX_SIDE
+        || source_size.1 > crate::training::data::MAX_SIDE
     {
         return Err(Error::InvalidInput {
             path: path.to_path_buf(),
@@ -557,8 +559,8 @@ pub fn prepare_condition(path: &Path, pipeline: &CogNvsPipeline, framing: &Frami
                 "{used} frames of {}x{}: at most {} frames of {} pixels a side",
                 source_size.0,
                 source_size.1,
-                crate::data::MAX_FRAMES,
-                crate::data::MAX_SIDE
+                crate::training::data::MAX_FRAMES,
+                crate::training::data::MAX_SIDE
             ),
         });
     }
@@ -567,9 +569,9 @@ pub fn prepare_condition(path: &Path, pipeline: &CogNvsPipeline, framing: &Frami
 }
 
 /// Reads the conditioning frames: a `datagen render` folder (`frames/`), a frame folder or a video.
-pub fn read_condition_named(path: &Path) -> Result<crate::metrics::NamedFrames> {
+pub fn read_condition_named(path: &Path) -> Result<crate::eval::metrics::NamedFrames> {
     let folder = if path.is_dir() && path.join("frames").is_dir() { path.join("frames") } else { path.to_path_buf() };
-    crate::metrics::read_named_frames(&folder)
+    crate::eval::metrics::read_named_frames(&folder)
 }
 
 /// The user's frames from a sampled video: back at the conditioning's size when `framing` asks

@@ -43,7 +43,9 @@ pub fn take_frames(count: usize, wanted: usize, temporal: usize) -> Option<usize
 pub fn fit(frame: &RgbImage, width: u32, height: u32, mode: ResizeMode) -> RgbImage {
     match mode {
         ResizeMode::Area => resize_area(frame, width, height),
-        ResizeMode::Crop => crate::data::cover_crop(frame, width, height, image::imageops::FilterType::Triangle),
+        ResizeMode::Crop => {
+            crate::training::data::cover_crop(frame, width, height, image::imageops::FilterType::Triangle)
+        }
     }
 }
 

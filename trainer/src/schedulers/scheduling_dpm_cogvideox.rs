@@ -11,17 +11,27 @@
 
 use tch::Tensor;
 
+use super::scheduling_utils::{Scheduler, SchedulerState, SchedulerStepOutput, same_shape};
 use crate::error::Result;
-use crate::scheduling_ddim_cogvideox::{
-    CogVideoXSchedulerConfig, NoiseSchedule, SchedulerStepOutput, not_set, same_shape,
-};
 
 /// diffusers' `CogVideoXDPMScheduler`.
 #[derive(Debug)]
 pub struct CogVideoXDPMScheduler {
-    schedule: NoiseSchedule,
-    num_inference_steps: Option<usize>,
-    timesteps: Vec<i64>,
+    state: SchedulerState,
+}
+
+impl Scheduler for CogVideoXDPMScheduler {
+    fn from_state(state: SchedulerState) -> Self {
+        Self { state }
+    }
+
+    fn state(&self) -> &SchedulerState {
+        &self.state
+    }
+
+    fn state_mut(&mut self) -> &mut SchedulerState {
+        &mut self.state
+    }
 }
 
 /// Log-SNR λ = log √(ᾱ / (1 − ᾱ)) (−∞ at ᾱ = 0, +∞ at ᾱ = 1).
@@ -43,48 +53,23 @@ struct StepCoefficients {
 }
 
 impl CogVideoXDPMScheduler {
-    /// A scheduler for `config` (call [`Self::set_timesteps`] before stepping).
-    pub fn new(config: &CogVideoXSchedulerConfig) -> Result<Self> {
-        let schedule = NoiseSchedule::new(config)?;
-        let timesteps = (0..config.num_train_timesteps).rev().collect();
-        Ok(Self { schedule, num_inference_steps: None, timesteps })
-    }
-
-    /// The noise schedule (ᾱ, `add_noise`, `get_velocity`).
-    pub fn schedule(&self) -> &NoiseSchedule {
-        &self.schedule
-    }
-
-    /// Chooses `num_inference_steps` timesteps per the configured spacing (50 for CogVideoX).
-    pub fn set_timesteps(&mut self, num_inference_steps: usize) -> Result<()> {
-        self.timesteps = self.schedule.timesteps(num_inference_steps)?;
-        self.num_inference_steps = Some(num_inference_steps);
-        Ok(())
-    }
-
-    /// The current timesteps, descending; step `i` passes `timesteps[i − 1]` as `timestep_back`.
-    pub fn timesteps(&self) -> &[i64] {
-        &self.timesteps
-    }
-
     /// Whether a step at `timestep` with a previous x̂₀ is second order (draws noise twice).
     pub fn is_second_order(&self, timestep: i64, has_old_pred: bool) -> Result<bool> {
         Ok(has_old_pred && self.prev_timestep(timestep)? >= 0)
     }
 
     fn prev_timestep(&self, timestep: i64) -> Result<i64> {
-        let n = self.num_inference_steps.ok_or_else(|| not_set("CogVideoXDPMScheduler"))?;
-        Ok(timestep - self.schedule.config().num_train_timesteps / n as i64)
+        Ok(timestep - self.state.step_ratio("CogVideoXDPMScheduler")?)
     }
 
     fn coefficients(&self, timestep: i64, timestep_back: Option<i64>, second_order: bool) -> Result<StepCoefficients> {
-        let alpha_t = self.schedule.alpha_cumprod_at(timestep.max(0))?;
-        let alpha_prev = self.schedule.alpha_cumprod_at(self.prev_timestep(timestep)?)?;
+        let alpha_t = self.schedule().alpha_cumprod_at(timestep.max(0))?;
+        let alpha_prev = self.schedule().alpha_cumprod_at(self.prev_timestep(timestep)?)?;
         let lamb = lambda(alpha_t);
         let h = lambda(alpha_prev) - lamb;
         let extrapolation = match (second_order, timestep_back) {
             (true, Some(back)) => {
-                let h_last = lamb - lambda(self.schedule.alpha_cumprod_at(back)?);
+                let h_last = lamb - lambda(self.schedule().alpha_cumprod_at(back)?);
                 let r = h_last / h;
                 Some((1.0 + 1.0 / (2.0 * r), 1.0 / (2.0 * r)))
             }
@@ -146,8 +131,8 @@ impl CogVideoXDPMScheduler {
         }
         let second_order = self.is_second_order(timestep, old_pred_original_sample.is_some())?;
         let c = self.coefficients(timestep, timestep_back, second_order)?;
-        let alpha_t = self.schedule.alpha_cumprod_at(timestep)?;
-        let pred = self.schedule.pred_original_sample(model_output, sample, alpha_t)?;
+        let alpha_t = self.schedule().alpha_cumprod_at(timestep)?;
+        let pred = self.schedule().pred_original_sample(model_output, sample, alpha_t)?;
         let denoised = match (c.extrapolation, old_pred_original_sample) {
             (Some((m3, m4)), Some(old)) => pred.f_mul_scalar(m3)?.f_sub(&old.f_mul_scalar(m4)?)?,
             _ => pred.shallow_clone(),
@@ -158,21 +143,12 @@ impl CogVideoXDPMScheduler {
             .f_add(&noise.f_mul_scalar(c.noise)?)?;
         Ok(SchedulerStepOutput { prev_sample, pred_original_sample: pred })
     }
-
-    /// See [`NoiseSchedule::add_noise`].
-    pub fn add_noise(&self, original_samples: &Tensor, noise: &Tensor, timesteps: &Tensor) -> Result<Tensor> {
-        self.schedule.add_noise(original_samples, noise, timesteps)
-    }
-
-    /// See [`NoiseSchedule::get_velocity`].
-    pub fn get_velocity(&self, sample: &Tensor, noise: &Tensor, timesteps: &Tensor) -> Result<Tensor> {
-        self.schedule.get_velocity(sample, noise, timesteps)
-    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::schedulers::CogVideoXSchedulerConfig;
     use tch::{Device, Kind};
 
     #[test]

@@ -11,7 +11,7 @@
 use tch::{Device, Kind, Tensor};
 
 use crate::error::{Error, Result};
-use crate::vars::{Linear, ParamInit, Vars};
+use crate::models::vars::{Linear, ParamInit, Vars};
 
 /// `max_period` of diffusers' `get_timestep_embedding` (and of every positional table here).
 const MAX_PERIOD: f64 = 10_000.0;

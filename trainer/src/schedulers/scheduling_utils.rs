@@ -1,8 +1,9 @@
-//! CogVideoX's DDIM scheduler (diffusers' `CogVideoXDDIMScheduler`,
-//! `diffusers/schedulers/scheduling_ddim_cogvideox.py`) and what it shares with the DPM scheduler
-//! (`scheduling_dpm_cogvideox.rs`): the `scheduler_config.json` both read, the noise schedule
-//! ᾱ_t (with CogVideoX's SNR shift and the zero-terminal-SNR rescale), inference timesteps,
-//! `add_noise` and `get_velocity` (the training side: noising latents and the v-prediction target).
+//! What CogVideoX's two schedulers share, as diffusers' `scheduling_utils.py` and `SchedulerMixin`
+//! hold it: the `scheduler_config.json` both read, the noise schedule ᾱ_t (with CogVideoX's SNR
+//! shift and the zero-terminal-SNR rescale), the inference timesteps, `add_noise` and
+//! `get_velocity` (the training side: noising latents and the v-prediction target), and
+//! [`Scheduler`], the one implementation of construction, `set_timesteps` and the accessors that
+//! each scheduler adds its `step` to.
 //!
 //! The schedule is computed with the same tensor ops and dtypes as diffusers (float64 for
 //! `scaled_linear`), so ᾱ_t agrees to the last bit; step coefficients are float64 scalars.
@@ -109,76 +110,16 @@ pub enum TimestepSpacing {
 
 impl DiffusersConfig for CogVideoXSchedulerConfig {
     const KIND: &'static str = "scheduler";
+    const CLASS_NAMES: &'static [&'static str] = &CLASS_NAMES;
     const FILE_NAME: &'static str = "scheduler_config.json";
 
-    fn validate(&self, source_name: &str) -> Result<()> {
-        CogVideoXSchedulerConfig::validate(self, source_name)
-    }
-
-    fn extra(&self) -> &BTreeMap<String, serde_json::Value> {
-        &self.extra
-    }
-}
-
-impl CogVideoXSchedulerConfig {
-    /// `THUDM/CogVideoX-5b-I2V` `scheduler/scheduler_config.json`: scaled-linear
-    /// βs 0.00085→0.012, 1000 steps, v-prediction, zero terminal SNR, SNR shift 1.0, trailing.
-    pub fn cogvideox_5b() -> Self {
-        Self {
-            clip_sample: false,
-            prediction_type: "v_prediction".to_string(),
-            timestep_spacing: "trailing".to_string(),
-            rescale_betas_zero_snr: true,
-            snr_shift_scale: 1.0,
-            ..Self::default()
-        }
-    }
-
-    /// `THUDM/CogVideoX-2b` `scheduler/scheduler_config.json`: as 5B with SNR shift 3.0.
-    pub fn cogvideox_2b() -> Self {
-        Self { snr_shift_scale: 3.0, ..Self::cogvideox_5b() }
-    }
-
-    /// The parsed `prediction_type`.
-    pub fn prediction(&self) -> Result<PredictionType> {
-        match self.prediction_type.as_str() {
-            "epsilon" => Ok(PredictionType::Epsilon),
-            "sample" => Ok(PredictionType::Sample),
-            "v_prediction" => Ok(PredictionType::VPrediction),
-            other => {
-                Err(self.field_error("prediction_type", format!("`{other}` is not epsilon, sample or v_prediction")))
-            }
-        }
-    }
-
-    /// The parsed `timestep_spacing`.
-    pub fn spacing(&self) -> Result<TimestepSpacing> {
-        match self.timestep_spacing.as_str() {
-            "linspace" => Ok(TimestepSpacing::Linspace),
-            "leading" => Ok(TimestepSpacing::Leading),
-            "trailing" => Ok(TimestepSpacing::Trailing),
-            other => {
-                Err(self.field_error("timestep_spacing", format!("`{other}` is not linspace, leading or trailing")))
-            }
-        }
-    }
-
-    fn field_error(&self, field: &str, reason: String) -> Error {
-        Error::InvalidConfig { source_name: "scheduler config".to_string(), field: field.to_string(), reason }
-    }
-
     /// Rejects values the schedulers cannot use, naming the field.
-    pub fn validate(&self, source_name: &str) -> Result<()> {
+    fn validate_fields(&self, source_name: &str) -> Result<()> {
         let err = |field: &str, reason: String| Error::InvalidConfig {
             source_name: source_name.to_string(),
             field: field.to_string(),
             reason,
         };
-        if let Some(class) = self.extra.get("_class_name").and_then(|v| v.as_str())
-            && !CLASS_NAMES.contains(&class)
-        {
-            return Err(err("_class_name", format!("is `{class}`, expected one of {CLASS_NAMES:?}")));
-        }
         let t = self.num_train_timesteps;
         // The zero-terminal-SNR rescale divides by √ᾱ_0 − √ᾱ_{T−1}, which one step makes 0.
         let fewest = if self.rescale_betas_zero_snr { 2 } else { 1 };
@@ -244,6 +185,58 @@ impl CogVideoXSchedulerConfig {
             err("timestep_spacing", format!("`{}` is not linspace, leading or trailing", self.timestep_spacing))
         })?;
         Ok(())
+    }
+
+    fn extra(&self) -> &BTreeMap<String, serde_json::Value> {
+        &self.extra
+    }
+}
+
+impl CogVideoXSchedulerConfig {
+    /// `THUDM/CogVideoX-5b-I2V` `scheduler/scheduler_config.json`: scaled-linear
+    /// βs 0.00085→0.012, 1000 steps, v-prediction, zero terminal SNR, SNR shift 1.0, trailing.
+    pub fn cogvideox_5b() -> Self {
+        Self {
+            clip_sample: false,
+            prediction_type: "v_prediction".to_string(),
+            timestep_spacing: "trailing".to_string(),
+            rescale_betas_zero_snr: true,
+            snr_shift_scale: 1.0,
+            ..Self::default()
+        }
+    }
+
+    /// `THUDM/CogVideoX-2b` `scheduler/scheduler_config.json`: as 5B with SNR shift 3.0.
+    pub fn cogvideox_2b() -> Self {
+        Self { snr_shift_scale: 3.0, ..Self::cogvideox_5b() }
+    }
+
+    /// The parsed `prediction_type`.
+    pub fn prediction(&self) -> Result<PredictionType> {
+        match self.prediction_type.as_str() {
+            "epsilon" => Ok(PredictionType::Epsilon),
+            "sample" => Ok(PredictionType::Sample),
+            "v_prediction" => Ok(PredictionType::VPrediction),
+            other => {
+                Err(self.field_error("prediction_type", format!("`{other}` is not epsilon, sample or v_prediction")))
+            }
+        }
+    }
+
+    /// The parsed `timestep_spacing`.
+    pub fn spacing(&self) -> Result<TimestepSpacing> {
+        match self.timestep_spacing.as_str() {
+            "linspace" => Ok(TimestepSpacing::Linspace),
+            "leading" => Ok(TimestepSpacing::Leading),
+            "trailing" => Ok(TimestepSpacing::Trailing),
+            other => {
+                Err(self.field_error("timestep_spacing", format!("`{other}` is not linspace, leading or trailing")))
+            }
+        }
+    }
+
+    fn field_error(&self, field: &str, reason: String) -> Error {
+        Error::InvalidConfig { source_name: "scheduler config".to_string(), field: field.to_string(), reason }
     }
 }
 
@@ -454,71 +447,77 @@ pub struct SchedulerStepOutput {
     pub pred_original_sample: Tensor,
 }
 
-/// diffusers' `CogVideoXDDIMScheduler` (deterministic DDIM, η = 0).
+/// The state every scheduler keeps: the schedule and the timesteps chosen by `set_timesteps`.
 #[derive(Debug)]
-pub struct CogVideoXDDIMScheduler {
+pub struct SchedulerState {
     schedule: NoiseSchedule,
     num_inference_steps: Option<usize>,
     timesteps: Vec<i64>,
 }
 
-impl CogVideoXDDIMScheduler {
-    /// A scheduler for `config` (call [`Self::set_timesteps`] before stepping).
+impl SchedulerState {
+    /// The state for `config`, before `set_timesteps` (every training timestep, descending).
     pub fn new(config: &CogVideoXSchedulerConfig) -> Result<Self> {
         let schedule = NoiseSchedule::new(config)?;
         let timesteps = (0..config.num_train_timesteps).rev().collect();
         Ok(Self { schedule, num_inference_steps: None, timesteps })
     }
 
-    /// The noise schedule (ᾱ, `add_noise`, `get_velocity`).
-    pub fn schedule(&self) -> &NoiseSchedule {
-        &self.schedule
+    /// The distance between two inference timesteps, T / n; an error naming `scheduler` before
+    /// `set_timesteps`.
+    pub(crate) fn step_ratio(&self, scheduler: &str) -> Result<i64> {
+        let n = self.num_inference_steps.ok_or_else(|| Error::InvalidArgument {
+            name: "num_inference_steps".to_string(),
+            reason: format!("{scheduler}: call set_timesteps before step"),
+        })?;
+        Ok(self.schedule.config.num_train_timesteps / n as i64)
+    }
+}
+
+/// A CogVideoX scheduler: construction, `set_timesteps`, the accessors and the training-side
+/// operations, written once over its [`SchedulerState`] (diffusers' `SchedulerMixin`); each
+/// scheduler adds its own `step`.
+pub trait Scheduler: Sized {
+    /// Wraps a state (the scheduler's only field besides what its `step` needs).
+    fn from_state(state: SchedulerState) -> Self;
+
+    /// Its state.
+    fn state(&self) -> &SchedulerState;
+
+    /// Its state, to change.
+    fn state_mut(&mut self) -> &mut SchedulerState;
+
+    /// A scheduler for `config` (call [`Self::set_timesteps`] before stepping).
+    fn new(config: &CogVideoXSchedulerConfig) -> Result<Self> {
+        Ok(Self::from_state(SchedulerState::new(config)?))
     }
 
-    /// Chooses `num_inference_steps` timesteps per the configured spacing.
-    pub fn set_timesteps(&mut self, num_inference_steps: usize) -> Result<()> {
-        self.timesteps = self.schedule.timesteps(num_inference_steps)?;
-        self.num_inference_steps = Some(num_inference_steps);
+    /// The noise schedule (ᾱ, `add_noise`, `get_velocity`).
+    fn schedule(&self) -> &NoiseSchedule {
+        &self.state().schedule
+    }
+
+    /// Chooses `num_inference_steps` timesteps per the configured spacing (50 for CogVideoX).
+    fn set_timesteps(&mut self, num_inference_steps: usize) -> Result<()> {
+        let state = self.state_mut();
+        state.timesteps = state.schedule.timesteps(num_inference_steps)?;
+        state.num_inference_steps = Some(num_inference_steps);
         Ok(())
     }
 
     /// The current timesteps, descending.
-    pub fn timesteps(&self) -> &[i64] {
-        &self.timesteps
-    }
-
-    /// One DDIM step from `timestep` to `timestep − T/n`.
-    pub fn step(&self, model_output: &Tensor, timestep: i64, sample: &Tensor) -> Result<SchedulerStepOutput> {
-        same_shape(sample, model_output, "model_output")?;
-        let n = self.num_inference_steps.ok_or_else(|| not_set("CogVideoXDDIMScheduler"))?;
-        let prev_timestep = timestep - self.schedule.config.num_train_timesteps / n as i64;
-        if timestep < 0 {
-            return Err(Error::InvalidArgument { name: "timestep".to_string(), reason: format!("{timestep} < 0") });
-        }
-        let alpha_t = self.schedule.alpha_cumprod_at(timestep)?;
-        let alpha_prev = self.schedule.alpha_cumprod_at(prev_timestep)?;
-        let pred = self.schedule.pred_original_sample(model_output, sample, alpha_t)?;
-        let a = ((1.0 - alpha_prev) / (1.0 - alpha_t)).sqrt();
-        let b = alpha_prev.sqrt() - alpha_t.sqrt() * a;
-        let prev_sample = sample.f_mul_scalar(a)?.f_add(&pred.f_mul_scalar(b)?)?;
-        Ok(SchedulerStepOutput { prev_sample, pred_original_sample: pred })
+    fn timesteps(&self) -> &[i64] {
+        &self.state().timesteps
     }
 
     /// See [`NoiseSchedule::add_noise`].
-    pub fn add_noise(&self, original_samples: &Tensor, noise: &Tensor, timesteps: &Tensor) -> Result<Tensor> {
-        self.schedule.add_noise(original_samples, noise, timesteps)
+    fn add_noise(&self, original_samples: &Tensor, noise: &Tensor, timesteps: &Tensor) -> Result<Tensor> {
+        self.schedule().add_noise(original_samples, noise, timesteps)
     }
 
     /// See [`NoiseSchedule::get_velocity`].
-    pub fn get_velocity(&self, sample: &Tensor, noise: &Tensor, timesteps: &Tensor) -> Result<Tensor> {
-        self.schedule.get_velocity(sample, noise, timesteps)
-    }
-}
-
-pub(crate) fn not_set(scheduler: &str) -> Error {
-    Error::InvalidArgument {
-        name: "num_inference_steps".to_string(),
-        reason: format!("{scheduler}: call set_timesteps before step"),
+    fn get_velocity(&self, sample: &Tensor, noise: &Tensor, timesteps: &Tensor) -> Result<Tensor> {
+        self.schedule().get_velocity(sample, noise, timesteps)
     }
 }
 

@@ -14,11 +14,13 @@ use std::time::Instant;
 
 use tch::{Device, Kind, Tensor};
 
-use crate::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoXConfig, TilingConfig};
-use crate::cogvideox_transformer_3d::{self as transformer, CogVideoXTransformer3DModelConfig, TransformerInput};
 use crate::diffusers_config::DiffusersConfig;
 use crate::error::{Error, Result};
-use crate::weights;
+use crate::models::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoXConfig, TilingConfig};
+use crate::models::cogvideox_transformer_3d::{
+    self as transformer, CogVideoXTransformer3DModelConfig, TransformerInput,
+};
+use crate::models::weights;
 
 /// Which component runs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -550,7 +550,7 @@ fn storage_dtype(name: &str, kind: Kind) -> Result<Dtype> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::vars::Vars;
+    use crate::models::vars::Vars;
 
     fn tiny_store(device: Device) -> nn::VarStore {
         let vs = nn::VarStore::new(device);

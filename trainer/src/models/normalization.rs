@@ -5,7 +5,7 @@
 use tch::Tensor;
 
 use crate::error::Result;
-use crate::vars::{LayerNorm, Linear, Vars};
+use crate::models::vars::{LayerNorm, Linear, Vars};
 
 /// The modulated (normalised, scaled and shifted) streams and their residual gates.
 #[derive(Debug)]

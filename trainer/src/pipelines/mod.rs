@@ -1,0 +1,9 @@
+//! From a model to videos, as diffusers' `pipelines/`: `sampling` (the CogNVS pipeline, draw for
+//! draw the public one), `video_processor` (its pre- and post-processing), `nvs` (the user's whole
+//! novel-view job: finetune, render, sample) and `forward` (one forward pass of a component, for
+//! checking a port against another implementation).
+
+pub mod forward;
+pub mod nvs;
+pub mod sampling;
+pub mod video_processor;

@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use anyhow::Context;
 use clap::{Args, Parser, Subcommand, ValueEnum};
 use trainer::pipelines::forward::{self, ForwardRequest, Module};
+use trainer::precision::usable_device;
 
 /// CogNVS video-to-video diffusion in tch: the CogVideoX transformer, VAE and schedulers,
 /// weight-compatible with diffusers.
@@ -563,121 +564,25 @@ fn training_exit(result: anyhow::Result<bool>) -> anyhow::Result<()> {
     }
 }
 
-/// Joins the multi-process job the launcher started (torchrun, Slurm, RANK/WORLD_SIZE), if any:
-/// one process per GPU, the CUDA device chosen by LOCAL_RANK when `--device cuda` names none.
-fn join_job(
-    device: tch::Device,
-    timeout_seconds: f64,
-) -> anyhow::Result<(tch::Device, Option<trainer::distributed::ProcessGroup>)> {
-    join_launched(trainer::distributed::Launch::from_env()?, device, timeout_seconds)
-}
-
-/// [`join_job`] for a launch read already (None: a single process).
-fn join_launched(
-    launch: Option<trainer::distributed::Launch>,
-    device: tch::Device,
-    timeout_seconds: f64,
-) -> anyhow::Result<(tch::Device, Option<trainer::distributed::ProcessGroup>)> {
-    use trainer::distributed::ProcessGroup;
-    let Some(launch) = launch else { return Ok((device, None)) };
-    let device = match device {
-        tch::Device::Cuda(index) => {
-            let index = if index == 0 { launch.local_rank } else { index };
-            let count = tch::Cuda::device_count() as usize;
-            anyhow::ensure!(
-                index < count,
-                "rank {} (LOCAL_RANK {}) needs CUDA device {index}, but this machine has {count}",
-                launch.rank,
-                launch.local_rank
-            );
-            tch::Device::Cuda(index)
-        }
-        other => other,
-    };
-    let pg = ProcessGroup::init(&launch, device, std::time::Duration::from_secs_f64(timeout_seconds))?;
-    Ok((device, Some(pg)))
-}
-
 fn run_comm_check(args: CommCheckArgs) -> anyhow::Result<()> {
-    use tch::{Kind, Tensor};
+    use trainer::distributed::comm_check;
     // A launcher's world size of 1 still gets a process group: a backend check on one GPU.
     let launch = trainer::distributed::Launch::from_env_any_size()?;
-    let (device, pg) = join_launched(launch, forward::parse_device(&args.device)?, args.timeout)?;
+    let (device, pg) = trainer::distributed::join(launch, usable_device(&args.device)?, args.timeout)?;
     let Some(pg) = pg else {
         println!("no launcher variables (torchrun, srun, RANK/WORLD_SIZE): nothing to check");
         return Ok(());
     };
-    let (rank, world) = (pg.rank as i64, pg.world_size as i64);
-    let say = |line: String| {
-        if rank == 0 {
-            println!("{line}");
+    let lead = pg.rank == 0;
+    comm_check::check_collectives(&pg, device, |name| {
+        if lead {
+            println!("{name} ok");
         }
-    };
-    let options = (Kind::Float, device);
-    // Broadcast: rank 0's values everywhere.
-    let value = Tensor::full([1000], rank as f64 + 7.0, options);
-    pg.broadcast(&value, 0, "check")?;
-    anyhow::ensure!(value.min().double_value(&[]) == 7.0, "rank {rank}: broadcast gave {}", value.min());
-    say("broadcast ok".to_string());
-    // All-reduce: Σ (r + 1) over ranks.
-    let value = Tensor::full([1000], rank as f64 + 1.0, options);
-    pg.all_reduce_sum(&value, "check")?;
-    let expected = (world * (world + 1) / 2) as f64;
-    anyhow::ensure!(value.max().double_value(&[]) == expected, "rank {rank}: all-reduce gave {}", value.max());
-    say("all-reduce ok".to_string());
-    // Reduce-scatter: element i of the input is i + r; this rank's slice of the sum.
-    let chunk = 5;
-    let input = Tensor::arange(chunk * world, options).f_add_scalar(rank as f64)?;
-    let output = Tensor::zeros([chunk], options);
-    let work = pg.reduce_scatter_sum_start(&output, &input, "check")?;
-    pg.wait(work)?;
-    let expected = Tensor::arange_start(rank * chunk, (rank + 1) * chunk, options)
-        .f_mul_scalar(world as f64)?
-        .f_add_scalar((world * (world - 1) / 2) as f64)?;
-    anyhow::ensure!(output.allclose(&expected, 0.0, 0.0, false), "rank {rank}: reduce-scatter gave {output}");
-    say("reduce-scatter ok".to_string());
-    // All-gather: every rank's constant block in rank order.
-    let input = Tensor::full([chunk], rank as f64, options);
-    let output = Tensor::zeros([chunk * world], options);
-    let work = pg.all_gather_start(&output, &input, "check")?;
-    pg.wait(work)?;
-    let expected = Tensor::arange(world, options).f_repeat_interleave_self_int(chunk, None::<i64>, None::<i64>)?;
-    anyhow::ensure!(output.allclose(&expected, 0.0, 0.0, false), "rank {rank}: all-gather gave {output}");
-    say("all-gather ok".to_string());
-    pg.barrier("check")?;
-    say("barrier ok".to_string());
-    let elements = (args.mib * 1024 * 1024 / 4) as i64;
-    let big = Tensor::ones([elements], options);
-    pg.all_reduce_sum(&big, "warm-up")?;
-    // NCCL's wait orders the device's stream, not the host: time what the device did.
-    let synchronize = || {
-        if let tch::Device::Cuda(index) = device {
-            tch::Cuda::synchronize(index as i64);
-        }
-    };
-    let mut times = Vec::new();
-    for _ in 0..args.iterations {
-        pg.barrier("bandwidth")?;
-        synchronize();
-        let started = std::time::Instant::now();
-        pg.all_reduce_sum(&big, "bandwidth")?;
-        synchronize();
-        times.push(started.elapsed().as_secs_f64());
+    })?;
+    let bandwidth = comm_check::all_reduce_bandwidth(&pg, device, args.mib as u64, args.iterations)?;
+    if lead {
+        println!("{bandwidth}");
     }
-    times.sort_by(f64::total_cmp);
-    let median = times[times.len() / 2];
-    // The bus bandwidth convention of nccl-tests: 2·(N−1)/N of the payload crosses each link.
-    let bus = 2.0 * (world - 1) as f64 / world as f64 * args.mib as f64 / median;
-    say(format!(
-        "all-reduce {} MiB over {world} ranks ({:?}): median {:.1} ms (range {:.1}-{:.1}), algorithm bandwidth {:.0} MiB/s, bus bandwidth {:.0} MiB/s",
-        args.mib,
-        device,
-        median * 1e3,
-        times[0] * 1e3,
-        times[times.len() - 1] * 1e3,
-        args.mib as f64 / median,
-        bus
-    ));
     Ok(())
 }
 
@@ -685,8 +590,8 @@ fn run_comm_cost(args: CommCostArgs) -> anyhow::Result<()> {
     let config = trainer::training::PretrainConfig::from_toml_file(&args.config)?;
     // A launcher's world size of 1 still gets a process group: the exchange on one GPU.
     let launch = trainer::distributed::Launch::from_env_any_size()?;
-    let device = forward::parse_device(&args.device)?;
-    let (device, pg) = join_launched(launch, device, config.distributed.timeout_seconds)?;
+    let device = usable_device(&args.device)?;
+    let (device, pg) = trainer::distributed::join(launch, device, config.distributed.timeout_seconds)?;
     let Some(pg) = pg else {
         anyhow::bail!("no launcher variables (torchrun, srun, RANK/WORLD_SIZE): run it under a launcher");
     };
@@ -711,8 +616,16 @@ fn show_step(bar: &indicatif::ProgressBar, m: &trainer::training::StepMetrics) {
     bar.set_message(format!("loss {:.4}, {:.2} step/s", m.loss, 1.0 / m.seconds.max(1e-9)));
 }
 
+/// Shows a training run's events: the memory plan on stderr, steps on `bar`.
+fn show_run(bar: &indicatif::ProgressBar, event: trainer::training::RunEvent) {
+    match event {
+        trainer::training::RunEvent::Plan(plan) => eprintln!("{plan}"),
+        trainer::training::RunEvent::Step(m) => show_step(bar, m),
+    }
+}
+
 fn run_finetune(args: FinetuneArgs) -> anyhow::Result<bool> {
-    let device = forward::parse_device(&args.device)?;
+    let device = usable_device(&args.device)?;
     let bar = step_bar(args.steps);
     let request = trainer::training::FinetuneRequest {
         init: args.init,
@@ -728,15 +641,7 @@ fn run_finetune(args: FinetuneArgs) -> anyhow::Result<bool> {
         lora: args.model.lora,
         resume: args.resume,
     };
-    let timeout = match &request.config {
-        Some(path) => trainer::training::PretrainConfig::from_toml_file(path)?.distributed.timeout_seconds,
-        None => trainer::training::DistributedConfig::default().timeout_seconds,
-    };
-    let (device, pg) = join_job(device, timeout)?;
-    let (plan_config, source_name) = trainer::training::finetune_config(&request)?;
-    check_plan(&plan_config, device, pg.as_ref(), &source_name)?;
-    let bar = if pg.as_ref().is_some_and(|pg| pg.rank != 0) { indicatif::ProgressBar::hidden() } else { bar };
-    let summary = trainer::training::finetune_on(&request, device, pg.as_ref(), |m| show_step(&bar, m))?;
+    let summary = trainer::training::finetune_launched(&request, device, |event| show_run(&bar, event))?;
     bar.finish_and_clear();
     println!(
         "finetuned {} steps into {}; checkpoint: {}",
@@ -749,7 +654,7 @@ fn run_finetune(args: FinetuneArgs) -> anyhow::Result<bool> {
 
 fn run_nvs(args: NvsArgs) -> anyhow::Result<bool> {
     use trainer::pipelines::nvs::Progress;
-    let device = forward::parse_device(&args.device)?;
+    let device = usable_device(&args.device)?;
     let request = trainer::pipelines::nvs::NvsRequest {
         model: args.model.source(args.init),
         sequence: args.sequence,
@@ -769,33 +674,22 @@ fn run_nvs(args: NvsArgs) -> anyhow::Result<bool> {
             SwitchArg::Off => Some(false),
         },
     };
-    let timeout = match &request.config {
-        Some(path) => trainer::training::PretrainConfig::from_toml_file(path)?.distributed.timeout_seconds,
-        None => trainer::training::DistributedConfig::default().timeout_seconds,
-    };
-    let (device, pg) = join_job(device, timeout)?;
-    let lead = pg.as_ref().is_none_or(|pg| pg.rank == 0);
     let mut bar = indicatif::ProgressBar::hidden();
-    let outcome = trainer::pipelines::nvs::run(&request, device, pg.as_ref(), &mut |event| {
-        if !lead {
-            return;
+    let outcome = trainer::pipelines::nvs::run_launched(&request, device, &mut |event| match event {
+        Progress::Phase(phase, len) => {
+            bar.finish();
+            bar = match phase {
+                "finetune" => step_bar(len),
+                _ => progress_bar(len, &format!("{phase:<8}")),
+            };
         }
-        match event {
-            Progress::Phase(phase, len) => {
-                bar.finish();
-                bar = match phase {
-                    "finetune" => step_bar(len),
-                    _ => progress_bar(len, &format!("{phase:<8}")),
-                };
-            }
-            Progress::Skipped(phase) => eprintln!("{phase}: finished by an earlier run"),
-            Progress::Step(m) => show_step(&bar, m),
-            Progress::Trajectory(name) => {
-                bar.inc(1);
-                bar.set_message(name.to_string());
-            }
-            Progress::Denoise(step, steps) => bar.set_message(format!("denoising {step}/{steps}")),
+        Progress::Skipped(phase) => eprintln!("{phase}: finished by an earlier run"),
+        Progress::Step(m) => show_step(&bar, m),
+        Progress::Trajectory(name) => {
+            bar.inc(1);
+            bar.set_message(name.to_string());
         }
+        Progress::Denoise(step, steps) => bar.set_message(format!("denoising {step}/{steps}")),
     })?;
     bar.finish();
     if outcome.preempted {
@@ -823,7 +717,7 @@ fn run_nvs(args: NvsArgs) -> anyhow::Result<bool> {
 }
 
 fn run_sample(args: SampleArgs) -> anyhow::Result<()> {
-    let device = forward::parse_device(&args.device)?;
+    let device = usable_device(&args.device)?;
     let mut model = args.model.source(args.ckpt);
     model.negative_text_embedding = args.negative_text_embedding;
     let request = trainer::pipelines::sampling::SampleRequest {
@@ -898,15 +792,13 @@ fn run_pretrain(args: PretrainArgs) -> anyhow::Result<bool> {
     if let Some(steps) = args.steps {
         config.train.steps = steps;
     }
-    let device = forward::parse_device(&args.device)?;
+    let device = usable_device(&args.device)?;
     let bar = step_bar(config.train.steps);
-    let (device, pg) = join_job(device, config.distributed.timeout_seconds)?;
-    config.validate(&args.config.display().to_string())?;
-    check_plan(&config, device, pg.as_ref(), &args.config.display().to_string())?;
-    let bar = if pg.as_ref().is_some_and(|pg| pg.rank != 0) { indicatif::ProgressBar::hidden() } else { bar };
-    let summary = training::pretrain_on(&config, &args.shards, &args.out, args.resume, device, pg.as_ref(), |m| {
-        show_step(&bar, m)
-    })?;
+    let source_name = args.config.display().to_string();
+    let summary =
+        training::pretrain_launched(&config, &source_name, &args.shards, &args.out, args.resume, device, |event| {
+            show_run(&bar, event)
+        })?;
     bar.finish_and_clear();
     println!(
         "trained steps {}..{} into {}; last checkpoint: {}",
@@ -920,7 +812,7 @@ fn run_pretrain(args: PretrainArgs) -> anyhow::Result<bool> {
 
 fn run_plan(args: PlanArgs) -> anyhow::Result<()> {
     let config = trainer::training::PretrainConfig::from_toml_file(&args.config)?;
-    let device = trainer::training::plan::parse_device(&args.device)?;
+    let device = trainer::precision::parse_device(&args.device)?;
     if args.sampling {
         let (transformer, vae) = config.model.configs(true)?;
         let tiles = trainer::models::autoencoder_kl_cogvideox::TilingConfig::for_config(&vae);
@@ -938,35 +830,8 @@ fn run_plan(args: PlanArgs) -> anyhow::Result<()> {
         println!("{plan}");
         return Ok(());
     }
-    let plan = make_plan(&config, args.world_size.map(|n| n as usize), device)?;
+    let plan = trainer::training::plan::plan_run(&config, args.world_size.map(|n| n as usize), device)?;
     println!("{plan}");
-    Ok(())
-}
-
-/// The memory plan of `config` on `device` (world size: `world_size`, else the launcher's,
-/// else the config's).
-fn make_plan(
-    config: &trainer::training::PretrainConfig,
-    world_size: Option<usize>,
-    device: tch::Device,
-) -> anyhow::Result<trainer::training::plan::MemoryPlan> {
-    let world_size = world_size.or_else(trainer::training::plan::launcher_world_size).unwrap_or(config.data.world_size);
-    Ok(trainer::training::plan::plan(config, &trainer::training::plan::PlanOptions { world_size, device })?)
-}
-
-/// Prints a training run's memory plan to stderr (rank 0) and, on CUDA, refuses a plan that
-/// does not fit the device's free memory, before anything is written.
-fn check_plan(
-    config: &trainer::training::PretrainConfig,
-    device: tch::Device,
-    pg: Option<&trainer::distributed::ProcessGroup>,
-    source_name: &str,
-) -> anyhow::Result<()> {
-    let plan = make_plan(config, pg.map(|pg| pg.world_size), device)?;
-    if pg.is_none_or(|pg| pg.rank == 0) {
-        eprintln!("{plan}");
-    }
-    trainer::training::plan::check_fits(&plan, source_name)?;
     Ok(())
 }
 
@@ -1016,7 +881,7 @@ fn run_eval(args: EvalArgs) -> anyhow::Result<()> {
         kid_subsets: args.kid_subsets,
         kid_subset_size: args.kid_subset_size,
         seed: args.seed,
-        device: forward::parse_device(&args.device)?,
+        device: usable_device(&args.device)?,
     };
     let bar = indicatif::ProgressBar::new(0).with_style(
         indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} videos [{elapsed_precise}, eta {eta}]")
@@ -1047,8 +912,8 @@ fn run_forward(args: ForwardArgs) -> anyhow::Result<()> {
         weights: args.weights,
         inputs: args.inputs,
         out: args.out.clone(),
-        kind: forward::parse_dtype(&args.dtype)?,
-        device: forward::parse_device(&args.device)?,
+        kind: trainer::precision::parse_dtype(&args.dtype)?,
+        device: usable_device(&args.device)?,
         tiling: args.tiling,
     };
     // No context line: the library's error names the file and tensor on the first line.

@@ -64,46 +64,8 @@ impl Launch {
 
     fn read(var: impl Fn(&str) -> Option<String>, keep_single: bool) -> Result<Option<Self>> {
         let bad = |name: &str, reason: String| Error::Launcher { variable: name.to_string(), reason };
-        let number = |name: &str| -> Result<Option<usize>> {
-            match var(name) {
-                None => Ok(None),
-                Some(text) => text
-                    .trim()
-                    .parse::<usize>()
-                    .map(Some)
-                    .map_err(|_| bad(name, format!("`{text}` is not a non-negative integer"))),
-            }
-        };
-        let (rank, world_size, local_rank, launcher) = if var("RANK").is_some() || var("WORLD_SIZE").is_some() {
-            let rank = number("RANK")?.ok_or_else(|| bad("RANK", "WORLD_SIZE is set but RANK is not".to_string()))?;
-            let world = number("WORLD_SIZE")?
-                .ok_or_else(|| bad("WORLD_SIZE", "RANK is set but WORLD_SIZE is not".to_string()))?;
-            let local = number("LOCAL_RANK")?.unwrap_or(0);
-            let launcher = if var("TORCHELASTIC_RUN_ID").is_some() || var("TORCHELASTIC_USE_AGENT_STORE").is_some() {
-                Launcher::Torchrun
-            } else {
-                Launcher::Env
-            };
-            (rank, world, local, launcher)
-        } else if let Some(tasks) = number("SLURM_NTASKS")? {
-            let rank = number("SLURM_PROCID")?
-                .ok_or_else(|| bad("SLURM_PROCID", "SLURM_NTASKS is set but SLURM_PROCID is not".to_string()))?;
-            let local = number("SLURM_LOCALID")?.unwrap_or(0);
-            (rank, tasks, local, Launcher::Slurm)
-        } else {
-            return Ok(None);
-        };
-        if world_size == 0 {
-            return Err(bad("WORLD_SIZE", "0 must be ≥ 1".to_string()));
-        }
-        if rank >= world_size {
-            return Err(bad("RANK", format!("{rank} must be below the world size {world_size}")));
-        }
-        if let Some(local_world) = number("LOCAL_WORLD_SIZE")?
-            && local_rank >= local_world
-        {
-            return Err(bad("LOCAL_RANK", format!("{local_rank} must be below LOCAL_WORLD_SIZE {local_world}")));
-        }
+        let number = |name: &str| number(&var, name);
+        let Some(Ranks { rank, world_size, local_rank, launcher }) = Ranks::read(&var)? else { return Ok(None) };
         if world_size == 1 && !keep_single {
             return Ok(None);
         }
@@ -145,6 +107,73 @@ impl Launch {
         });
         Ok(Some(Self { rank, world_size, local_rank, master_addr, master_port, launcher, agent_store_prefix }))
     }
+}
+
+/// Rank, world size, local rank and launcher: the part of the launcher variables every reader
+/// needs (the memory plan needs only the world size; joining a job needs the rendezvous too).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Ranks {
+    rank: usize,
+    world_size: usize,
+    local_rank: usize,
+    launcher: Launcher,
+}
+
+impl Ranks {
+    /// The ranks the variables from `var` give, checked; `Ok(None)`: no launcher variables.
+    fn read(var: &impl Fn(&str) -> Option<String>) -> Result<Option<Self>> {
+        let bad = |name: &str, reason: String| Error::Launcher { variable: name.to_string(), reason };
+        let number = |name: &str| number(var, name);
+        let (rank, world_size, local_rank, launcher) = if var("RANK").is_some() || var("WORLD_SIZE").is_some() {
+            let rank = number("RANK")?.ok_or_else(|| bad("RANK", "WORLD_SIZE is set but RANK is not".to_string()))?;
+            let world = number("WORLD_SIZE")?
+                .ok_or_else(|| bad("WORLD_SIZE", "RANK is set but WORLD_SIZE is not".to_string()))?;
+            let local = number("LOCAL_RANK")?.unwrap_or(0);
+            let launcher = if var("TORCHELASTIC_RUN_ID").is_some() || var("TORCHELASTIC_USE_AGENT_STORE").is_some() {
+                Launcher::Torchrun
+            } else {
+                Launcher::Env
+            };
+            (rank, world, local, launcher)
+        } else if let Some(tasks) = number("SLURM_NTASKS")? {
+            let rank = number("SLURM_PROCID")?
+                .ok_or_else(|| bad("SLURM_PROCID", "SLURM_NTASKS is set but SLURM_PROCID is not".to_string()))?;
+            let local = number("SLURM_LOCALID")?.unwrap_or(0);
+            (rank, tasks, local, Launcher::Slurm)
+        } else {
+            return Ok(None);
+        };
+        if world_size == 0 {
+            return Err(bad("WORLD_SIZE", "0 must be ≥ 1".to_string()));
+        }
+        if rank >= world_size {
+            return Err(bad("RANK", format!("{rank} must be below the world size {world_size}")));
+        }
+        if let Some(local_world) = number("LOCAL_WORLD_SIZE")?
+            && local_rank >= local_world
+        {
+            return Err(bad("LOCAL_RANK", format!("{local_rank} must be below LOCAL_WORLD_SIZE {local_world}")));
+        }
+        Ok(Some(Self { rank, world_size, local_rank, launcher }))
+    }
+}
+
+/// The variable `name` from `var` as a non-negative integer, if set.
+fn number(var: &impl Fn(&str) -> Option<String>, name: &str) -> Result<Option<usize>> {
+    match var(name) {
+        None => Ok(None),
+        Some(text) => text.trim().parse::<usize>().map(Some).map_err(|_| Error::Launcher {
+            variable: name.to_string(),
+            reason: format!("`{text}` is not a non-negative integer"),
+        }),
+    }
+}
+
+/// The world size the launcher variables of this process give (`WORLD_SIZE`, else
+/// `SLURM_NTASKS`), checked like a job's; `Ok(None)` without a launcher. Needs no rendezvous
+/// address (the memory plan of a job is made before it is joined).
+pub fn launcher_world_size() -> Result<Option<usize>> {
+    Ok(Ranks::read(&|name: &str| std::env::var(name).ok())?.map(|ranks| ranks.world_size))
 }
 
 /// The first host of a Slurm host list: `node[03-05,9],gpu7` → `node03`.

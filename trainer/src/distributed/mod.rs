@@ -11,6 +11,7 @@
 //! collective. Gloo notices a dead peer at once (its sockets close); a stalled one within the
 //! configured timeout.
 
+pub mod comm_check;
 mod data_parallel;
 pub mod ffi;
 mod launch;
@@ -23,7 +24,7 @@ use tch::{Device, Tensor};
 
 pub use data_parallel::{FlatLayout, FlatState, GradientExchange, SHARD_PREFIX};
 pub use ffi::{Backend, cuda_mem_get_info, cuda_memory_peaks, has_nccl};
-pub use launch::{DEFAULT_MASTER_PORT, Launch, Launcher, first_host};
+pub use launch::{DEFAULT_MASTER_PORT, Launch, Launcher, first_host, launcher_world_size};
 
 use crate::error::{Error, Result};
 
@@ -34,6 +35,37 @@ pub const HEARTBEAT: Duration = Duration::from_secs(1);
 const HEARTBEAT_WATCH: u32 = 3;
 /// How long a failure report waits for another rank's keys (the store may be gone too).
 const REPORT_WAIT_MS: i64 = 2000;
+
+/// Joins the multi-process job the launcher started (torchrun, Slurm, `RANK`/`WORLD_SIZE`), if
+/// any: one process per GPU, the CUDA device chosen by `LOCAL_RANK` when `device` is `cuda`
+/// without an index. `None`: a single process on `device`.
+pub fn join_job(device: Device, timeout_seconds: f64) -> Result<(Device, Option<ProcessGroup>)> {
+    join(Launch::from_env()?, device, timeout_seconds)
+}
+
+/// [`join_job`] for a launch read already (None: a single process).
+pub fn join(launch: Option<Launch>, device: Device, timeout_seconds: f64) -> Result<(Device, Option<ProcessGroup>)> {
+    let Some(launch) = launch else { return Ok((device, None)) };
+    let device = match device {
+        Device::Cuda(index) => {
+            let index = if index == 0 { launch.local_rank } else { index };
+            let count = tch::Cuda::device_count() as usize;
+            if index >= count {
+                return Err(Error::Launcher {
+                    variable: "LOCAL_RANK".to_string(),
+                    reason: format!(
+                        "rank {} (LOCAL_RANK {}) needs CUDA device {index}, but this machine has {count}",
+                        launch.rank, launch.local_rank
+                    ),
+                });
+            }
+            Device::Cuda(index)
+        }
+        other => other,
+    };
+    let pg = ProcessGroup::init(&launch, device, Duration::from_secs_f64(timeout_seconds))?;
+    Ok((device, Some(pg)))
+}
 
 /// One process's membership in the job: the store, the backend and the collectives.
 pub struct ProcessGroup {

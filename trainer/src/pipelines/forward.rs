@@ -170,33 +170,3 @@ fn check_weights(expected: &BTreeMap<String, Vec<i64>>, checkpoint: &Path) -> Re
     let found = weights::read_checkpoint_info(checkpoint)?;
     weights::check_against(expected, &found, checkpoint)
 }
-
-/// Parses `cpu`, `cuda` or `cuda:N`; CUDA must be available.
-pub fn parse_device(name: &str) -> Result<Device> {
-    let bad = |reason: String| Error::InvalidArgument { name: "device".to_string(), reason };
-    let device = match name {
-        "cpu" => Device::Cpu,
-        "cuda" => Device::Cuda(0),
-        other => match other.strip_prefix("cuda:").and_then(|i| i.parse().ok()) {
-            Some(i) => Device::Cuda(i),
-            None => return Err(bad(format!("`{other}` is not cpu, cuda or cuda:N"))),
-        },
-    };
-    if let Device::Cuda(i) = device
-        && i >= tch::Cuda::device_count() as usize
-    {
-        return Err(bad(format!("`{name}`: libtorch sees {} CUDA devices", tch::Cuda::device_count())));
-    }
-    Ok(device)
-}
-
-/// Parses `f32` / `fp32` / `float32` or `bf16` / `bfloat16`.
-pub fn parse_dtype(name: &str) -> Result<Kind> {
-    match name {
-        "f32" | "fp32" | "float32" => Ok(Kind::Float),
-        "bf16" | "bfloat16" => Ok(Kind::BFloat16),
-        other => {
-            Err(Error::InvalidArgument { name: "dtype".to_string(), reason: format!("`{other}` is not f32 or bf16") })
-        }
-    }
-}

@@ -168,6 +168,20 @@ pub struct Outcome {
     pub preempted: bool,
 }
 
+/// `trainer nvs`: joins the job the launcher started (if any; see
+/// [`crate::distributed::join_job`]) and runs [`run`] as one rank of it; `progress` hears rank 0's
+/// events only.
+pub fn run_launched(request: &NvsRequest, device: Device, progress: &mut dyn FnMut(Progress)) -> Result<Outcome> {
+    let timeout = crate::training::timeout_seconds(request.config.as_deref())?;
+    let (device, pg) = crate::distributed::join_job(device, timeout)?;
+    let lead = pg.as_ref().is_none_or(|pg| pg.rank == 0);
+    run(request, device, pg.as_ref(), &mut |event| {
+        if lead {
+            progress(event)
+        }
+    })
+}
+
 /// Runs (or continues) the job; `pg` makes the finetuning phase one rank of a multi-process run
 /// (the other phases run on rank 0 alone; other ranks return after finetuning).
 pub fn run(

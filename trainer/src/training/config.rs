@@ -299,6 +299,15 @@ impl PartialEq for ConfigSource {
 /// How errors name a config built in code rather than read from a file.
 const UNNAMED_CONFIG: &str = "training config";
 
+/// The collectives' timeout of the run `config` names (its `[distributed] timeout_seconds`), or
+/// the default without one: what joining a job needs before the rest of the config is read.
+pub fn timeout_seconds(config: Option<&Path>) -> Result<f64> {
+    Ok(match config {
+        Some(path) => PretrainConfig::from_toml_file(path)?.distributed.timeout_seconds,
+        None => DistributedConfig::default().timeout_seconds,
+    })
+}
+
 /// `[distributed]`: how ranks share the work when the launcher starts several processes
 /// (torchrun, Slurm `srun`, or RANK/WORLD_SIZE by hand; see `trainer::distributed`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -49,6 +49,28 @@ pub fn finetune(request: &FinetuneRequest, device: Device, progress: impl FnMut(
     finetune_on(request, device, None, progress)
 }
 
+/// `trainer finetune`: joins the job the launcher started (if any; see
+/// [`crate::distributed::join_job`]), checks the run's memory plan against the device, and
+/// finetunes as [`finetune_on`]; `on_event` hears rank 0's plan and steps.
+pub fn finetune_launched(
+    request: &FinetuneRequest,
+    device: Device,
+    mut on_event: impl FnMut(super::RunEvent),
+) -> Result<RunSummary> {
+    let timeout = super::config::timeout_seconds(request.config.as_deref())?;
+    let (device, pg) = crate::distributed::join_job(device, timeout)?;
+    let (config, source_name) = finetune_config(request)?;
+    crate::training::plan::check_run(&config, device, pg.as_ref(), &source_name, |plan| {
+        on_event(super::RunEvent::Plan(plan))
+    })?;
+    let lead = pg.as_ref().is_none_or(|pg| pg.rank == 0);
+    finetune_on(request, device, pg.as_ref(), |m| {
+        if lead {
+            on_event(super::RunEvent::Step(m))
+        }
+    })
+}
+
 /// [`finetune`] as one rank of `pg` (None: one process). Rank 0 takes the run folder's lock,
 /// then builds the video's pairs (one shard in `RUN/pairs/`) while the others wait at a barrier;
 /// then every rank trains on its share of each global batch as in [`super::pretrain_on`]

@@ -56,11 +56,13 @@ pub use checkpoint::{CheckpointLayout, FileRecord, TrainState, list_checkpoints}
 pub use comm_cost::{CommCost, VariantTiming, comm_cost};
 pub use config::{
     CheckpointEvery, ConfigSource, DistributedConfig, LoopConfig, ModelConfig, OptimConfig, Precision, PretrainConfig,
-    ValidationConfig,
+    ValidationConfig, timeout_seconds,
 };
-pub use finetune::{FinetuneRequest, finetune, finetune_config, finetune_on};
+pub use finetune::{FinetuneRequest, finetune, finetune_config, finetune_launched, finetune_on};
 pub use latent_cache::LatentCache;
 pub use lr_schedule::learning_rate;
 pub use objective::{Backward, CogNvsModel, Draws};
-pub use pretrain::{RunSummary, StepMetrics, pretrain, pretrain_on, read_metrics, read_validation};
+pub use pretrain::{
+    RunEvent, RunSummary, StepMetrics, pretrain, pretrain_launched, pretrain_on, read_metrics, read_validation,
+};
 pub use run_lock::RunLock;

@@ -247,29 +247,30 @@ pub struct PlanShape {
     pub blocks: u64,
 }
 
-/// Parses `cpu`, `cuda` or `cuda:N` without touching a device (a plan can be made for a GPU
-/// this machine lacks).
-pub fn parse_device(name: &str) -> Result<Device> {
-    match name {
-        "cpu" => Ok(Device::Cpu),
-        "cuda" => Ok(Device::Cuda(0)),
-        other => match other.strip_prefix("cuda:").and_then(|i| i.parse().ok()) {
-            Some(i) => Ok(Device::Cuda(i)),
-            None => Err(Error::InvalidArgument {
-                name: "device".to_string(),
-                reason: format!("`{other}` is not cpu, cuda or cuda:N"),
-            }),
-        },
-    }
+/// The memory plan of a training run of `config` on `device` with `world_size` ranks (else the
+/// launcher's, else the config's `[data] world_size`).
+pub fn plan_run(config: &PretrainConfig, world_size: Option<usize>, device: Device) -> Result<MemoryPlan> {
+    let world_size = match world_size {
+        Some(n) => n,
+        None => crate::distributed::launcher_world_size()?.unwrap_or(config.data.world_size),
+    };
+    plan(config, &PlanOptions { world_size, device })
 }
 
-/// The world size a launcher gives this process: `WORLD_SIZE` (torchrun), else `SLURM_NTASKS`
-/// (srun), else `None`.
-pub fn launcher_world_size() -> Option<usize> {
-    ["WORLD_SIZE", "SLURM_NTASKS"]
-        .iter()
-        .find_map(|name| std::env::var(name).ok()?.trim().parse::<usize>().ok())
-        .filter(|&n| n >= 1)
+/// The plan of a run about to start as (one rank of) `pg`, shown to `show` on rank 0, and on
+/// CUDA refused when it does not fit the device's free memory, before anything is written.
+pub fn check_run(
+    config: &PretrainConfig,
+    device: Device,
+    pg: Option<&crate::distributed::ProcessGroup>,
+    source_name: &str,
+    show: impl FnOnce(&MemoryPlan),
+) -> Result<()> {
+    let plan = plan_run(config, pg.map(|pg| pg.world_size), device)?;
+    if pg.is_none_or(|pg| pg.rank == 0) {
+        show(&plan);
+    }
+    check_fits(&plan, source_name)
 }
 
 /// Plans `config` on `options.device` with `options.world_size` ranks. The config must have been

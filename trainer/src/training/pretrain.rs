@@ -76,6 +76,39 @@ pub fn pretrain(
     pretrain_on(config, shards, run, resume, device, None, progress)
 }
 
+/// What a launched training run reports to its caller, on rank 0 only: the memory plan before
+/// anything is written, then each finished step.
+#[derive(Debug)]
+pub enum RunEvent<'a> {
+    /// The run's memory plan (printed by the commands).
+    Plan(&'a crate::training::plan::MemoryPlan),
+    /// A finished optimizer step.
+    Step(&'a StepMetrics),
+}
+
+/// `trainer pretrain`: joins the job the launcher started (if any; see
+/// [`crate::distributed::join_job`]), validates `config` (`source_name` names it in errors),
+/// checks its memory plan against the device, and trains as [`pretrain_on`].
+pub fn pretrain_launched(
+    config: &PretrainConfig,
+    source_name: &str,
+    shards: &[PathBuf],
+    run: &Path,
+    resume: bool,
+    device: Device,
+    mut on_event: impl FnMut(RunEvent),
+) -> Result<RunSummary> {
+    let (device, pg) = crate::distributed::join_job(device, config.distributed.timeout_seconds)?;
+    config.validate(source_name)?;
+    crate::training::plan::check_run(config, device, pg.as_ref(), source_name, |plan| on_event(RunEvent::Plan(plan)))?;
+    let lead = pg.as_ref().is_none_or(|pg| pg.rank == 0);
+    pretrain_on(config, shards, run, resume, device, pg.as_ref(), |m| {
+        if lead {
+            on_event(RunEvent::Step(m))
+        }
+    })
+}
+
 /// [`pretrain`] as one rank of `pg` (None: one process). `config.data.batch_size` is the global
 /// batch: each rank takes `batch_size / world_size` samples of it (the loader's interleaved
 /// partition), draws every random value for the whole global batch and keeps its own

@@ -306,69 +306,54 @@ fn pairs(args: PairsArgs) -> anyhow::Result<()> {
         None => PairsConfig::default(),
     };
     config.depth_noise.enabled |= args.depth_noise || args.second_depth.is_some();
-    let started = std::time::Instant::now();
-    // The input's content hash (for the stats marker) is taken while the sequence is read.
-    let (sequence, content_hash) = rayon::join(
-        || datagen::io::sequence::read_sequence_as(&args.seq_dir, args.layout),
-        || datagen::corpus::build::hash_tree(&args.seq_dir),
-    );
-    let mut sequence = sequence?;
-    let input = schemas::InputDigest { source_path: args.seq_dir.display().to_string(), content_hash: content_hash? };
-    let second_depth =
-        args.second_depth.clone().or_else(|| config.depth_noise.second_depth_path(&args.dataset, &sequence.source_id));
-    if let Some(path) = second_depth.filter(|_| config.depth_noise.enabled) {
-        sequence.load_second_depth(&path)?;
+    let job = datagen::pairs::job::PairsJob {
+        seq_dir: args.seq_dir,
+        layout: args.layout,
+        out: args.out,
+        trajectories: args.trajectories,
+        trajectory_files: args.trajectory_files,
+        seed: args.seed,
+        config,
+        dataset: args.dataset,
+        second_depth: args.second_depth,
+    };
+    let report = datagen::pairs::job::make_pairs(&job)?;
+    for note in &report.notes {
+        eprintln!("note: {note}");
     }
-    if config.depth_noise.enabled && sequence.dynamic_masks.is_none() {
-        eprintln!("note: {} has no dynamic-object masks; depth noise changes nothing", args.seq_dir.display());
-    }
-    let read_seconds = started.elapsed().as_secs_f64();
-    let request = datagen::pairs::generator::trajectory_request(&sequence, &args.trajectory_files, args.trajectories)?;
-    if request.sampled == 0 && request.explicit.is_empty() {
-        anyhow::bail!("parameter `trajectories`: 0 trajectories requested and no --trajectory file given");
-    }
-    let (records, times) =
-        datagen::pairs::generator::generate_clips_timed(&sequence, &args.dataset, &config, &request, args.seed)?;
-    // The decoded frames and depth are not needed for writing: their memory goes first.
-    let source_id = std::mem::take(&mut sequence.source_id);
-    drop(sequence);
-    let clock = std::time::Instant::now();
-    let (path, stats) = datagen::pairs::generator::write_shard(&args.out, &source_id, &records, input)?;
     if args.timings {
+        let phases = &report.phases;
         eprintln!(
             "timings (wall s; phases in brackets run concurrently and overlap): [read+decode, hash] \
-             {read_seconds:.3} s, per-frame phase {:.3} s [summed over frames: mesh build {:.3} s, \
+             {:.3} s, per-frame phase {:.3} s [summed over frames: mesh build {:.3} s, \
              view bins + rays {:.3} s, encode {:.3} s], shard write {:.3} s",
-            times.masks_and_encode,
-            times.mesh_build,
-            times.ray_cpu,
-            times.encode_cpu,
-            clock.elapsed().as_secs_f64()
+            report.read_seconds,
+            phases.masks_and_encode,
+            phases.mesh_build,
+            phases.ray_cpu,
+            phases.encode_cpu,
+            report.write_seconds
         );
     }
+    let stats = &report.stats;
     println!(
         "wrote {} ({} clips, {} pairs, {} frames, {:.1} MB) in {:.2} s",
-        path.display(),
+        report.path.display(),
         stats.clips,
         stats.pairs,
         stats.frames,
         stats.bytes as f64 / 1e6,
-        started.elapsed().as_secs_f64()
+        report.seconds
     );
-    for record in &records {
-        for trajectory in &record.trajectories {
-            println!(
-                "  {} t{}: co-visible {:.1} %, {} rejected samples",
-                record.clip_id,
-                trajectory.index,
-                100.0 * trajectory.covisible_fraction,
-                trajectory.rejected_samples
-            );
-        }
+    for t in &report.trajectories {
+        println!(
+            "  {} t{}: co-visible {:.1} %, {} rejected samples",
+            t.clip_id,
+            t.index,
+            100.0 * t.covisible_fraction,
+            t.rejected_samples
+        );
     }
-    // Tens of MB of encoded frames in hundreds of buffers: the process's exit gives them back
-    // at once, faster than freeing them one by one.
-    std::mem::forget(records);
     Ok(())
 }
 

@@ -115,9 +115,7 @@ impl InputProcessor for SequenceProcessor<'_> {
         let started = Instant::now();
         let mut sequence = load_entry(entry)?;
         let noise = &self.config.pairs.depth_noise;
-        if let Some(path) = noise.second_depth_path(entry.dataset.name(), &entry.dataset_id).filter(|_| noise.enabled) {
-            sequence.load_second_depth(&path)?;
-        }
+        noise.load_second_depth(&mut sequence, None, entry.dataset.name(), &entry.dataset_id)?;
         let load_seconds = started.elapsed().as_secs_f64();
         if let Some(reason) =
             super::quality::filter(&self.config.check, &self.config.output.dir, &entry.key(), &sequence)?

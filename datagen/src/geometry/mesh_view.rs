@@ -371,17 +371,6 @@ impl MeshView<'_> {
         })
     }
 
-    /// Quarter blocks of quads the co-visibility batch skips (`Batch::good`), and all quarter
-    /// blocks (None with the BVH); for tests and benchmarks.
-    pub fn skipped_quad_blocks(&self) -> Option<(usize, usize)> {
-        let batch = Batch::new(self, self.grids.as_ref()?, 0.0);
-        let count = |block: Rect| {
-            let (whole, quarters) = (batch.good(block), quarters(block));
-            (quarters.iter().filter(|&&quarter| whole || batch.good(quarter)).count(), quarters.len())
-        };
-        Some(self.blocks().map(count).reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1)))
-    }
-
     /// Co-visibility from the view's camera of every source pixel (row-major): whether its
     /// surface point lies in front of the camera, projects inside its image, and the segment to
     /// it is not blocked ([`DepthMesh::segment_blocked`], the pixel's own triangles excluded).
@@ -456,21 +445,6 @@ impl MeshView<'_> {
             }
         });
         nearest.into_iter().map(|t| Some(f64::from_bits(t.into_inner())).filter(|t| t.is_finite())).collect()
-    }
-
-    /// How many (quad, pixel) pairs the boxes of the quads with triangles cover, and how many
-    /// quads reach every pixel (None with the BVH); for tests and benchmarks.
-    pub fn bin_sizes(&self) -> Option<(usize, usize)> {
-        let grids = self.grids.as_ref()?;
-        let (mut pairs, mut everywhere) = (0, 0);
-        for quad in 0..grids.projected.len() {
-            match self.quad_reach(grids, quad) {
-                Some(Reach::Box(QuadBox { pixels: [x0, x1, y0, y1], .. })) => pairs += (x1 + 1 - x0) * (y1 + 1 - y0),
-                Some(Reach::Everywhere) => everywhere += 1,
-                Some(Reach::Outside) | None => {}
-            }
-        }
-        Some((pairs, everywhere))
     }
 }
 
@@ -634,6 +608,39 @@ fn thick_quad([a, b, c, d]: [DVec2; 4], margins: f64) -> bool {
         edges.iter().fold(true, |all, e| all & (area > margin * (e.x.abs() + e.y.abs())))
     };
     thick(ab.perp_dot(ac), [ab, ac, bc]) & thick(bd.perp_dot(bc), [bd, cd, bc])
+}
+
+/// Counters of the image-grid path's internals, for tests and benchmarks only (not part of the
+/// kernel's API: they rebuild what a batch builds, to count it).
+#[doc(hidden)]
+pub mod probe {
+    use super::*;
+
+    /// Quarter blocks of quads the co-visibility batch skips (`Batch::good`), and all quarter
+    /// blocks (None with the BVH); for tests and benchmarks.
+    pub fn skipped_quad_blocks(view: &MeshView<'_>) -> Option<(usize, usize)> {
+        let batch = Batch::new(view, view.grids.as_ref()?, 0.0);
+        let count = |block: Rect| {
+            let (whole, quarters) = (batch.good(block), quarters(block));
+            (quarters.iter().filter(|&&quarter| whole || batch.good(quarter)).count(), quarters.len())
+        };
+        Some(view.blocks().map(count).reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1)))
+    }
+
+    /// How many (quad, pixel) pairs the boxes of the quads with triangles cover, and how many
+    /// quads reach every pixel (None with the BVH); for tests and benchmarks.
+    pub fn bin_sizes(view: &MeshView<'_>) -> Option<(usize, usize)> {
+        let grids = view.grids.as_ref()?;
+        let (mut pairs, mut everywhere) = (0, 0);
+        for quad in 0..grids.projected.len() {
+            match view.quad_reach(grids, quad) {
+                Some(Reach::Box(QuadBox { pixels: [x0, x1, y0, y1], .. })) => pairs += (x1 + 1 - x0) * (y1 + 1 - y0),
+                Some(Reach::Everywhere) => everywhere += 1,
+                Some(Reach::Outside) | None => {}
+            }
+        }
+        Some((pairs, everywhere))
+    }
 }
 
 #[cfg(test)]

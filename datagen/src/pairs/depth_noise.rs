@@ -19,7 +19,7 @@
 //! The field is seeded by (run seed, source id, clip start, trajectory index, frame), so pairs
 //! are reproducible and trajectories of one clip get independent noise.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use glam::DVec2;
 use image::{GrayImage, Rgb, RgbImage};
@@ -28,8 +28,10 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use crate::config_file::{Checked, Validate, check_count, check_float, check_placeholders};
+use crate::error::Result;
 use crate::geometry::camera::PinholeCamera;
 use crate::io::depth_exr::DepthMap;
+use crate::io::sequence::Sequence;
 
 /// Parametric noise settings and the optional second depth source.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -101,6 +103,25 @@ impl DepthNoiseConfig {
             template.replace("{dataset}", dataset).replace("{video_id}", video_id).replace("{name}", name),
         );
         path.exists().then_some(path)
+    }
+
+    /// With depth noise on, reads `sequence`'s second depth for measured noise: from `explicit`
+    /// (a path the user gave), else from the configured template's path for (`dataset`,
+    /// `video_id`) if it exists. Nothing with depth noise off.
+    pub fn load_second_depth(
+        &self,
+        sequence: &mut Sequence,
+        explicit: Option<&Path>,
+        dataset: &str,
+        video_id: &str,
+    ) -> Result<()> {
+        if !self.enabled {
+            return Ok(());
+        }
+        match explicit.map(Path::to_path_buf).or_else(|| self.second_depth_path(dataset, video_id)) {
+            Some(path) => sequence.load_second_depth(&path),
+            None => Ok(()),
+        }
     }
 }
 

@@ -4,6 +4,7 @@
 use datagen::geometry::camera::PinholeCamera;
 use datagen::geometry::covisibility::{CovisibilityConfig, covisibility_mask};
 use datagen::geometry::depth_mesh::{Accelerator, DepthMesh, MeshConfig};
+use datagen::geometry::mesh_view;
 use datagen::io::sequence::read_sequence;
 use datagen::synth::{SynthConfig, SynthScene, ground_truth_covisibility};
 
@@ -162,8 +163,8 @@ fn every_accelerator_equals_brute_force_pixel_for_pixel() {
                 let novel = PinholeCamera { world_from_camera: world_from_novel, ..source };
                 let mask = covisibility_mask(&mesh, &source, &novel, &config);
                 let (view, eye) = (mesh.view(&novel), novel.center());
-                unbinned += view.bin_sizes().map_or(0, |s| s.1);
-                most_tiles = most_tiles.max(view.bin_sizes().map_or(0, |s| s.0));
+                unbinned += mesh_view::probe::bin_sizes(&view).map_or(0, |s| s.1);
+                most_tiles = most_tiles.max(mesh_view::probe::bin_sizes(&view).map_or(0, |s| s.0));
                 for (index, &kept) in mask.iter().enumerate() {
                     let Some(point) = mesh.point(index) else {
                         assert!(!kept, "{accelerator:?} frame {frame} pixel {index} has no point");
@@ -256,14 +257,14 @@ struct BatchCheck {
 /// ([`assert_mask_is_brute_force`]).
 fn check_batch(mesh: &DepthMesh, novel: &PinholeCamera, config: &CovisibilityConfig, context: &str) -> BatchCheck {
     let view = mesh.view(novel);
-    let (skipped, quarters) = view.skipped_quad_blocks().expect("image grids");
+    let (skipped, quarters) = mesh_view::probe::skipped_quad_blocks(&view).expect("image grids");
     let mask = view.covisibility(config.epsilon);
     assert_eq!(mask.len(), (novel.width * novel.height) as usize, "{context}");
     BatchCheck {
         skipped,
         tested: quarters - skipped,
         blocked: assert_mask_is_brute_force(mesh, novel, config, &mask, context),
-        unbinned_triangles: view.bin_sizes().map_or(0, |sizes| sizes.1),
+        unbinned_triangles: mesh_view::probe::bin_sizes(&view).map_or(0, |sizes| sizes.1),
     }
 }
 

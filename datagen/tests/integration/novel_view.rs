@@ -3,6 +3,7 @@
 
 use datagen::geometry::camera::PinholeCamera;
 use datagen::geometry::depth_mesh::{DepthMesh, MeshConfig};
+use datagen::geometry::mesh_view;
 use datagen::io::depth_exr::DepthMap;
 use datagen::synth::{SynthConfig, SynthScene, look_at};
 use glam::{DMat3, DMat4, DVec3};
@@ -19,7 +20,7 @@ fn assert_hits_are_brute_force(mesh: &DepthMesh, novel: &PinholeCamera, context:
         let brute = mesh.first_surface_hit_brute_force(novel.center(), direction);
         assert_eq!(hit, brute, "{context}: novel pixel {index}");
     }
-    (hits.iter().flatten().count(), view.bin_sizes().expect("image grids").1)
+    (hits.iter().flatten().count(), mesh_view::probe::bin_sizes(&view).expect("image grids").1)
 }
 
 /// Every mesh setting the render sees: the plain cut mesh and skirts (which it ignores).

@@ -1,8 +1,16 @@
 #!/usr/bin/env python3
-"""Finds import cycles among the modules of Rust crates: exits 1 listing them, 0 when none.
+"""Finds import cycles among the modules of Rust crates, and uses that break the layer rules a
+document states: exits 1 listing them, 0 when none.
 
-Usage: check_module_cycles.py CRATE_SRC_DIR...   (e.g. datagen/src trainer/src schemas/src)
+Usage: check_module_cycles.py [--layers DOC.md] CRATE_SRC_DIR...   (e.g. datagen/src trainer/src)
        check_module_cycles.py --self-test          (the checker on small crates it writes)
+
+Layers (`--layers`): the document's fenced ```layers blocks. A line naming a source folder
+starts a crate; each indented line under it is one layer, bottom first, listing module paths
+(`io`, `pipelines::nvs`); a module belongs to the layer of its longest listed prefix, and may use
+modules of its own layer and those below, never one above. A line `CRATE_SRC uses CRATE: PATH...`
+lists the only paths into another workspace crate its code may name (`uses datagen: io::sequence
+pairs`); `uses CRATE: -` forbids that crate.
 
 A module is a source file (`a/b.rs` or `a/b/mod.rs` is module `a::b`; `lib.rs` and `main.rs` are
 the crate root). Module A depends on module B when A's code (comments and tests excluded) names a
@@ -158,6 +166,72 @@ def check(src: Path) -> list[str]:
     return problems
 
 
+def graph_of(src: Path) -> dict:
+    mods = modules(src)
+    codes = {m: strip(p.read_text()) for m, p in mods.items()}
+    exports = {m: reexports(c) for m, c in codes.items()}
+    return {m: edges_of(m, c, mods, exports) for m, c in codes.items()}, codes
+
+
+def read_layers(doc: Path) -> tuple[dict, dict]:
+    """({crate src: [layer, ...] with each layer a list of module paths}, {(crate src, other
+    crate): allowed paths or []}) from the ```layers blocks of `doc`."""
+    layers, uses = {}, {}
+    for block in re.findall(r"```layers\n(.*?)```", doc.read_text(), re.S):
+        crate = None
+        for line in block.splitlines():
+            text = line.split("#")[0].rstrip()
+            if not text.strip():
+                continue
+            if m := re.match(r"(\S+) uses (\w+):\s*(.*)$", text.strip()):
+                paths = m.group(3).split()
+                uses[(m.group(1), m.group(2))] = [] if paths == ["-"] else paths
+            elif not text.startswith((" ", "\t")):
+                crate = text.strip()
+                layers[crate] = []
+            elif crate is not None:
+                layers[crate].append(text.split())
+    return layers, uses
+
+
+def layer_of(module: tuple[str, ...], layers: list) -> int | None:
+    best, depth = None, -1
+    for level, names in enumerate(layers):
+        for name in names:
+            parts = tuple(name.split("::"))
+            if module[: len(parts)] == parts and len(parts) > depth:
+                best, depth = level, len(parts)
+    return best
+
+
+def check_layers(src: Path, key: str, layers: list, uses: dict) -> list[str]:
+    graph, codes = graph_of(src)
+    problems = []
+    for module, targets in sorted(graph.items()):
+        own = layer_of(module, layers)
+        if own is None:
+            continue
+        for target in sorted(targets):
+            other = layer_of(target, layers)
+            if other is not None and other > own:
+                problems.append(
+                    f"{src}: {'::'.join(module)} (layer {own}: {' '.join(layers[own])}) uses "
+                    f"{'::'.join(target)} (layer {other}: {' '.join(layers[other])}), a higher layer"
+                )
+    for (crate, other), allowed in uses.items():
+        if crate != key:
+            continue
+        for module, code in sorted(codes.items()):
+            for path in sorted(set(re.findall(rf"\b{other}((?:::[A-Za-z_][A-Za-z0-9_]*)+)", code))):
+                parts = path.strip(":").split("::")
+                if not any(parts[: len(a.split("::"))] == a.split("::") for a in allowed):
+                    problems.append(
+                        f"{src}: {'::'.join(module) or 'crate'} names {other}{path}, outside what it may use of "
+                        f"{other} ({' '.join(allowed) or 'nothing'})"
+                    )
+    return problems
+
+
 def self_test() -> None:
     """A cycle through a parent's re-export, a direct one, one after string and character literals
     that fooled a line-by-line stripper, and a one-way use: the first three found, the last not."""
@@ -183,7 +257,21 @@ def self_test() -> None:
     assert found["direct"], found
     assert found["literals"], found
     assert not found["acyclic"], found
-    print("self-test: cycles through re-exports, direct ones and ones after literals found, none where there is none")
+    with tempfile.TemporaryDirectory() as root:
+        files = {"lib.rs": "pub mod low;\npub mod high;", "low/mod.rs": "pub mod a;", "low/a.rs": "use crate::high::b;",
+                 "high/mod.rs": "pub mod b;", "high/b.rs": "fn f() { other::inner::x(); other::api::y(); }"}
+        for rel, text in files.items():
+            path = Path(root, "c", rel)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(text)
+        doc = Path(root, "doc.md")
+        doc.write_text("```layers\nc\n  low\n  high\nc uses other: api\n```\n")
+        layers, uses = read_layers(doc)
+        problems = check_layers(Path(root, "c"), "c", layers["c"], uses)
+    assert any("low::a" in p and "higher layer" in p for p in problems), problems
+    assert any("other::inner::x" in p for p in problems) and not any("other::api" in p for p in problems), problems
+    print("self-test: cycles through re-exports, direct ones and ones after literals found, none where there is none;"
+          " a use of a higher layer and a path outside another crate's allowed API found")
 
 
 def main() -> None:
@@ -194,6 +282,13 @@ def main() -> None:
     if args == ["--self-test"]:
         self_test()
         return
+    layers, uses = {}, {}
+    if args[:1] == ["--layers"]:
+        if len(args) < 2 or not Path(args[1]).is_file():
+            print("check_module_cycles.py: --layers needs a document (see --help)", file=sys.stderr)
+            sys.exit(2)
+        layers, uses = read_layers(Path(args[1]))
+        args = args[2:]
     unknown = [a for a in args if a.startswith("-")]
     missing = [a for a in args if not a.startswith("-") and not Path(a).is_dir()]
     if unknown or missing:
@@ -201,11 +296,16 @@ def main() -> None:
               " (see --help)", file=sys.stderr)
         sys.exit(2)
     problems = [p for arg in args for p in check(Path(arg))]
+    for arg in args:
+        key = arg.rstrip("/")
+        if key in layers:
+            problems += check_layers(Path(arg), key, layers[key], uses)
     for p in problems:
         print(p)
     if problems:
         sys.exit(1)
-    print(f"no import cycles in {', '.join(sys.argv[1:])}")
+    checked = [a for a in args if a.rstrip("/") in layers]
+    print(f"no import cycles in {', '.join(args)}" + (f"; layer rules hold in {', '.join(checked)}" if checked else ""))
 
 
 if __name__ == "__main__":

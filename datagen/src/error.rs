@@ -74,6 +74,9 @@ pub enum Error {
     /// Writing or reading a shard failed at the schema layer.
     #[error(transparent)]
     Schema(#[from] schemas::Error),
+    /// Reading or writing a shared file (camera, video, frames, digest) failed.
+    #[error(transparent)]
+    Foundation(#[from] foundation::Error),
 }
 
 /// Result with the library's error type.

@@ -534,7 +534,7 @@ pub fn ground_truth_covisibility(
             if in_novel.z <= 0.0 {
                 return false;
             }
-            let pixel = crate::geometry::camera::pixel_of(novel_intrinsics, in_novel);
+            let pixel = foundation::camera::pixel_of(novel_intrinsics, in_novel);
             let inside = pixel.x > -0.5 && pixel.x < width - 0.5 && pixel.y > -0.5 && pixel.y < height - 0.5;
             inside && geometry.is_visible(point, eye)
         })
@@ -576,8 +576,8 @@ pub fn write_sequence(config: &SynthConfig, out: &Path, mut progress: impl FnMut
         if sheet_frames(config.frames).contains(&frame) {
             sheet_rows.push(vec![
                 rendered.rgb.clone(),
-                crate::inspect::contact_sheet::colorize_depth(&rendered.depth, width, height),
-                crate::inspect::contact_sheet::colorize_ids(&rendered.mask_ids),
+                foundation::contact_sheet::colorize_depth(&rendered.depth, width, height),
+                foundation::contact_sheet::colorize_ids(&rendered.mask_ids),
             ]);
         }
         rgb_frames.push(rendered.rgb);
@@ -589,7 +589,7 @@ pub fn write_sequence(config: &SynthConfig, out: &Path, mut progress: impl FnMut
     crate::io::npy::write_npy(&cam.join("megasam_intrinsics.npy"), &[3, 3], &k)?;
     crate::io::npy::write_npy(&cam.join("megasam_c2ws.npy"), &[frames, 4, 4], &poses)?;
     crate::io::npy::write_npy(&out.join("masks_ids.npy"), &[frames, height, width], &ids)?;
-    crate::io::video::encode_video(&out.join("gt_rgb.mp4"), &rgb_frames, config.fps)?;
+    foundation::video::encode_video(&out.join("gt_rgb.mp4"), &rgb_frames, config.fps)?;
     let meta = serde_json::json!({
         "generator": format!("datagen {}", env!("CARGO_PKG_VERSION")),
         "config": config,
@@ -599,7 +599,7 @@ pub fn write_sequence(config: &SynthConfig, out: &Path, mut progress: impl FnMut
     std::fs::write(&meta_path, serde_json::to_vec_pretty(&meta).expect("json"))
         .map_err(|e| Error::io(&meta_path, e))?;
     let contact_sheet = out.join("contact_sheet.png");
-    crate::inspect::contact_sheet::write_contact_sheet(&contact_sheet, &sheet_rows)?;
+    foundation::contact_sheet::write_contact_sheet(&contact_sheet, &sheet_rows)?;
     Ok(SynthOutput { dir: out.to_owned(), contact_sheet })
 }
 
@@ -667,18 +667,18 @@ pub fn write_multiview(
             let pose = scene.rig_world_from_camera(frame, rig, camera as u32);
             let rendered = scene.render_view(&geometry, &pose, &intrinsics);
             save_png(&rendered.rgb, &folder.join(format!("frames/{frame:05}.png")))?;
-            let depth = crate::io::depth_exr::DepthMap { width, height, values: rendered.depth };
+            let depth = foundation::depth::DepthMap { width, height, values: rendered.depth };
             let exr_path = folder.join(format!("depth/{frame:05}.exr"));
             let exr = crate::io::depth_exr::encode_depth_exr(&depth)?;
             std::fs::write(&exr_path, exr).map_err(|e| Error::io(&exr_path, e))?;
-            poses[camera].push(crate::geometry::camera::mat4_to_row_major(&pose).to_vec());
+            poses[camera].push(foundation::camera::mat4_to_row_major(&pose).to_vec());
         }
         progress(frame + 1);
     }
     let timestamps: Vec<f64> = (0..config.frames).map(|f| scene.seconds(f)).collect();
     for (folder, poses) in folders.iter().zip(poses) {
         let cameras = serde_json::json!({
-            "intrinsics": crate::geometry::camera::mat3_to_row_major(&intrinsics).to_vec(),
+            "intrinsics": foundation::camera::mat3_to_row_major(&intrinsics).to_vec(),
             "world_from_camera": poses,
             "timestamps": timestamps,
         });

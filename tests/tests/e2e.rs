@@ -21,8 +21,9 @@ where
 mod shards_in_python {
     //! A shard built from a synthetic scene opens unchanged in pyarrow, DuckDB and HF `datasets`.
     use super::*;
-    use datagen::io::depth_exr::{DepthMap, encode_depth_exr};
+    use datagen::io::depth_exr::encode_depth_exr;
     use datagen::synth::{SynthConfig, SynthScene};
+    use foundation::depth::DepthMap;
     use schemas::{ClipRecord, ShardWriter, ShardWriterOptions, TrajectoryKind, TrajectoryRecord};
 
     fn synth_record(frames: u32) -> ClipRecord {

@@ -135,7 +135,10 @@ pub enum Error {
         /// The parser's complaint.
         reason: String,
     },
-    /// Video, frames or a sequence could not be read (the `datagen` readers).
+    /// Reading or writing a shared file (video, frames, digest) failed.
+    #[error(transparent)]
+    Foundation(#[from] foundation::Error),
+    /// A sequence could not be read or its pairs made (the `datagen` readers and generator).
     #[error(transparent)]
     Datagen(#[from] datagen::Error),
     /// A training shard or other `schemas` file could not be read or written.

@@ -21,7 +21,7 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::fs::{File, OpenOptions, TryLockError};
-use std::io::{Read, Write};
+use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -32,6 +32,7 @@ use super::crawl::{FrameSource, MaskSource, SourceConfig, VideoEntry, crawl_all,
 use super::partition::Worker;
 use crate::config_file::{Checked, KeyError, Validate, check_count};
 use crate::error::{Error, Result};
+use foundation::hashing::{files_under, hash_files};
 
 /// Default shard size target: a few hundred MB, as readers stream row groups anyway.
 pub const DEFAULT_SHARD_BYTES: u64 = 256 << 20;
@@ -443,46 +444,7 @@ pub fn content_hash(entry: &VideoEntry) -> Result<String> {
     // A missing shared file (a split list not there yet) changes the hash by appearing, rather
     // than making it unreadable.
     files.extend(entry.shared_files.iter().filter(|p| p.is_file()).cloned());
-    hash_files(files)
-}
-
-/// BLAKE3 over every file under `root` (or the file `root`), in a stable order.
-pub fn hash_tree(root: &Path) -> Result<String> {
-    let mut files = Vec::new();
-    files_under(root, &mut files)?;
-    hash_files(files)
-}
-
-fn files_under(root: &Path, files: &mut Vec<PathBuf>) -> Result<()> {
-    let mut pending = vec![root.to_owned()];
-    while let Some(path) = pending.pop() {
-        if path.is_dir() {
-            let entries = std::fs::read_dir(&path).map_err(|e| Error::io(&path, e))?;
-            pending.extend(entries.filter_map(|e| e.ok().map(|e| e.path())));
-        } else {
-            files.push(path);
-        }
-    }
-    Ok(())
-}
-
-fn hash_files(mut files: Vec<PathBuf>) -> Result<String> {
-    files.sort();
-    files.dedup();
-    let mut hasher = blake3::Hasher::new();
-    let mut buffer = vec![0u8; 1 << 20];
-    for path in files {
-        hasher.update(path.file_name().unwrap_or_default().as_encoded_bytes());
-        let mut file = std::fs::File::open(&path).map_err(|e| Error::io(&path, e))?;
-        loop {
-            let read = file.read(&mut buffer).map_err(|e| Error::io(&path, e))?;
-            if read == 0 {
-                break;
-            }
-            hasher.update(&buffer[..read]);
-        }
-    }
-    Ok(hasher.finalize().to_hex().to_string())
+    Ok(hash_files(files)?)
 }
 
 /// One input's planned fate in a dry run.

@@ -18,8 +18,9 @@ use crate::error::{Error, Result};
 use crate::io::annotations::{
     box_frame_masks, fill_between_annotations, load_sav_annotation, read_id_png, sav_frame_masks,
 };
-use crate::io::sequence::{Sequence, read_frames, read_sequence, read_with_frames};
+use crate::io::sequence::{Sequence, read_sequence, read_with_frames};
 use crate::pairs::generator::{PhaseTimes, TrajectoryRequest, generate_clips_timed};
+use foundation::frames::read_frames;
 
 /// Loads everything the pair generator needs for one crawled video.
 pub fn load_entry(entry: &VideoEntry) -> Result<Sequence> {
@@ -37,7 +38,7 @@ pub fn load_entry(entry: &VideoEntry) -> Result<Sequence> {
             return Ok(sequence);
         }
         FrameSource::Video(path) => {
-            let video = crate::io::video::decode_video(path)?;
+            let video = foundation::video::decode_video(path)?;
             read_with_frames(&entry.video_id, reconstruction, video.fps, video.frames, path)?
         }
         FrameSource::Images(paths) => {

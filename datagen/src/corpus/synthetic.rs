@@ -183,7 +183,7 @@ fn read_masks(scene: &Path) -> Result<Vec<GrayImage>> {
 /// The scene's PNG frames as JPEGs named by `name(frame)`; returns the frame count.
 fn write_jpegs(scene: &Path, dir: &Path, name: impl Fn(usize) -> String) -> Result<usize> {
     mkdir(dir)?;
-    let frames = crate::io::sequence::read_frames(&sorted_files(&scene.join("frames"))?)?;
+    let frames = foundation::frames::read_frames(&sorted_files(&scene.join("frames"))?)?;
     for (f, frame) in frames.iter().enumerate() {
         let path = dir.join(name(f));
         let file = std::fs::File::create(&path).map_err(|e| Error::io(&path, e))?;

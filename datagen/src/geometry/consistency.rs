@@ -24,8 +24,8 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::config_file::{Checked, KeyError, Validate, check_count, check_float};
-use crate::geometry::camera::{PinholeCamera, pixel_of};
 use crate::io::sequence::Sequence;
+use foundation::camera::{PinholeCamera, pixel_of};
 
 /// Settings of the check (`[check]` of a corpus TOML, or defaults).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -8,8 +8,8 @@
 use serde::{Deserialize, Serialize};
 
 use crate::config_file::{Checked, Validate, check_float};
-use crate::geometry::camera::PinholeCamera;
 use crate::geometry::depth_mesh::{DepthMesh, MeshConfig};
+use foundation::camera::PinholeCamera;
 
 /// Occlusion-test settings.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -29,9 +29,9 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::config_file::{Checked, Validate, check_float};
-use crate::geometry::camera::PinholeCamera;
 use crate::geometry::ray_triangle::RenderRay;
-use crate::io::depth_exr::DepthMap;
+use foundation::camera::PinholeCamera;
+use foundation::depth::DepthMap;
 
 /// How the mesh is cut and how unobserved space is treated.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -22,9 +22,9 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use glam::{DMat4, DVec2, DVec3, Vec4};
 use rayon::prelude::*;
 
-use crate::geometry::camera::{PinholeCamera, pixel_of};
 use crate::geometry::depth_mesh::{DepthMesh, Quad, corner_indices, segment_ray};
 use crate::geometry::ray_triangle::RenderRay;
+use foundation::camera::{PinholeCamera, pixel_of};
 
 /// Widening of every quad's projected box, in pixels: ×50 the f32 error of a hit's projection.
 pub const MARGIN_PIXELS: f64 = 0.05;

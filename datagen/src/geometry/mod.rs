@@ -1,9 +1,8 @@
-//! The geometry of one frame: the pinhole camera and its pose and K checks ([`camera`], which the
-//! sequence readers in [`crate::io`] also use), the depth map lifted to a mesh, and the exact
+//! The geometry of one frame (on `foundation`'s pinhole camera and depth map): the depth map
+//! lifted to a mesh, and the exact
 //! co-visibility masks and novel-view renders computed against it; and the multi-frame
 //! consistency check of a whole reconstruction ([`consistency`], `datagen check`).
 
-pub mod camera;
 pub mod consistency;
 pub mod covisibility;
 pub mod depth_mesh;

@@ -6,8 +6,8 @@ use glam::DVec2;
 use image::{GrayImage, Rgb, RgbImage};
 use rayon::prelude::*;
 
-use crate::geometry::camera::PinholeCamera;
 use crate::geometry::depth_mesh::DepthMesh;
+use foundation::camera::PinholeCamera;
 
 /// Bilinear colour of `image` at pixel coordinates (centres at integers), clamped to the edges.
 pub fn bilinear(image: &RgbImage, at: DVec2) -> Rgb<u8> {

@@ -16,9 +16,9 @@ use image::RgbImage;
 use schemas::{ClipRecord, InputStatus, ShardReader, TrajectoryRecord};
 
 use crate::error::{Error, Result};
-use crate::geometry::camera::mat4_from_row_major;
 use crate::inspect::shards::{SHEET_COLUMNS, pair_id, shard_paths};
 use crate::pairs::trajectory::{PathParameters, path_parameters};
+use foundation::camera::mat4_from_row_major;
 
 /// Bins of every histogram: fine enough to show a shape on a few hundred pairs.
 const HISTOGRAM_BINS: usize = 20;
@@ -282,10 +282,10 @@ fn thumbnail(record: &ClipRecord, trajectory: &TrajectoryRecord) -> Result<Vec<u
                 if mask.get_pixel(x, y).0[0] > 0 { *target.get_pixel(x, y) } else { image::Rgb([0, 0, 0]) }
             }),
         };
-        rows.push(vec![target, crate::inspect::contact_sheet::mask_to_rgb(&mask), condition]);
+        rows.push(vec![target, foundation::contact_sheet::mask_to_rgb(&mask), condition]);
     }
     let labels: Vec<String> = picked.iter().map(|i| format!("frame {i}")).collect();
-    let mut sheet = crate::inspect::contact_sheet::labelled_contact_sheet(&SHEET_COLUMNS[..3], &labels, &rows);
+    let mut sheet = foundation::contact_sheet::labelled_contact_sheet(&SHEET_COLUMNS[..3], &labels, &rows);
     if sheet.width() > THUMBNAIL_WIDTH {
         let height = (f64::from(sheet.height()) * f64::from(THUMBNAIL_WIDTH) / f64::from(sheet.width())).round() as u32;
         sheet = image::imageops::resize(&sheet, THUMBNAIL_WIDTH, height.max(1), image::imageops::FilterType::Triangle);

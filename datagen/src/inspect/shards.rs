@@ -13,10 +13,10 @@ use rayon::prelude::*;
 use schemas::{ClipRecord, InputStatus, ShardReader, TrajectoryRecord};
 
 use crate::error::{Error, Result};
-use crate::geometry::camera::{PinholeCamera, mat3_from_row_major, mat4_from_row_major};
 use crate::geometry::covisibility::CovisibilityConfig;
 use crate::io::sequence::Sequence;
 use crate::pairs::static_background::{StackingConfig, StaticBackground};
+use foundation::camera::{PinholeCamera, mat3_from_row_major, mat4_from_row_major};
 
 /// Frames shown per pair on the contact sheet.
 const SHEET_FRAMES: usize = 4;
@@ -278,7 +278,7 @@ fn export_pair(
             if !sheet_frames.contains(&i) {
                 return Ok(None);
             }
-            let mut row = vec![target.clone(), crate::inspect::contact_sheet::mask_to_rgb(&mask), cond];
+            let mut row = vec![target.clone(), foundation::contact_sheet::mask_to_rgb(&mask), cond];
             if let Some(render) = render {
                 row.push(render.render(i, &camera(record, &trajectory.world_from_camera[i], i)));
             }
@@ -288,7 +288,7 @@ fn export_pair(
     let sheet: Vec<Vec<RgbImage>> = rows.into_iter().flatten().collect();
     let columns = &SHEET_COLUMNS[..if render.is_some() { 4 } else { 3 }];
     let labels: Vec<String> = sheet_frames.iter().map(|i| format!("frame {i}")).collect();
-    crate::inspect::contact_sheet::write_labelled_contact_sheet(
+    foundation::contact_sheet::write_labelled_contact_sheet(
         &folder.join("contact_sheet.png"),
         columns,
         &labels,
@@ -383,17 +383,17 @@ fn export_clip_cog_nvs(record: &ClipRecord, out: &Path) -> Result<PathBuf> {
     let folder = out.join(record.clip_id.replace('/', "__"));
     std::fs::create_dir_all(&folder).map_err(|e| Error::io(&folder, e))?;
     let fps = if record.fps.is_finite() && record.fps > 0.0 { record.fps } else { COG_NVS_DEFAULT_FPS };
-    let in_clip = |e: Error| match e {
-        Error::InvalidParameter { name, reason } => {
+    let in_clip = |e: foundation::Error| match e {
+        foundation::Error::InvalidParameter { name, reason } => {
             Error::invalid(&folder, name, format!("clip `{}`: {reason}", record.clip_id))
         }
-        other => other,
+        other => other.into(),
     };
     let targets: Vec<RgbImage> = (0..record.num_frames())
         .into_par_iter()
         .map(|i| Ok(decode_png(&record.frames[i], &format!("{}: frames[{i}]", record.clip_id))?.to_rgb8()))
         .collect::<Result<_>>()?;
-    crate::io::video::encode_video(&folder.join(COG_NVS_TARGET), &targets, fps).map_err(in_clip)?;
+    foundation::video::encode_video(&folder.join(COG_NVS_TARGET), &targets, fps).map_err(in_clip)?;
     let mut renders = Vec::new();
     for (position, trajectory) in record.trajectories.iter().enumerate() {
         let conditioning: Vec<RgbImage> = (0..record.num_frames())
@@ -414,7 +414,7 @@ fn export_clip_cog_nvs(record: &ClipRecord, out: &Path) -> Result<PathBuf> {
             })
             .collect::<Result<_>>()?;
         let name = cog_nvs_render_name(position + 1);
-        crate::io::video::encode_video(&folder.join(&name), &conditioning, fps).map_err(in_clip)?;
+        foundation::video::encode_video(&folder.join(&name), &conditioning, fps).map_err(in_clip)?;
         renders.push(serde_json::json!({
             "file": name,
             "trajectory_index": trajectory.index,

@@ -17,8 +17,8 @@ use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::error::{Error, Result};
-use crate::geometry::camera::{mat3_to_row_major, mat4_to_row_major};
 use crate::io::sequence::Sequence;
+use foundation::camera::{mat3_to_row_major, mat4_to_row_major};
 
 /// The script that writes the recording, as installed with the sources.
 pub const DEFAULT_SCRIPT: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../scripts/rerun_view.py");

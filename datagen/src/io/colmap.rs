@@ -27,9 +27,9 @@ use glam::{DMat4, DQuat, DVec3};
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
-use crate::geometry::camera::mat4_to_row_major;
 use crate::io::npy::MAX_SIDE_PX;
 use crate::io::tool_output::{ToolFrames, ToolOutput, check_depth_sign, invert_camera_from_world};
+use foundation::camera::mat4_to_row_major;
 
 /// How far a stored quaternion's norm may be from 1: COLMAP writes unit quaternions in full
 /// double precision, and a text model rounds them to 17 significant digits.

@@ -19,20 +19,10 @@ use flate2::write::ZlibEncoder;
 
 use crate::error::{Error, Result};
 use crate::io::npy::MAX_SIDE_PX;
+use foundation::depth::DepthMap;
 
 /// Name of the depth channel written; also preferred when reading a multi-channel file.
 pub const DEPTH_CHANNEL: &str = "Z";
-
-/// A single-channel float raster, row-major.
-#[derive(Debug, Clone, PartialEq)]
-pub struct DepthMap {
-    /// Width in pixels.
-    pub width: usize,
-    /// Height in pixels.
-    pub height: usize,
-    /// `width * height` values, rows top to bottom.
-    pub values: Vec<f32>,
-}
 
 /// Scanlines per ZIP block, fixed by the format for ZIP (as opposed to ZIPS, one line).
 const ZIP_LINES: usize = 16;

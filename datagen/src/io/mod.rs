@@ -1,5 +1,5 @@
-//! Reading and writing the files a sequence is made of: NumPy arrays, depth as OpenEXR, video
-//! through FFmpeg, dataset annotations (run-length encoded masks, palette PNGs, boxes), and whole
+//! Reading and writing the files a sequence is made of: NumPy arrays, depth as OpenEXR (video and
+//! image frames are `foundation`'s), dataset annotations (run-length encoded masks, palette PNGs, boxes), and whole
 //! sequence folders in their layouts, including the outputs of the reconstruction tools in use
 //! (ViPE, VGGT, COLMAP, GEN3C, depth-only tools), each converted at the door, and synchronised
 //! multi-camera scenes made of them.
@@ -15,5 +15,4 @@ pub mod rle;
 pub mod sequence;
 pub mod tool_output;
 pub mod vggt;
-pub mod video;
 pub mod vipe;

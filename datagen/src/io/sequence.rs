@@ -29,11 +29,12 @@ use image::{GrayImage, RgbImage};
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
-use crate::geometry::camera::{PinholeCamera, checked_intrinsics, checked_pose};
-use crate::io::depth_exr::DepthMap;
 use crate::io::npy::{Axis, NdArray, NpzReader, read_npy_f32_planes, read_npy_f64, read_npy_f64_shaped};
 use crate::io::tool_output::{ToolFrames, ToolOutput};
 use crate::io::vipe::VipeArtifact;
+use foundation::camera::{PinholeCamera, checked_intrinsics, checked_pose};
+use foundation::depth::DepthMap;
+use foundation::frames::read_frames;
 
 /// Focal length in pixels (at the depth resolution) assumed when intrinsics are missing: the
 /// public cog-nvs code's fallback.
@@ -429,38 +430,6 @@ fn with_extension(dir: &Path, extensions: &[&str]) -> Result<Vec<PathBuf>> {
         .collect())
 }
 
-/// Decodes image files (PNG, JPEG) as RGB frames, in parallel, in the given order.
-/// Every frame must have the first one's size: the error names the first file that differs and
-/// both sizes (checked from the image headers, before anything is decoded). Shared by the generic
-/// layout's `frames/` and the corpus image datasets (DAVIS, YouTube-VOS, TAO).
-pub fn read_frames(paths: &[PathBuf]) -> Result<Vec<RgbImage>> {
-    let sizes = paths
-        .par_iter()
-        .map(|p| image::image_dimensions(p).map_err(|e| Error::invalid(p, "frame", format!("unreadable image: {e}"))))
-        .collect::<Result<Vec<_>>>()?;
-    if let (Some(first), Some(&(width, height))) = (paths.first(), sizes.first())
-        && let Some(i) = sizes.iter().position(|&size| size != (width, height))
-    {
-        let (found_w, found_h) = sizes[i];
-        return Err(Error::invalid(
-            &paths[i],
-            "frame",
-            format!(
-                "size {found_w}x{found_h} differs from the first frame's {width}x{height} ({}): every frame of a sequence must have one size",
-                first.display()
-            ),
-        ));
-    }
-    paths
-        .par_iter()
-        .map(|p| {
-            image::open(p)
-                .map(|i| i.to_rgb8())
-                .map_err(|e| Error::invalid(p, "frame", format!("unreadable image: {e}")))
-        })
-        .collect()
-}
-
 /// Reads the sequence folder `dir` in whichever layout it is.
 pub fn read_sequence(dir: &Path) -> Result<Sequence> {
     read_sequence_as(dir, None)
@@ -536,7 +505,7 @@ fn read_cog_nvs(dir: &Path) -> Result<Parts> {
     let video_path = dir.join("gt_rgb.mp4");
     // Decoding is mostly serial: read the reconstruction meanwhile.
     let (video, reconstruction) =
-        rayon::join(|| crate::io::video::decode_video(&video_path), || cog_nvs_reconstruction(dir));
+        rayon::join(|| foundation::video::decode_video(&video_path), || cog_nvs_reconstruction(dir));
     let video = video?;
     assemble(video.fps, video.frames, &video_path, reconstruction?)
 }
@@ -684,7 +653,7 @@ fn megasam_reconstruction(path: &Path, with_images: bool) -> Result<(Option<NdAr
 fn json_intrinsics(path: &Path, value: &serde_json::Value) -> Result<NdArray<f64>> {
     let field = "intrinsics";
     let single =
-        |value| crate::geometry::camera::json_matrix(value, 3, 3).map_err(|reason| Error::invalid(path, field, reason));
+        |value| foundation::camera::json_matrix(value, 3, 3).map_err(|reason| Error::invalid(path, field, reason));
     let serde_json::Value::Array(items) = value else {
         return Err(single(value).unwrap_err());
     };
@@ -697,7 +666,7 @@ fn json_intrinsics(path: &Path, value: &serde_json::Value) -> Result<NdArray<f64
     }
     let mut data = Vec::with_capacity(items.len() * 9);
     for (i, k) in items.iter().enumerate() {
-        let values = crate::geometry::camera::json_matrix(k, 3, 3)
+        let values = foundation::camera::json_matrix(k, 3, 3)
             .map_err(|reason| Error::invalid(path, format!("{field}[{i}]"), reason))?;
         data.extend(values);
     }
@@ -724,7 +693,7 @@ fn json_poses(path: &Path, value: &serde_json::Value) -> Result<NdArray<f64>> {
     }
     let mut data = Vec::with_capacity(items.len() * 16);
     for (i, pose) in items.iter().enumerate() {
-        let values = crate::geometry::camera::json_matrix(pose, 4, 4)
+        let values = foundation::camera::json_matrix(pose, 4, 4)
             .map_err(|reason| Error::invalid(path, format!("{field}[{i}]"), reason))?;
         data.extend(values);
     }
@@ -742,7 +711,7 @@ fn read_frames_or_video(dir: &Path) -> Result<(f64, Vec<RgbImage>, PathBuf)> {
         .into_iter()
         .next()
         .ok_or_else(|| Error::invalid(dir, "frames", "no frames/ folder and no video file"))?;
-    let decoded = crate::io::video::decode_video(&video)?;
+    let decoded = foundation::video::decode_video(&video)?;
     Ok((decoded.fps, decoded.frames, video))
 }
 
@@ -782,7 +751,7 @@ fn tool_reconstruction(output: ToolOutput) -> (Option<ToolFrames>, Reconstructio
             let camera = PinholeCamera {
                 width: intrinsics_size.0,
                 height: intrinsics_size.1,
-                intrinsics: crate::geometry::camera::mat3_from_row_major(k),
+                intrinsics: foundation::camera::mat3_from_row_major(k),
                 world_from_camera: DMat4::IDENTITY,
             };
             let at_depth = if intrinsics_size == (width as u32, height as u32) {
@@ -790,7 +759,7 @@ fn tool_reconstruction(output: ToolOutput) -> (Option<ToolFrames>, Reconstructio
             } else {
                 camera.resized(width as u32, height as u32)
             };
-            crate::geometry::camera::mat3_to_row_major(&at_depth.intrinsics)
+            foundation::camera::mat3_to_row_major(&at_depth.intrinsics)
         })
         .collect();
     let reconstruction = Reconstruction {
@@ -927,7 +896,7 @@ fn assemble(fps: f64, frames: Vec<RgbImage>, frames_path: &Path, reconstruction:
                 .chunks_exact(9)
                 .enumerate()
                 .map(|(i, v)| checked_intrinsics(path, &format!("intrinsics[{i}]"), v))
-                .collect::<Result<_>>()?
+                .collect::<foundation::Result<_>>()?
         }
         Some((path, k)) => {
             return Err(Error::invalid(
@@ -954,7 +923,7 @@ fn assemble(fps: f64, frames: Vec<RgbImage>, frames_path: &Path, reconstruction:
                 .chunks_exact(16)
                 .enumerate()
                 .map(|(i, v)| checked_pose(path, &format!("world_from_camera[{i}]"), v))
-                .collect::<Result<_>>()?
+                .collect::<foundation::Result<_>>()?
         }
     };
     let cameras: Vec<PinholeCamera> = intrinsics_per_frame

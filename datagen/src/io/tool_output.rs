@@ -11,7 +11,7 @@ use glam::DMat4;
 use image::RgbImage;
 
 use crate::error::{Error, Result};
-use crate::geometry::camera::{checked_pose, mat4_to_row_major};
+use foundation::camera::{checked_pose, mat4_to_row_major};
 
 /// Frames read from the tool's own folder.
 #[derive(Debug, Clone)]
@@ -51,7 +51,7 @@ pub struct ToolOutput {
 /// A tool's output with its frames decoded from `video_path`, the video decoded while `read`
 /// reads the reconstruction (decoding is mostly serial).
 pub fn with_video(video_path: PathBuf, read: impl FnOnce() -> Result<ToolOutput> + Send) -> Result<ToolOutput> {
-    let (video, reconstruction) = rayon::join(|| crate::io::video::decode_video(&video_path), read);
+    let (video, reconstruction) = rayon::join(|| foundation::video::decode_video(&video_path), read);
     let video = video?;
     let mut output = reconstruction?;
     output.frames = Some(ToolFrames { fps: video.fps, frames: video.frames, path: video_path });

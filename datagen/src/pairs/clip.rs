@@ -5,8 +5,8 @@
 use serde::{Deserialize, Serialize};
 
 use crate::config_file::{Checked, Validate, check_count};
-use crate::geometry::camera::PinholeCamera;
-use crate::io::depth_exr::DepthMap;
+use foundation::camera::PinholeCamera;
+use foundation::depth::DepthMap;
 
 /// Paper value: the CogNVS paper trains on clips of 49 frames.
 pub const PAPER_CLIP_FRAMES: u32 = 49;

@@ -29,9 +29,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::config_file::{Checked, Validate, check_count, check_float, check_placeholders};
 use crate::error::Result;
-use crate::geometry::camera::PinholeCamera;
-use crate::io::depth_exr::DepthMap;
 use crate::io::sequence::Sequence;
+use foundation::camera::PinholeCamera;
+use foundation::depth::DepthMap;
 
 /// Parametric noise settings and the optional second depth source.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -15,7 +15,6 @@ use serde::{Deserialize, Serialize};
 
 use crate::config_file::{Checked, Validate, check_count};
 use crate::error::{Error, Result};
-use crate::geometry::camera::{PinholeCamera, mat3_to_row_major, mat4_to_row_major};
 use crate::geometry::covisibility::CovisibilityConfig;
 use crate::io::depth_exr::encode_depth_exr;
 use crate::io::sequence::Sequence;
@@ -24,6 +23,7 @@ use crate::pairs::depth_noise::{DepthNoiseConfig, NoiseKey, SourceFrame};
 use crate::pairs::static_background::{StackingConfig, StaticBackground};
 use crate::pairs::trajectory::{NovelTrajectory, Sampler, TrajectoryConfig};
 use crate::pairs::trajectory_bank::TrajectoryBank;
+use foundation::camera::{PinholeCamera, mat3_to_row_major, mat4_to_row_major};
 
 /// Paper value: the CogNVS paper pretrains with N = 2 trajectories per video.
 pub const PAPER_TRAJECTORIES: u32 = 2;
@@ -445,7 +445,7 @@ pub fn write_shard(
 /// the novel camera, holes black.
 pub fn render_novel(
     frame: &RgbImage,
-    depth: &crate::io::depth_exr::DepthMap,
+    depth: &foundation::depth::DepthMap,
     source: &PinholeCamera,
     novel: &PinholeCamera,
     config: &CovisibilityConfig,
@@ -511,7 +511,7 @@ pub fn render_sequence(
     let frames: Vec<RgbImage> = rendered.into_iter().map(|r| r.0).collect();
     if width % 2 == 0 && height % 2 == 0 {
         let fps = if sequence.fps > 0.0 { sequence.fps } else { DEFAULT_RENDER_FPS };
-        crate::io::video::encode_video(&out.join("render.mp4"), &frames, fps)?;
+        foundation::video::encode_video(&out.join("render.mp4"), &frames, fps)?;
     }
     Ok(summary)
 }

@@ -75,7 +75,7 @@ pub fn make_pairs(job: &PairsJob) -> Result<PairsReport> {
     let started = Instant::now();
     // The input's content hash (for the stats marker) is taken while the sequence is read.
     let (sequence, content_hash) =
-        rayon::join(|| read_sequence_as(&job.seq_dir, job.layout), || crate::corpus::build::hash_tree(&job.seq_dir));
+        rayon::join(|| read_sequence_as(&job.seq_dir, job.layout), || foundation::hashing::hash_tree(&job.seq_dir));
     let mut sequence = sequence?;
     let input = InputDigest { source_path: job.seq_dir.display().to_string(), content_hash: content_hash? };
     let noise = &job.config.depth_noise;

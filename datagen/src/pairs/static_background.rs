@@ -21,9 +21,9 @@ use image::{GrayImage, Luma, Rgb, RgbImage};
 use serde::{Deserialize, Serialize};
 
 use crate::config_file::{Checked, Validate, check_count, check_float};
-use crate::geometry::camera::PinholeCamera;
-use crate::io::depth_exr::DepthMap;
 use crate::io::sequence::Sequence;
+use foundation::camera::PinholeCamera;
+use foundation::depth::DepthMap;
 
 /// Stacking settings.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -137,7 +137,7 @@ impl StaticBackground {
             if z <= 0.0 {
                 continue;
             }
-            let pixel = crate::geometry::camera::pixel_of(&camera.intrinsics, in_camera);
+            let pixel = foundation::camera::pixel_of(&camera.intrinsics, in_camera);
             // Half the voxel's projected size, at least the pixel the point falls in.
             let reach = ((self.voxel * focal / z) * 0.5 - 0.5).ceil().max(0.0) as i64;
             let (cx, cy) = (pixel.x.round() as i64, pixel.y.round() as i64);

@@ -28,9 +28,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::config_file::{Checked, KeyError, Validate, check_count, check_float};
 use crate::error::{Error, Result};
-use crate::geometry::camera::{PinholeCamera, checked_pose};
-use crate::io::depth_exr::DepthMap;
 use crate::pairs::clip::pivot_distance;
+use foundation::camera::{PinholeCamera, checked_pose};
+use foundation::depth::DepthMap;
 
 /// Ranges of the spherical offsets. Every field is checked when a config is loaded and when
 /// [`sample_trajectory`] is called ([`Validate`]).
@@ -503,12 +503,11 @@ enum JsonPoses {
 }
 
 /// One pose of a JSON trajectory: a 4×4 matrix as nested rows or 16 row-major values
-/// ([`crate::geometry::camera::json_matrix`]), checked by [`checked_pose`].
+/// ([`foundation::camera::json_matrix`]), checked by [`checked_pose`].
 fn json_matrix(path: &Path, index: usize, value: &serde_json::Value) -> Result<DMat4> {
     let field = format!("world_from_camera[{index}]");
-    let values =
-        crate::geometry::camera::json_matrix(value, 4, 4).map_err(|reason| Error::invalid(path, &field, reason))?;
-    checked_pose(path, &field, &values)
+    let values = foundation::camera::json_matrix(value, 4, 4).map_err(|reason| Error::invalid(path, &field, reason))?;
+    Ok(checked_pose(path, &field, &values)?)
 }
 
 /// The three lines of a public `trajs/*.txt` file, in order.
@@ -583,7 +582,7 @@ pub fn read_trajectory_file(
                 .chunks_exact(16)
                 .enumerate()
                 .map(|(i, v)| checked_pose(path, &format!("world_from_camera[{i}]"), v))
-                .collect::<Result<_>>()?
+                .collect::<foundation::Result<_>>()?
         }
         "json" => {
             let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
@@ -621,10 +620,10 @@ pub fn read_trajectory_file(
                     checked_pose(
                         path,
                         &format!("world_from_camera[{i}]"),
-                        &crate::geometry::camera::mat4_to_row_major(&pose),
+                        &foundation::camera::mat4_to_row_major(&pose),
                     )
                 })
-                .collect::<Result<_>>()?
+                .collect::<foundation::Result<_>>()?
         }
         other => return Err(Error::invalid(path, "extension", format!("`.{other}`: expected .npy, .json or .txt"))),
     };

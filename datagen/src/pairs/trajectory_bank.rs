@@ -22,9 +22,9 @@ use glam::{DMat3, DMat4, DQuat, DVec3};
 use schemas::BankEntry;
 
 use crate::error::{Error, Result};
-use crate::geometry::camera::{mat4_from_row_major, mat4_to_row_major};
 use crate::io::sequence::Sequence;
 use crate::pairs::clip::{ClipConfig, pivot_distance};
+use foundation::camera::{mat4_from_row_major, mat4_to_row_major};
 
 /// A window whose camera turns less than this in total (degrees) and moves less than
 /// [`MIN_PATH_LENGTH`] is static: below the frame-to-frame rotation noise of monocular SLAM

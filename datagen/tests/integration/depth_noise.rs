@@ -123,10 +123,7 @@ fn noise_changes_masks_and_conditioning_only_near_dynamic_objects() {
         sequence
             .depth
             .iter()
-            .map(|d| datagen::io::depth_exr::DepthMap {
-                values: d.values.iter().map(|v| v * 1.05).collect(),
-                ..d.clone()
-            })
+            .map(|d| foundation::depth::DepthMap { values: d.values.iter().map(|v| v * 1.05).collect(), ..d.clone() })
             .collect(),
     );
     let noisy = clips(&measured, DepthNoiseConfig { enabled: true, ..Default::default() });

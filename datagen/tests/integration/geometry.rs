@@ -1,12 +1,12 @@
 //! Co-visibility geometry: every accelerator's answers equal brute force, accuracy against the Blender fixtures'
 //! exact ground truth and against the analytic synth scenes, thread-count determinism.
 
-use datagen::geometry::camera::PinholeCamera;
 use datagen::geometry::covisibility::{CovisibilityConfig, covisibility_mask};
 use datagen::geometry::depth_mesh::{Accelerator, DepthMesh, MeshConfig};
 use datagen::geometry::mesh_view;
 use datagen::io::sequence::read_sequence;
 use datagen::synth::{SynthConfig, SynthScene, ground_truth_covisibility};
+use foundation::camera::PinholeCamera;
 
 /// Pooled confusion counts: (true keep, false keep, false drop, all pixels).
 #[derive(Debug, Default, Clone, Copy)]
@@ -50,9 +50,7 @@ fn fixture_counts(scene: &str, config: &CovisibilityConfig) -> Counts {
         for (frame, camera) in sequence.cameras.iter().enumerate() {
             let mesh = DepthMesh::new(&sequence.depth[frame], camera, &config.mesh);
             let novel = PinholeCamera {
-                world_from_camera: datagen::geometry::camera::mat4_from_row_major(
-                    &poses.data[frame * 16..frame * 16 + 16],
-                ),
+                world_from_camera: foundation::camera::mat4_from_row_major(&poses.data[frame * 16..frame * 16 + 16]),
                 ..*camera
             };
             let mask = covisibility_mask(&mesh, camera, &novel, config);
@@ -123,7 +121,7 @@ fn source_mesh(
         world_from_camera: scene.world_from_camera(frame),
     };
     let values = rendered[frame as usize].depth.clone();
-    let depth = datagen::io::depth_exr::DepthMap { width: width as usize, height: height as usize, values };
+    let depth = foundation::depth::DepthMap { width: width as usize, height: height as usize, values };
     let mesh = DepthMesh::new(&depth, &source, &config.mesh);
     (source, mesh)
 }
@@ -178,8 +176,8 @@ fn every_accelerator_equals_brute_force_pixel_for_pixel() {
                     blocked += usize::from(brute);
                     // The batch mask: in front of the camera, inside its image, and not blocked.
                     let in_novel = novel.camera_from_world().transform_point3(point);
-                    let seen = in_novel.z > 0.0
-                        && novel.contains(datagen::geometry::camera::pixel_of(&novel.intrinsics, in_novel));
+                    let seen =
+                        in_novel.z > 0.0 && novel.contains(foundation::camera::pixel_of(&novel.intrinsics, in_novel));
                     assert_eq!(kept, seen && !brute, "{accelerator:?} frame {frame} mask pixel {index}");
                 }
                 for index in 0..(source.width * source.height) as usize {
@@ -219,7 +217,7 @@ fn assert_mask_is_brute_force(
         };
         let brute = mesh.segment_blocked_brute_force(novel.center(), point, Some(index as u32), config.epsilon);
         let in_novel = novel.camera_from_world().transform_point3(point);
-        let seen = in_novel.z > 0.0 && novel.contains(datagen::geometry::camera::pixel_of(&novel.intrinsics, in_novel));
+        let seen = in_novel.z > 0.0 && novel.contains(foundation::camera::pixel_of(&novel.intrinsics, in_novel));
         assert_eq!(kept, seen && !brute, "{context}: pixel {index}");
         blocked += usize::from(seen && brute);
     }
@@ -283,7 +281,7 @@ fn skipped_quad_blocks_hide_nothing_brute_force_would_find() {
             if square { 2.0 + 0.002 * u } else { 6.0 + 0.03 * u + 0.02 * v }
         })
         .collect();
-    let depth = datagen::io::depth_exr::DepthMap { width: width as usize, height: height as usize, values };
+    let depth = foundation::depth::DepthMap { width: width as usize, height: height as usize, values };
     let config = CovisibilityConfig::default();
     let mesh = DepthMesh::new(&depth, &source, &config.mesh);
     assert!((0..(width * height) as usize).all(|index| mesh.point(index).is_some()), "every depth is valid");
@@ -327,7 +325,7 @@ fn masks_of_images_cut_into_partial_bands_equal_brute_force() {
                 }
             })
             .collect();
-        let depth = datagen::io::depth_exr::DepthMap { width: width as usize, height: height as usize, values };
+        let depth = foundation::depth::DepthMap { width: width as usize, height: height as usize, values };
         let mesh = DepthMesh::new(&depth, &source, &config.mesh);
         for (shift, turn) in [(0.5, 3.0), (-0.7, -20.0), (1.5, 35.0)] {
             let rotation = glam::DMat4::from_rotation_y(f64::to_radians(turn)) * glam::DMat4::from_rotation_x(0.1);
@@ -356,7 +354,7 @@ fn image_grids_and_obvhs_bvh_agree_on_a_fixture() {
     for k in 0..2 {
         let poses = datagen::io::npy::read_npy_f64(&dir.join(format!("gt/novel_{k}_c2ws.npy"))).unwrap();
         let novel = PinholeCamera {
-            world_from_camera: datagen::geometry::camera::mat4_from_row_major(&poses.data[frame * 16..frame * 16 + 16]),
+            world_from_camera: foundation::camera::mat4_from_row_major(&poses.data[frame * 16..frame * 16 + 16]),
             ..*camera
         };
         let mask = covisibility_mask(&mesh_grids, camera, &novel, &grids);
@@ -411,7 +409,7 @@ fn masks_are_identical_for_any_thread_count() {
             let camera = &sequence.cameras[7];
             let mesh = DepthMesh::new(&sequence.depth[7], camera, &config.mesh);
             let novel = PinholeCamera {
-                world_from_camera: datagen::geometry::camera::mat4_from_row_major(&poses.data[7 * 16..8 * 16]),
+                world_from_camera: foundation::camera::mat4_from_row_major(&poses.data[7 * 16..8 * 16]),
                 ..*camera
             };
             covisibility_mask(&mesh, camera, &novel, &config)
@@ -497,7 +495,7 @@ fn random_scenes_and_cameras_equal_brute_force() {
                 depth * (1.0 + jitter * rng.random_range(-1.0..1.0f32))
             })
             .collect();
-        let depth = datagen::io::depth_exr::DepthMap { width: width as usize, height: height as usize, values };
+        let depth = foundation::depth::DepthMap { width: width as usize, height: height as usize, values };
         let mesh_config = MeshConfig {
             discontinuity_ratio: [1.02, 1.05, 1.2, 2.0][rng.random_range(0..4)],
             occluder_thickness: [0.0, 0.05, 0.5][rng.random_range(0..3)],

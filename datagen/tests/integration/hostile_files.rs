@@ -3,8 +3,9 @@
 use std::io::Write;
 use std::path::Path;
 
-use datagen::io::depth_exr::{DepthMap, decode_depth_exr, encode_depth_exr};
+use datagen::io::depth_exr::{decode_depth_exr, encode_depth_exr};
 use datagen::io::sequence::{read_exr_folder, read_sequence};
+use foundation::depth::DepthMap;
 
 /// Frames, height and width of the small MegaSAM archive the npz cases start from.
 const FRAMES: usize = 2;

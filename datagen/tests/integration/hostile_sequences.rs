@@ -5,11 +5,12 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use datagen::geometry::camera::{mat3_to_row_major, mat4_to_row_major};
-use datagen::io::sequence::{Sequence, read_frames, read_sequence};
+use datagen::io::sequence::{Sequence, read_sequence};
 use datagen::pairs::clip::pivot_distance;
 use datagen::pairs::trajectory::{orbit, read_trajectory_file};
 use datagen::synth::{SynthConfig, write_sequence};
+use foundation::camera::{mat3_to_row_major, mat4_to_row_major};
+use foundation::frames::read_frames;
 use serde_json::{Value, json};
 
 /// Frames of the synthetic sequences: enough for interpolation, small enough to be fast.

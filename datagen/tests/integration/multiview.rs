@@ -5,11 +5,11 @@
 
 use std::path::{Path, PathBuf};
 
-use datagen::geometry::camera::PinholeCamera;
 use datagen::geometry::depth_mesh::{DepthMesh, MeshConfig};
 use datagen::geometry::render::render_novel_view;
 use datagen::io::multiview::read_multiview;
 use datagen::synth::{CameraRig, SynthConfig, SynthScene, write_multiview};
+use foundation::camera::PinholeCamera;
 
 const RIG: CameraRig = CameraRig { cameras: 3, spacing_deg: 8.0 };
 

@@ -1,11 +1,11 @@
 //! The render batch of the image grids (every novel pixel's first surface hit) equals a loop over
 //! every triangle, as the co-visibility batch does in `geometry`.
 
-use datagen::geometry::camera::PinholeCamera;
 use datagen::geometry::depth_mesh::{DepthMesh, MeshConfig};
 use datagen::geometry::mesh_view;
-use datagen::io::depth_exr::DepthMap;
 use datagen::synth::{SynthConfig, SynthScene, look_at};
+use foundation::camera::PinholeCamera;
+use foundation::depth::DepthMap;
 use glam::{DMat3, DMat4, DVec3};
 
 /// Asserts that every novel pixel's batch hit equals the brute-force one; gives how many pixels

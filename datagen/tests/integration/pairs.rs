@@ -159,7 +159,7 @@ fn render_writes_video_frames_and_holes() {
     let out = dir.path().join("render");
     let output = datagen(&["render", s(&seq), "--trajectory", s(&file), "--out", s(&out)]);
     assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
-    assert_eq!(datagen::io::video::decode_video(&out.join("render.mp4")).unwrap().frames.len(), 3);
+    assert_eq!(foundation::video::decode_video(&out.join("render.mp4")).unwrap().frames.len(), 3);
     let holes = image::open(out.join("holes/00001.png")).unwrap().to_luma8();
     let hole_fraction = holes.pixels().filter(|p| p.0[0] == 255).count() as f64 / (64.0 * 48.0);
     assert!(hole_fraction > 0.0 && hole_fraction < 0.5, "a sideways step opens some holes: {hole_fraction}");

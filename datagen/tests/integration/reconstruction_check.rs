@@ -186,9 +186,9 @@ fn blender_fixtures_are_ok_and_suspect_with_perturbed_poses() {
             .enumerate()
             .flat_map(|(i, pose)| {
                 let sign = if i % 2 == 0 { 1.0 } else { -1.0 };
-                let pose = datagen::geometry::camera::mat4_from_row_major(pose)
+                let pose = foundation::camera::mat4_from_row_major(pose)
                     * DMat4::from_quat(DQuat::from_rotation_y(sign * 2f64.to_radians()));
-                datagen::geometry::camera::mat4_to_row_major(&pose)
+                foundation::camera::mat4_to_row_major(&pose)
             })
             .collect();
         write_npy(&copy.join("cam_info/megasam_c2ws.npy"), &poses.shape, &perturbed).unwrap();

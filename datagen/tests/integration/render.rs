@@ -2,12 +2,12 @@
 //! to itself (holes exactly where the depth is invalid), and near it the render fills the pixels
 //! that an independent image-space rasteriser fills, with the same colours.
 
-use datagen::geometry::camera::PinholeCamera;
 use datagen::geometry::depth_mesh::{DepthMesh, MeshConfig};
 use datagen::geometry::render::{bilinear, render_novel_view};
-use datagen::io::depth_exr::DepthMap;
 use datagen::io::sequence::read_sequence;
 use datagen::synth::{SynthConfig, SynthScene};
+use foundation::camera::PinholeCamera;
+use foundation::depth::DepthMap;
 use glam::{DMat3, DMat4, DVec2, DVec3};
 use image::RgbImage;
 

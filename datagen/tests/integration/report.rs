@@ -44,14 +44,14 @@ fn cog_nvs_export_decodes_to_the_stored_frames_under_the_public_names() {
             / a.as_raw().len() as f64
     };
     const MAX_MEAN_ERROR: f64 = 6.0;
-    let gt = datagen::io::video::decode_video(&folders[0].join("gt_rgb.mp4")).unwrap();
+    let gt = foundation::video::decode_video(&folders[0].join("gt_rgb.mp4")).unwrap();
     assert_eq!(gt.frames.len(), targets.len());
     assert!((gt.fps - record.fps).abs() < 1e-3, "{} fps, clip {}", gt.fps, record.fps);
     for (i, (a, b)) in gt.frames.iter().zip(&targets).enumerate() {
         assert!(mean_error(a, b) < MAX_MEAN_ERROR, "gt frame {i}: {}", mean_error(a, b));
     }
     for (k, trajectory) in record.trajectories.iter().enumerate() {
-        let render = datagen::io::video::decode_video(&folders[0].join(format!("train_render{}.mp4", k + 1))).unwrap();
+        let render = foundation::video::decode_video(&folders[0].join(format!("train_render{}.mp4", k + 1))).unwrap();
         assert_eq!(render.frames.len(), targets.len());
         for (i, frame) in render.frames.iter().enumerate() {
             let mask = image::load_from_memory(&trajectory.covisible_mask[i]).unwrap().to_luma8();
@@ -62,8 +62,8 @@ fn cog_nvs_export_decodes_to_the_stored_frames_under_the_public_names() {
         }
     }
     // The two conditioning videos differ: they are two trajectories' masks, in order.
-    let first = datagen::io::video::decode_video(&folders[0].join("train_render1.mp4")).unwrap();
-    let second = datagen::io::video::decode_video(&folders[0].join("train_render2.mp4")).unwrap();
+    let first = foundation::video::decode_video(&folders[0].join("train_render1.mp4")).unwrap();
+    let second = foundation::video::decode_video(&folders[0].join("train_render2.mp4")).unwrap();
     assert_ne!(first.frames, second.frames);
 }
 
@@ -74,7 +74,7 @@ fn exported_contact_sheets_have_a_header_and_frame_labels() {
     let folders = datagen::inspect::shards::export(&path, &dir.path().join("export"), None).unwrap();
     let sheet = image::open(folders[0].join("contact_sheet.png")).unwrap().to_rgb8();
     let (width, height) = (records[0].width, records[0].height);
-    let plain = datagen::inspect::contact_sheet::contact_sheet(&vec![vec![image::RgbImage::new(width, height); 3]; 4]);
+    let plain = foundation::contact_sheet::contact_sheet(&vec![vec![image::RgbImage::new(width, height); 3]; 4]);
     assert!(sheet.width() > plain.width() && sheet.height() > plain.height(), "room for header and labels");
     // Header text (light pixels) in the band above the first row.
     let header = image::imageops::crop_imm(&sheet, 0, 0, sheet.width(), sheet.height() - plain.height()).to_image();

@@ -48,7 +48,7 @@ fn depth_at_half_resolution_is_resampled_and_k_scaled() {
         .collect();
     datagen::io::npy::write_npy(&seq.join("cam_info/megasam_depth.npy"), &[2, 24, 32], &half).unwrap();
     let k = full.cameras[0].resized(32, 24).intrinsics;
-    let k_rows: Vec<f32> = datagen::geometry::camera::mat3_to_row_major(&k).iter().map(|&v| v as f32).collect();
+    let k_rows: Vec<f32> = foundation::camera::mat3_to_row_major(&k).iter().map(|&v| v as f32).collect();
     datagen::io::npy::write_npy(&seq.join("cam_info/megasam_intrinsics.npy"), &[3, 3], &k_rows).unwrap();
     let read = read_sequence(&seq).unwrap();
     assert_eq!((read.depth[0].width, read.depth[0].height), (64, 48));
@@ -97,10 +97,10 @@ np.savez(out + "/scene_sgd_cvd_hr.npz", images=images, depths=depth,
         std::fs::copy(seq.join(format!("frames/{i:05}.png")), generic.join(format!("frames/{i:05}.png"))).unwrap();
         let exr = datagen::io::depth_exr::encode_depth_exr(&reference.depth[i]).unwrap();
         std::fs::write(generic.join(format!("depth/{i:05}.exr")), exr).unwrap();
-        let rows = datagen::geometry::camera::mat4_to_row_major(&reference.cameras[i].world_from_camera);
+        let rows = foundation::camera::mat4_to_row_major(&reference.cameras[i].world_from_camera);
         poses.push(rows.chunks(4).map(|r| r.to_vec()).collect::<Vec<_>>());
     }
-    let k = datagen::geometry::camera::mat3_to_row_major(&reference.cameras[0].intrinsics);
+    let k = foundation::camera::mat3_to_row_major(&reference.cameras[0].intrinsics);
     let json = serde_json::json!({"intrinsics": k.to_vec(), "world_from_camera": poses});
     std::fs::write(generic.join("cameras.json"), json.to_string()).unwrap();
     let read = read_sequence(&generic).unwrap();

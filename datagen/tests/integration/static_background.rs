@@ -2,12 +2,12 @@
 //! camera, moving objects): filling the per-frame renders' holes from the stacked background
 //! leaves fewer holes, and the filled pixels match the exact novel view.
 
-use datagen::geometry::camera::PinholeCamera;
-use datagen::io::depth_exr::DepthMap;
 use datagen::io::sequence::Sequence;
 use datagen::pairs::generator::{PairsConfig, render_frame, render_sequence};
 use datagen::pairs::static_background::{StackingConfig, StaticBackground};
 use datagen::synth::{SynthConfig, SynthScene};
+use foundation::camera::PinholeCamera;
+use foundation::depth::DepthMap;
 use image::RgbImage;
 
 /// The novel camera of frame f is the source camera of frame f ± this many frames: a view whose
@@ -129,7 +129,7 @@ fn stacking_fills_holes_with_the_true_background() {
 
     // The command path: same trajectory through `render_sequence`.
     let trajectory = dir.path().join("novel.npy");
-    let values: Vec<f64> = poses.iter().flat_map(datagen::geometry::camera::mat4_to_row_major).collect();
+    let values: Vec<f64> = poses.iter().flat_map(foundation::camera::mat4_to_row_major).collect();
     datagen::io::npy::write_npy(&trajectory, &[poses.len(), 4, 4], &values).unwrap();
     let plain = render_sequence(&sequence, &trajectory, &dir.path().join("plain"), &pairs, false).unwrap();
     let stacked = render_sequence(&sequence, &trajectory, &dir.path().join("stacked"), &pairs, true).unwrap();

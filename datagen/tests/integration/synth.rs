@@ -46,7 +46,7 @@ fn synth_writes_a_complete_cog_nvs_sequence() {
     assert!(sheet.width() > 96 * 3);
 
     // The H.264 video decodes back to the lossless frames, closely.
-    let video = datagen::io::video::decode_video(&out.join("gt_rgb.mp4")).unwrap();
+    let video = foundation::video::decode_video(&out.join("gt_rgb.mp4")).unwrap();
     assert_eq!(video.frames.len(), 6);
     assert!((video.fps - 24.0).abs() < 1e-6, "fps {}", video.fps);
     for (i, decoded) in video.frames.iter().enumerate() {

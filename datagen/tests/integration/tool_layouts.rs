@@ -126,11 +126,11 @@ pub fn write_npz(path: &Path, members: Vec<(&str, Vec<u64>, Values<'_>)>) {
 }
 
 fn row_major4(m: &DMat4) -> Vec<f64> {
-    datagen::geometry::camera::mat4_to_row_major(m).to_vec()
+    foundation::camera::mat4_to_row_major(m).to_vec()
 }
 
 fn row_major3(m: &DMat3) -> Vec<f64> {
-    datagen::geometry::camera::mat3_to_row_major(m).to_vec()
+    foundation::camera::mat3_to_row_major(m).to_vec()
 }
 
 /// VGGT's `predictions.npz` (float32, as the model computes): camera_from_world 3×4 extrinsics,
@@ -165,7 +165,7 @@ pub fn write_vggt(truth: &Truth, dir: &Path) -> PathBuf {
 pub fn write_gen3c(truth: &Truth, dir: &Path) -> PathBuf {
     std::fs::create_dir_all(dir).unwrap();
     let (n, h, w) = (truth.n() as u64, truth.height as u64, truth.width as u64);
-    datagen::io::video::encode_video(&dir.join("rgb.mp4"), &truth.frames, 24.0).unwrap();
+    foundation::video::encode_video(&dir.join("rgb.mp4"), &truth.frames, 24.0).unwrap();
     let depth = truth.depth.concat();
     write_npz(
         &dir.join("depth.npz"),
@@ -206,7 +206,7 @@ pub fn write_vipe(truth: &Truth, root: &Path, name: &str) -> PathBuf {
         std::fs::create_dir_all(root.join(sub)).unwrap();
     }
     let n = truth.n() as u64;
-    datagen::io::video::encode_video(&root.join(format!("rgb/{name}.mp4")), &truth.frames, 24.0).unwrap();
+    foundation::video::encode_video(&root.join(format!("rgb/{name}.mp4")), &truth.frames, 24.0).unwrap();
     let inds: Vec<i64> = (0..truth.n() as i64).collect();
     let poses: Vec<f64> = truth.world_from_camera.iter().flat_map(row_major4).collect();
     write_npz(

@@ -54,20 +54,18 @@ fn collect_stores_motion_relative_to_the_first_camera_in_pivot_units_and_skips_s
     assert_eq!((entry.window_start, entry.num_frames()), (0, 4));
     let pivot = datagen::pairs::clip::pivot_distance(&sequence.depth[0], &sequence.cameras[0], 1.0);
     assert!((entry.pivot_distance - pivot).abs() < 1e-12);
-    assert!(
-        datagen::geometry::camera::mat4_from_row_major(&entry.relative_pose[0]).abs_diff_eq(DMat4::IDENTITY, 1e-12)
-    );
+    assert!(foundation::camera::mat4_from_row_major(&entry.relative_pose[0]).abs_diff_eq(DMat4::IDENTITY, 1e-12));
     let first = sequence.cameras[0].world_from_camera;
     for (t, pose) in entry.relative_pose.iter().enumerate() {
         let expected = first.inverse() * sequence.cameras[t].world_from_camera;
-        let pose = datagen::geometry::camera::mat4_from_row_major(pose);
+        let pose = foundation::camera::mat4_from_row_major(pose);
         assert!((pose.w_axis.truncate() * pivot).abs_diff_eq(expected.w_axis.truncate(), 1e-9), "frame {t}");
         assert!(pose.x_axis.abs_diff_eq(expected.x_axis, 1e-9));
     }
     let steps: f64 =
         (1..4).map(|t| (sequence.cameras[t].center() - sequence.cameras[t - 1].center()).length() / pivot).sum();
     assert!((entry.path_length - steps).abs() < 1e-9 && entry.path_length > 0.0);
-    let net = datagen::geometry::camera::mat4_from_row_major(&entry.relative_pose[3]).w_axis.truncate();
+    let net = foundation::camera::mat4_from_row_major(&entry.relative_pose[3]).w_axis.truncate();
     assert!(DVec3::from_array(entry.net_translation).abs_diff_eq(net, 1e-12));
     assert!(!entry.dominant_direction.is_empty());
 }
@@ -117,7 +115,7 @@ fn pan_bank(dir: &Path, frames: usize) -> PathBuf {
     let relative_pose = (0..frames)
         .map(|t| {
             let angle = 20f64.to_radians() * t as f64 / (frames - 1) as f64;
-            datagen::geometry::camera::mat4_to_row_major(&DMat4::from_rotation_y(angle))
+            foundation::camera::mat4_to_row_major(&DMat4::from_rotation_y(angle))
         })
         .collect();
     let entry = BankEntry {

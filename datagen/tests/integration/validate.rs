@@ -3,7 +3,8 @@
 use std::path::Path;
 
 use datagen::corpus::validate::validate;
-use datagen::io::depth_exr::{DepthMap, encode_depth_exr};
+use datagen::io::depth_exr::encode_depth_exr;
+use foundation::depth::DepthMap;
 use schemas::{ClipRecord, ShardWriter, ShardWriterOptions, TrajectoryKind, TrajectoryRecord};
 
 fn png<P: image::PixelWithColorType>(image: image::ImageBuffer<P, Vec<P::Subpixel>>) -> Vec<u8>

@@ -236,7 +236,7 @@ impl NamedFrames {
 /// [`read_frames`] keeping each frame's file.
 pub fn read_named_frames(path: &Path) -> Result<NamedFrames> {
     if path.is_file() {
-        let video = datagen::io::video::decode_video(path)?;
+        let video = foundation::video::decode_video(path)?;
         let sources = vec![path.to_path_buf(); video.frames.len()];
         return Ok(NamedFrames { frames: video.frames, sources, from_video: true, fps: video.fps });
     }
@@ -248,7 +248,7 @@ pub fn read_named_frames(path: &Path) -> Result<NamedFrames> {
             reason: "neither a video file nor a folder of PNG/JPEG frames".to_string(),
         });
     }
-    let frames = datagen::io::sequence::read_frames(&images)?;
+    let frames = foundation::frames::read_frames(&images)?;
     Ok(NamedFrames { frames, sources: images, from_video: false, fps: 0.0 })
 }
 

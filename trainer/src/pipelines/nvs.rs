@@ -532,7 +532,7 @@ fn contact_sheet(source: &[RgbImage], render: &[RgbImage], result: &[RgbImage]) 
         .map(|k| k * (count - 1) / (ROWS.min(count) - 1).max(1))
         .map(|i| vec![fit(&source[i]), fit(&render[i]), result[i].clone()])
         .collect();
-    datagen::inspect::contact_sheet::contact_sheet(&rows)
+    foundation::contact_sheet::contact_sheet(&rows)
 }
 
 /// Trajectory names (file stems). Each names files and folders in OUT (`<name>/`, `<name>.mp4`,
@@ -629,7 +629,7 @@ fn settings(r: &NvsRequest) -> Settings {
 
 fn input_digests(request: &NvsRequest) -> Result<std::collections::BTreeMap<String, String>> {
     let mut digests = std::collections::BTreeMap::new();
-    digests.insert("sequence".to_string(), datagen::corpus::build::hash_tree(&request.sequence)?);
+    digests.insert("sequence".to_string(), foundation::hashing::hash_tree(&request.sequence)?);
     for path in request.trajectories.iter().chain(&request.model.text_embedding) {
         digests.insert(path.display().to_string(), digest(path)?);
     }

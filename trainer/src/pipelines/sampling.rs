@@ -548,9 +548,9 @@ pub fn prepare_condition(path: &Path, pipeline: &CogNvsPipeline, framing: &Frami
     let used = video_processor::take_frames(named.frames.len(), framing.frames, temporal).ok_or_else(|| {
         Error::InvalidInput { path: path.to_path_buf(), what: "frames".to_string(), reason: "no frame".to_string() }
     })?;
-    if used > crate::training::data::MAX_FRAMES
-        || source_size.0 > crate::training::data::MAX_SIDE
-        || source_size.1 > crate::training::data::MAX_SIDE
+    if used > crate::pipelines::video_processor::MAX_FRAMES
+        || source_size.0 > crate::pipelines::video_processor::MAX_SIDE
+        || source_size.1 > crate::pipelines::video_processor::MAX_SIDE
     {
         return Err(Error::InvalidInput {
             path: path.to_path_buf(),
@@ -559,8 +559,8 @@ pub fn prepare_condition(path: &Path, pipeline: &CogNvsPipeline, framing: &Frami
                 "{used} frames of {}x{}: at most {} frames of {} pixels a side",
                 source_size.0,
                 source_size.1,
-                crate::training::data::MAX_FRAMES,
-                crate::training::data::MAX_SIDE
+                crate::pipelines::video_processor::MAX_FRAMES,
+                crate::pipelines::video_processor::MAX_SIDE
             ),
         });
     }
@@ -676,7 +676,7 @@ pub fn write_frames(out: &Path, images: &[RgbImage], fps: f64) -> Result<()> {
         std::fs::create_dir_all(folder).map_err(|source| Error::Io { path: folder.to_path_buf(), error: source })?;
     }
     if is_video {
-        datagen::io::video::encode_video(out, images, fps)?;
+        foundation::video::encode_video(out, images, fps)?;
         return Ok(());
     }
     for (i, image) in images.iter().enumerate() {

@@ -9,9 +9,16 @@
 //! written from OpenCV's definitions, so they agree with it to within one grey level.
 
 use image::RgbImage;
+use image::imageops::FilterType;
 use tch::{Device, Kind, Tensor};
 
 use crate::error::{Error, Result};
+
+/// Most frames per sample: 1 + 4·256, far beyond CogVideoX's 49 (1.5: 81); more is a typo that
+/// would allocate gigabytes per sample.
+pub const MAX_FRAMES: usize = 1025;
+/// Largest training side in pixels (an 8K frame; the paper trains at 480 × 720).
+pub const MAX_SIDE: u32 = 8192;
 
 /// How a conditioning frame of another size is brought to the model's size.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
@@ -43,9 +50,7 @@ pub fn take_frames(count: usize, wanted: usize, temporal: usize) -> Option<usize
 pub fn fit(frame: &RgbImage, width: u32, height: u32, mode: ResizeMode) -> RgbImage {
     match mode {
         ResizeMode::Area => resize_area(frame, width, height),
-        ResizeMode::Crop => {
-            crate::training::data::cover_crop(frame, width, height, image::imageops::FilterType::Triangle)
-        }
+        ResizeMode::Crop => cover_crop(frame, width, height, image::imageops::FilterType::Triangle),
     }
 }
 
@@ -294,6 +299,25 @@ pub fn video_to_frames(video: &Tensor) -> Result<Vec<RgbImage>> {
         .chunks((width * height * 3) as usize)
         .map(|chunk| RgbImage::from_raw(width as u32, height as u32, chunk.to_vec()).expect("frame-sized chunk"))
         .collect())
+}
+
+/// Scales `image` to cover `width × height` (keeping its aspect) and crops the centre: how the
+/// loader brings every clip to the training resolution (sampling does the same to conditionings).
+pub fn cover_crop<P: image::Pixel<Subpixel = u8> + 'static>(
+    image: &image::ImageBuffer<P, Vec<u8>>,
+    width: u32,
+    height: u32,
+    filter: FilterType,
+) -> image::ImageBuffer<P, Vec<u8>> {
+    let (w, h) = image.dimensions();
+    if (w, h) == (width, height) {
+        return image.clone();
+    }
+    let scale = (f64::from(width) / f64::from(w)).max(f64::from(height) / f64::from(h));
+    let (sw, sh) =
+        (((f64::from(w) * scale).round() as u32).max(width), ((f64::from(h) * scale).round() as u32).max(height));
+    let scaled = image::imageops::resize(image, sw, sh, filter);
+    image::imageops::crop_imm(&scaled, (sw - width) / 2, (sh - height) / 2, width, height).to_image()
 }
 
 #[cfg(test)]

@@ -32,6 +32,8 @@ use serde::{Deserialize, Serialize};
 use tch::{Kind, Tensor};
 
 use crate::error::{Error, Result};
+use crate::pipelines::video_processor::cover_crop;
+use crate::pipelines::video_processor::{MAX_FRAMES, MAX_SIDE};
 
 /// What the loader produces.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -65,11 +67,6 @@ pub struct DataConfig {
     pub prefetch_batches: usize,
 }
 
-/// Most frames per sample: 1 + 4·256, far beyond CogVideoX's 49 (1.5: 81); more is a typo that
-/// would allocate gigabytes per sample.
-pub const MAX_FRAMES: usize = 1025;
-/// Largest training side in pixels (an 8K frame; the paper trains at 480 × 720).
-pub const MAX_SIDE: u32 = 8192;
 /// Most samples per batch and rank (the paper: 8).
 pub const MAX_BATCH_SIZE: usize = 1024;
 /// Most batches decoded ahead.
@@ -353,25 +350,6 @@ struct Sample {
 fn decode_png(bytes: &[u8], clip: &str, field: String) -> Result<image::DynamicImage> {
     image::load_from_memory_with_format(bytes, image::ImageFormat::Png)
         .map_err(|e| Error::InvalidArgument { name: format!("{clip}: {field}"), reason: format!("not a PNG: {e}") })
-}
-
-/// Scales `image` to cover `width × height` (keeping its aspect) and crops the centre: how the
-/// loader brings every clip to the training resolution (sampling does the same to conditionings).
-pub fn cover_crop<P: image::Pixel<Subpixel = u8> + 'static>(
-    image: &image::ImageBuffer<P, Vec<u8>>,
-    width: u32,
-    height: u32,
-    filter: FilterType,
-) -> image::ImageBuffer<P, Vec<u8>> {
-    let (w, h) = image.dimensions();
-    if (w, h) == (width, height) {
-        return image.clone();
-    }
-    let scale = (f64::from(width) / f64::from(w)).max(f64::from(height) / f64::from(h));
-    let (sw, sh) =
-        (((f64::from(w) * scale).round() as u32).max(width), ((f64::from(h) * scale).round() as u32).max(height));
-    let scaled = image::imageops::resize(image, sw, sh, filter);
-    image::imageops::crop_imm(&scaled, (sw - width) / 2, (sh - height) / 2, width, height).to_image()
 }
 
 fn sample(record: &ClipRecord, c: &DataConfig, choice: &mut ChaCha8Rng) -> Result<Sample> {

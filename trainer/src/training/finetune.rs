@@ -121,7 +121,7 @@ pub fn finetune_on(
         )?;
         let digest = schemas::InputDigest {
             source_path: sequence_dir.display().to_string(),
-            content_hash: datagen::corpus::build::hash_tree(sequence_dir)?,
+            content_hash: foundation::hashing::hash_tree(sequence_dir)?,
         };
         datagen::pairs::generator::write_shard(&pairs_dir, &sequence.source_id, &records, digest)?;
     }

@@ -263,13 +263,13 @@ impl Sampled {
     fn write(&self, run: &Path, step: u64, batch: &Batch) -> Result<RgbImage> {
         let dir = run.join("samples").join(format!("step-{step:08}"));
         std::fs::create_dir_all(&dir).map_err(|source| Error::Io { path: dir.clone(), error: source })?;
-        datagen::io::video::encode_video(&dir.join("sample.mp4"), &self.sample, VALIDATION_FPS)?;
+        foundation::video::encode_video(&dir.join("sample.mp4"), &self.sample, VALIDATION_FPS)?;
         let last = self.sample.len() - 1;
         let rows: Vec<Vec<RgbImage>> = (0..SHEET_ROWS)
             .map(|k| k * last / (SHEET_ROWS - 1))
             .map(|i| vec![self.target[i].clone(), self.condition[i].clone(), self.sample[i].clone()])
             .collect();
-        let sheet = datagen::inspect::contact_sheet::contact_sheet(&rows);
+        let sheet = foundation::contact_sheet::contact_sheet(&rows);
         let sheet_path = dir.join("contact_sheet.png");
         sheet.save(&sheet_path).map_err(|e| Error::InvalidInput {
             path: sheet_path.clone(),

@@ -252,7 +252,7 @@ fn sample_resizes_an_off_size_conditioning_to_the_model_and_back_and_says_so() {
     let text = stderr(&output);
     assert!(output.status.success(), "{text}");
     assert!(text.contains("resized") && text.contains("96x64") && text.contains("80x64"), "{text}");
-    let video = datagen::io::video::decode_video(&out).unwrap();
+    let video = foundation::video::decode_video(&out).unwrap();
     assert_eq!((video.frames.len(), video.frames[0].dimensions()), (9, (96, 64)));
     // The training loader's cover-crop, kept at the model's size, on request.
     let cropped = dir.path().join("cropped");

@@ -64,7 +64,7 @@ pub(super) fn nvs(args: &[std::ffi::OsString]) -> Command {
 fn frames(dir: &Path) -> Vec<image::RgbImage> {
     let mut paths: Vec<PathBuf> = std::fs::read_dir(dir).unwrap().map(|e| e.unwrap().path()).collect();
     paths.sort();
-    datagen::io::sequence::read_frames(&paths).unwrap()
+    foundation::frames::read_frames(&paths).unwrap()
 }
 
 #[test]
@@ -100,7 +100,7 @@ fn nvs_finetunes_renders_and_samples_and_continues_after_a_kill() {
     for (name, output) in ["orbit", "shift"].iter().zip(record["outputs"].as_array().unwrap()) {
         assert_eq!(output["name"], *name);
         assert_eq!(output["stacked_background"], true);
-        let video = datagen::io::video::decode_video(&whole.join(format!("{name}.mp4"))).unwrap();
+        let video = foundation::video::decode_video(&whole.join(format!("{name}.mp4"))).unwrap();
         assert_eq!((video.frames.len(), video.frames[0].dimensions()), (9, (80, 64)));
         assert_eq!(frames(&whole.join(name)).len(), 9);
         let sheet = image::open(whole.join(format!("{name}_sheet.png"))).unwrap();

@@ -197,7 +197,7 @@ fn pretrain_finetune_sample_eval_end_to_end() {
     ok(&sample("2", &c));
     let frames = |p: &Path| {
         let paths: Vec<PathBuf> = (0..9).map(|i| p.join(format!("{i:05}.png"))).collect();
-        datagen::io::sequence::read_frames(&paths).unwrap()
+        foundation::frames::read_frames(&paths).unwrap()
     };
     let (fa, fb, fc) = (frames(&a), frames(&b), frames(&c));
     assert_eq!(fa.len(), 9);

@@ -22,7 +22,7 @@ fn png_frames(dir: &Path) -> Vec<image::RgbImage> {
         .filter(|p| p.extension().is_some_and(|x| x == "png"))
         .collect();
     paths.sort();
-    datagen::io::sequence::read_frames(&paths).unwrap()
+    foundation::frames::read_frames(&paths).unwrap()
 }
 
 /// Per-value differences of two videos: (mean, share beyond one level, largest).

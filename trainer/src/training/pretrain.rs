@@ -23,7 +23,7 @@ use crate::distributed::ProcessGroup;
 use crate::error::{Error, Result};
 use crate::models::autoencoder_kl_cogvideox as vae;
 use crate::models::weights;
-use crate::training::data::{DataConfig, DataPosition, ShardLoader};
+use crate::training::data::{ClipIndex, DataConfig, DataPosition, ShardLoader};
 
 /// One line of `metrics.jsonl`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -129,6 +129,38 @@ pub fn pretrain_on(
     train(config, shards, run, resume, device, pg, None, progress)
 }
 
+/// What every phase of a run reads: the config, the data, the run folder, and who this process
+/// is in the job.
+struct RunContext<'a> {
+    config: &'a PretrainConfig,
+    shards: &'a [PathBuf],
+    run: &'a Path,
+    device: Device,
+    pg: Option<&'a ProcessGroup>,
+    rank: usize,
+    world: usize,
+    /// Rank 0, the only writer of the run folder.
+    lead: bool,
+}
+
+impl RunContext<'_> {
+    /// Whether any rank has received a preemption signal (one small collective).
+    fn any_signal(&self, watch: &PreemptWatch) -> Result<bool> {
+        Ok(consensus::any_rank(self.pg, [watch.received().is_some()], "preemption")?[0])
+    }
+}
+
+/// A run folder made ready to train in: this rank's data, the held-out clips, the lock, the
+/// signal watch, and the checkpoint to resume from.
+struct Prepared {
+    data: DataConfig,
+    training_clips: Arc<ClipIndex>,
+    held_out: Option<ClipIndex>,
+    _lock: RunLock,
+    watch: PreemptWatch,
+    latest: Option<(PathBuf, TrainState)>,
+}
+
 /// [`pretrain_on`], with the run's lock already taken by the caller (`finetune` takes it before
 /// it writes the video's pairs into the run folder) or taken here, after the ranks agree.
 #[allow(clippy::too_many_arguments)]
@@ -143,8 +175,85 @@ pub(super) fn train(
     mut progress: impl FnMut(&StepMetrics),
 ) -> Result<RunSummary> {
     let (rank, world) = pg.map_or((0, 1), |pg| (pg.rank, pg.world_size));
-    let lead = rank == 0;
-    // A bad config or bad shard folders fail before the run folder is touched.
+    let ctx = RunContext { config, shards, run, device, pg, rank, world, lead: rank == 0 };
+    let Prepared { data, training_clips, held_out, _lock, watch, latest } = prepare(&ctx, resume, lock)?;
+    let (mut model, mut optimizer, mut state) = start_model(&ctx, latest.as_ref())?;
+    let resumed_from = state.step;
+    let mut log = RunLog::open(&ctx, resumed_from)?;
+    let mut loader = ShardLoader::new(training_clips, data, state.data_position)?;
+    let mut last_checkpoint = latest.map(|(dir, _)| dir);
+    let cache = match &config.train.latent_cache {
+        Some(dir) => Some(LatentCache::open(dir, &model.vae, &model.vae_vs, &config.data)?),
+        None => None,
+    };
+    let validation = super::validation::Validation::new(config, held_out, device)?;
+    let mut since_checkpoint = Instant::now();
+    // Until here a signal ended the process at once (nothing to save); from here on it stops the
+    // loop after its step, with a checkpoint.
+    let checkpointable = super::preempt::Checkpointable::enter();
+    // A signal on another rank during its start-up stops before the first step.
+    let mut preempted = ctx.any_signal(&watch)?;
+    while state.step < config.train.steps && !preempted {
+        let metrics =
+            train_step(&ctx, &mut model, &mut optimizer, &mut loader, cache.as_ref(), &mut state, &last_checkpoint)?;
+        log.step(&metrics, config)?;
+        if ctx.lead {
+            progress(&metrics);
+        }
+        // Once per step the ranks agree on a preemption signal and on rank 0's checkpoint clock.
+        let clock_due = match config.train.checkpoint_every {
+            CheckpointEvery::Minutes(minutes) => ctx.lead && since_checkpoint.elapsed().as_secs_f64() >= minutes * 60.0,
+            CheckpointEvery::Steps(_) => false,
+        };
+        let [signalled, clock_due] =
+            consensus::any_rank(pg, [watch.received().is_some(), clock_due], "preemption and checkpoint clock")?;
+        preempted = signalled;
+        if !preempted && config.train.validate_every > 0 && state.step.is_multiple_of(config.train.validate_every) {
+            let (measured, sheet) = validation.run(state.step, &model, config, shards, run, pg)?;
+            log.validation(state.step, measured.as_ref(), sheet.as_ref())?;
+            // A signal that came during validation is acted on now, not a step later.
+            preempted = ctx.any_signal(&watch)?;
+        }
+        let scheduled = match config.train.checkpoint_every {
+            CheckpointEvery::Steps(every) => state.step.is_multiple_of(every),
+            CheckpointEvery::Minutes(_) => clock_due,
+        };
+        let last = state.step == config.train.steps;
+        if config.train.save_checkpoints && (scheduled || last || preempted) {
+            let written = save_checkpoint(run, &model, &optimizer, &state, config.train.keep_last, pg)?;
+            since_checkpoint = Instant::now();
+            log.checkpoint(state.step, &written)?;
+            last_checkpoint = Some(written.dir);
+            if !preempted && !last {
+                // A signal that came while the checkpoint was written needs no second one.
+                preempted = ctx.any_signal(&watch)?;
+            }
+        }
+    }
+    let preempted = preempted && state.step < config.train.steps;
+    let signal = watch.received();
+    if preempted {
+        watch.hold_until_exit();
+    }
+    drop(checkpointable);
+    if preempted && ctx.lead {
+        let signal = signal.map_or("a preemption signal (on another rank)".to_string(), super::preempt::signal_name);
+        eprintln!(
+            "{signal}: stopped after step {} with a complete checkpoint ({}); exit status {}: rerun with --resume",
+            state.step,
+            last_checkpoint.as_ref().map_or("none".to_string(), |p| p.display().to_string()),
+            super::preempt::EXIT_PREEMPTED
+        );
+    }
+    Ok(RunSummary { resumed_from, steps: state.step, last_checkpoint, preempted })
+}
+
+/// Everything before the first weight is loaded: the config and the shards checked, the ranks'
+/// agreement on them, the run folder's lock, the preemption watch, what a killed run left
+/// removed, the checkpoint to resume from, and the run's `config.json`. A bad config or bad shard
+/// folders fail before the run folder is touched.
+fn prepare(ctx: &RunContext, resume: bool, lock: Option<RunLock>) -> Result<Prepared> {
+    let RunContext { config, shards, run, pg, rank, world, lead, .. } = *ctx;
     config.validate(&config.source_name())?;
     config.model.check_text_embedding()?;
     let data = rank_data_config(config, rank, world)?;
@@ -169,7 +278,7 @@ pub(super) fn train(
             ("the checkpoints in the run folder", if resume { seen.join(",") } else { "(not resuming)".to_string() }),
         ])?;
     }
-    let _lock = match lock {
+    let lock = match lock {
         Some(lock) => lock,
         None => RunLock::acquire_on(run, "trainer pretrain", pg)?,
     };
@@ -195,7 +304,16 @@ pub(super) fn train(
     if lead {
         std::fs::write(&run_config, &text).map_err(|source| Error::Io { path: run_config.clone(), error: source })?;
     }
+    Ok(Prepared { data, training_clips, held_out, _lock: lock, watch, latest })
+}
 
+/// The model, its optimizer and the training state, from the configured weights (every rank
+/// taking rank 0's) or, when resuming, from the checkpoint `latest`; in the run's precision.
+fn start_model(
+    ctx: &RunContext,
+    latest: Option<&(PathBuf, TrainState)>,
+) -> Result<(CogNvsModel, StepOptimizer, TrainState)> {
+    let RunContext { config, run, device, pg, world, lead, .. } = *ctx;
     let mut model = CogNvsModel::load(&config.model, config.lora.as_ref(), config.train.seed, device)?;
     if let Some(pg) = pg {
         // Every rank starts from rank 0's weights, whatever its own initialisation gave.
@@ -213,7 +331,7 @@ pub(super) fn train(
         layout: pg.map(|_| CheckpointLayout { world_size: world, zero_stage: config.distributed.zero_stage }),
         files: Default::default(),
     };
-    if let Some((dir, saved)) = &latest {
+    if let Some((dir, saved)) = latest {
         // A LoRA run's adapters resume from the optimizer file's exact values; its base is the
         // configured model, loaded above.
         let lora_file = dir.join(crate::loaders::lora::LORA_WEIGHTS_NAME);
@@ -243,118 +361,130 @@ pub(super) fn train(
         optimizer.keep_master_weights()?;
         model.set_kind(kind);
     }
-    let resumed_from = state.step;
-    let mut metrics_file = if lead {
-        rewrite_metrics(run, resumed_from)?;
-        let path = run.join("metrics.jsonl");
-        Some(
-            std::fs::OpenOptions::new()
-                .create(true)
-                .append(true)
-                .open(&path)
-                .map_err(|source| Error::Io { path: path.clone(), error: source })?,
-        )
-    } else {
-        None
-    };
-    let mut log_line = |line: String| -> Result<()> {
-        if let Some(file) = metrics_file.as_mut() {
-            writeln!(file, "{line}").map_err(|source| Error::Io { path: run.join("metrics.jsonl"), error: source })?;
-        }
-        Ok(())
-    };
-    let mut events = if lead { Some(crate::training::tensorboard::EventWriter::create(run)?) } else { None };
-    let mut loader = ShardLoader::new(training_clips, data.clone(), state.data_position)?;
-    let mut last_checkpoint = latest.map(|(d, _)| d);
+    Ok((model, optimizer, state))
+}
+
+/// One optimizer step: seeded from (seed, step), its micro-batches' losses and backwards (the
+/// last one starting each gradient bucket's exchange as it ends), the mean loss over ranks (a
+/// non-finite one anywhere stops every rank, naming the batch), clipping and the update.
+fn train_step(
+    ctx: &RunContext,
+    model: &mut CogNvsModel,
+    optimizer: &mut StepOptimizer,
+    loader: &mut ShardLoader,
+    cache: Option<&LatentCache>,
+    state: &mut TrainState,
+    last_checkpoint: &Option<PathBuf>,
+) -> Result<StepMetrics> {
+    let RunContext { config, device, pg, rank, world, .. } = *ctx;
+    let started = Instant::now();
     let accumulation = config.optim.grad_accumulation;
-    let cache = match &config.train.latent_cache {
-        Some(dir) => Some(LatentCache::open(dir, &model.vae, &model.vae_vs, &config.data)?),
-        None => None,
-    };
-    let validation = super::validation::Validation::new(config, held_out, device)?;
     let draws = Draws { rank: rank as i64, world: world as i64 };
-    let mut since_checkpoint = Instant::now();
-    let stop_now = |watch: &PreemptWatch| -> Result<bool> {
-        Ok(consensus::any_rank(pg, [watch.received().is_some()], "preemption")?[0])
-    };
-    // Until here a signal ended the process at once (nothing to save); from here on it stops the
-    // loop after its step, with a checkpoint.
-    let checkpointable = super::preempt::Checkpointable::enter();
-    // A signal on another rank during its start-up stops before the first step.
-    let mut preempted = stop_now(&watch)?;
-    while state.step < config.train.steps && !preempted {
-        let started = Instant::now();
-        // Every draw of this step comes from (seed, step): resumed runs repeat them exactly.
-        tch::manual_seed(step_seed(config.train.seed, state.step));
-        optimizer.zero_grad()?;
-        let mut loss_sum = 0.0;
-        let mut bad_batch = None;
-        for micro_batch in 1..=accumulation {
-            let batch = loader.next_batch()?;
-            // The last micro-batch's backward starts each gradient bucket's exchange as it ends.
-            let mut exchange = |stage| optimizer.backward_stage_done(stage, pg);
-            let backward = Backward {
-                checkpointing: config.train.gradient_checkpointing,
-                on_stage: (micro_batch == accumulation).then_some(&mut exchange as _),
-            };
-            let value = model.loss_backward(
-                &batch,
-                (config.train.condition_noise_log_mean, config.train.condition_noise_log_std),
-                cache.as_ref(),
-                accumulation as f64,
-                backward,
-                draws,
-            )?;
-            loss_sum += value;
-            if !value.is_finite() && bad_batch.is_none() {
-                bad_batch = Some((value, batch.provenance.clone()));
-                if pg.is_none() {
-                    break;
-                }
+    // Every draw of this step comes from (seed, step): resumed runs repeat them exactly.
+    tch::manual_seed(step_seed(config.train.seed, state.step));
+    optimizer.zero_grad()?;
+    let mut loss_sum = 0.0;
+    let mut bad_batch = None;
+    for micro_batch in 1..=accumulation {
+        let batch = loader.next_batch()?;
+        // The last micro-batch's backward starts each gradient bucket's exchange as it ends.
+        let mut exchange = |stage| optimizer.backward_stage_done(stage, pg);
+        let backward = Backward {
+            checkpointing: config.train.gradient_checkpointing,
+            on_stage: (micro_batch == accumulation).then_some(&mut exchange as _),
+        };
+        let value = model.loss_backward(
+            &batch,
+            (config.train.condition_noise_log_mean, config.train.condition_noise_log_std),
+            cache,
+            accumulation as f64,
+            backward,
+            draws,
+        )?;
+        loss_sum += value;
+        if !value.is_finite() && bad_batch.is_none() {
+            bad_batch = Some((value, batch.provenance.clone()));
+            if pg.is_none() {
+                break;
             }
         }
-        // The mean over ranks (one process: itself); a non-finite loss anywhere stops every rank.
-        let loss = match pg {
-            Some(pg) => pg.sum_f64(loss_sum, "loss")? / world as f64,
-            None => loss_sum,
+    }
+    // The mean over ranks (one process: itself); a non-finite loss anywhere stops every rank.
+    let loss = match pg {
+        Some(pg) => pg.sum_f64(loss_sum, "loss")? / world as f64,
+        None => loss_sum,
+    };
+    if !loss.is_finite() {
+        let (value, where_) = match bad_batch {
+            Some((value, provenance)) => (value, format!("on batch {provenance:?}")),
+            None => (loss, "on another rank".to_string()),
         };
-        if !loss.is_finite() {
-            let (value, where_) = match bad_batch {
-                Some((value, provenance)) => (value, format!("on batch {provenance:?}")),
-                None => (loss, "on another rank".to_string()),
-            };
-            return Err(Error::InvalidArgument {
-                name: "loss".to_string(),
-                reason: format!(
-                    "non-finite loss {value} at step {} {where_}; last good checkpoint: {}",
-                    state.step + 1,
-                    last_checkpoint.as_ref().map_or("none".to_string(), |p| p.display().to_string())
-                ),
-            });
+        return Err(Error::InvalidArgument {
+            name: "loss".to_string(),
+            reason: format!(
+                "non-finite loss {value} at step {} {where_}; last good checkpoint: {}",
+                state.step + 1,
+                last_checkpoint.as_ref().map_or("none".to_string(), |p| p.display().to_string())
+            ),
+        });
+    }
+    let lr = learning_rate(&config.optim, state.step, config.train.steps);
+    let grad_norm = optimizer.step(lr, config.optim.max_grad_norm, pg)?;
+    state.step += 1;
+    state.data_position = loader.position();
+    let peaks = match device {
+        Device::Cuda(index) => crate::distributed::cuda_memory_peaks(index, true),
+        _ => None,
+    };
+    Ok(StepMetrics {
+        step: state.step,
+        loss: loss / accumulation as f64,
+        lr,
+        grad_norm,
+        seconds: started.elapsed().as_secs_f64(),
+        encode_seconds: model.take_encode_seconds(),
+        cuda_peak_allocated: peaks.map(|p| p.0),
+        cuda_peak_reserved: peaks.map(|p| p.1),
+    })
+}
+
+/// What rank 0 writes while it trains: `metrics.jsonl` (rewritten to the resumed step first) and
+/// TensorBoard events. Other ranks hold an empty log that writes nothing.
+struct RunLog {
+    metrics: Option<(PathBuf, std::fs::File)>,
+    events: Option<crate::training::tensorboard::EventWriter>,
+}
+
+impl RunLog {
+    fn open(ctx: &RunContext, resumed_from: u64) -> Result<Self> {
+        if !ctx.lead {
+            return Ok(Self { metrics: None, events: None });
         }
-        let lr = learning_rate(&config.optim, state.step, config.train.steps);
-        let grad_norm = optimizer.step(lr, config.optim.max_grad_norm, pg)?;
-        state.step += 1;
-        state.data_position = loader.position();
-        let peaks = match device {
-            Device::Cuda(index) => crate::distributed::cuda_memory_peaks(index, true),
-            _ => None,
-        };
-        let metrics = StepMetrics {
-            step: state.step,
-            loss: loss / accumulation as f64,
-            lr,
-            grad_norm,
-            seconds: started.elapsed().as_secs_f64(),
-            encode_seconds: model.take_encode_seconds(),
-            cuda_peak_allocated: peaks.map(|p| p.0),
-            cuda_peak_reserved: peaks.map(|p| p.1),
-        };
-        log_line(serde_json::to_string(&metrics).expect("metrics serialise"))?;
-        if let Some(events) = events.as_mut() {
-            let samples = (config.data.batch_size as u64 * accumulation) as f64;
+        rewrite_metrics(ctx.run, resumed_from)?;
+        let path = ctx.run.join("metrics.jsonl");
+        let file = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&path)
+            .map_err(|source| Error::Io { path: path.clone(), error: source })?;
+        let events = crate::training::tensorboard::EventWriter::create(ctx.run)?;
+        Ok(Self { metrics: Some((path, file)), events: Some(events) })
+    }
+
+    fn line(&mut self, line: String) -> Result<()> {
+        if let Some((path, file)) = self.metrics.as_mut() {
+            writeln!(file, "{line}").map_err(|source| Error::Io { path: path.clone(), error: source })?;
+        }
+        Ok(())
+    }
+
+    /// A finished step: its metrics line and scalars.
+    fn step(&mut self, metrics: &StepMetrics, config: &PretrainConfig) -> Result<()> {
+        self.line(serde_json::to_string(metrics).expect("metrics serialise"))?;
+        if let Some(events) = self.events.as_mut() {
+            let samples = (config.data.batch_size as u64 * config.optim.grad_accumulation) as f64;
             events.scalars(
-                state.step as i64,
+                metrics.step as i64,
                 &[
                     ("train/loss", metrics.loss as f32),
                     ("train/lr", metrics.lr as f32),
@@ -365,79 +495,49 @@ pub(super) fn train(
             )?;
             events.flush()?;
         }
-        if lead {
-            progress(&metrics);
-        }
-        // Once per step the ranks agree on a preemption signal and on rank 0's checkpoint clock.
-        let clock_due = match config.train.checkpoint_every {
-            CheckpointEvery::Minutes(minutes) => lead && since_checkpoint.elapsed().as_secs_f64() >= minutes * 60.0,
-            CheckpointEvery::Steps(_) => false,
-        };
-        let [signalled, clock_due] =
-            consensus::any_rank(pg, [watch.received().is_some(), clock_due], "preemption and checkpoint clock")?;
-        preempted = signalled;
-        if !preempted && config.train.validate_every > 0 && state.step.is_multiple_of(config.train.validate_every) {
-            let (measured, sheet) = validation.run(state.step, &model, config, shards, run, pg)?;
-            if let Some(measured) = &measured {
-                log_line(serde_json::json!({ "step": state.step, "validation": measured }).to_string())?;
-            }
-            if let Some(events) = events.as_mut() {
-                if let Some(measured) = &measured {
-                    events.scalars(state.step as i64, &measured.scalars())?;
-                }
-                if let Some(sheet) = &sheet {
-                    events.image("validation/contact_sheet", state.step as i64, sheet)?;
-                }
-                events.flush()?;
-            }
-            // A signal that came during validation is acted on now, not a step later.
-            preempted = stop_now(&watch)?;
-        }
-        let scheduled = match config.train.checkpoint_every {
-            CheckpointEvery::Steps(every) => state.step.is_multiple_of(every),
-            CheckpointEvery::Minutes(_) => clock_due,
-        };
-        let last = state.step == config.train.steps;
-        if config.train.save_checkpoints && (scheduled || last || preempted) {
-            let written = save_checkpoint(run, &model, &optimizer, &state, config.train.keep_last, pg)?;
-            since_checkpoint = Instant::now();
-            if let Some(events) = events.as_mut() {
-                let gigabytes = written.bytes as f64 / 1e9;
-                eprintln!(
-                    "checkpoint {}: {gigabytes:.3} GB in {:.1} s ({:.2} GB/s)",
-                    written.dir.display(),
-                    written.seconds,
-                    gigabytes / written.seconds.max(f64::MIN_POSITIVE)
-                );
-                events.scalars(
-                    state.step as i64,
-                    &[("checkpoint/gigabytes", gigabytes as f32), ("checkpoint/seconds", written.seconds as f32)],
-                )?;
-                events.flush()?;
-            }
-            last_checkpoint = Some(written.dir);
-            if !preempted && !last {
-                // A signal that came while the checkpoint was written needs no second one.
-                preempted = stop_now(&watch)?;
-            }
-        }
+        Ok(())
     }
-    let preempted = preempted && state.step < config.train.steps;
-    let signal = watch.received();
-    if preempted {
-        watch.hold_until_exit();
+
+    /// A validation's metrics and contact sheet.
+    fn validation(
+        &mut self,
+        step: u64,
+        measured: Option<&ValidationMetrics>,
+        sheet: Option<&image::RgbImage>,
+    ) -> Result<()> {
+        if let Some(measured) = measured {
+            self.line(serde_json::json!({ "step": step, "validation": measured }).to_string())?;
+        }
+        if let Some(events) = self.events.as_mut() {
+            if let Some(measured) = measured {
+                events.scalars(step as i64, &measured.scalars())?;
+            }
+            if let Some(sheet) = sheet {
+                events.image("validation/contact_sheet", step as i64, sheet)?;
+            }
+            events.flush()?;
+        }
+        Ok(())
     }
-    drop(checkpointable);
-    if preempted && lead {
-        let signal = signal.map_or("a preemption signal (on another rank)".to_string(), super::preempt::signal_name);
-        eprintln!(
-            "{signal}: stopped after step {} with a complete checkpoint ({}); exit status {}: rerun with --resume",
-            state.step,
-            last_checkpoint.as_ref().map_or("none".to_string(), |p| p.display().to_string()),
-            super::preempt::EXIT_PREEMPTED
-        );
+
+    /// A written checkpoint: its size and speed, printed and logged.
+    fn checkpoint(&mut self, step: u64, written: &super::checkpoint::Written) -> Result<()> {
+        if let Some(events) = self.events.as_mut() {
+            let gigabytes = written.bytes as f64 / 1e9;
+            eprintln!(
+                "checkpoint {}: {gigabytes:.3} GB in {:.1} s ({:.2} GB/s)",
+                written.dir.display(),
+                written.seconds,
+                gigabytes / written.seconds.max(f64::MIN_POSITIVE)
+            );
+            events.scalars(
+                step as i64,
+                &[("checkpoint/gigabytes", gigabytes as f32), ("checkpoint/seconds", written.seconds as f32)],
+            )?;
+            events.flush()?;
+        }
+        Ok(())
     }
-    Ok(RunSummary { resumed_from, steps: state.step, last_checkpoint, preempted })
 }
 
 /// This rank's data config: its share of the global batch, its rank and the world size.

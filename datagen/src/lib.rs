@@ -2,12 +2,14 @@
 //! pairs: sampled novel camera paths, exact co-visibility masks from occlusion tests against each
 //! frame's depth map lifted to a mesh, novel-view renders, and sharded Parquet output (`schemas`).
 //!
-//! The modules are grouped by layer, from the bottom: [`error`] and [`config_file`]; [`io`] (file
-//! formats and sequence folders); [`geometry`] (cameras, depth meshes, co-visibility, rendering);
-//! [`pairs`] (clips, trajectories, the pair generator); [`corpus`] (whole dataset trees);
-//! [`inspect`] (looking at the shards). A module uses its own layer and those below, never one
-//! above; [`synth`] is a tool beside them (synthetic scenes with exact answers, for tests and
-//! benchmarks). The `datagen` binary is a thin layer over them.
+//! The modules are grouped by layer, from the bottom, on the `foundation` crate (cameras, depth
+//! maps, video and frames): [`error`] and [`config_file`]; [`io`] (file formats, sequence folders
+//! and multi-camera scenes); [`geometry`] (depth meshes, co-visibility, rendering); [`pairs`]
+//! (clips, trajectories, the pair generator); [`synth`] (synthetic scenes with exact answers, for
+//! tests and benchmarks); [`corpus`] (whole dataset trees); [`inspect`] (looking at the shards).
+//! A module uses its own layer and those below, never one above (`docs/ARCHITECTURE.md` states
+//! the layers; `scripts/check_module_cycles.py` checks them). The `datagen` binary is a thin layer
+//! over them.
 
 pub mod config_file;
 pub mod corpus;

@@ -1,7 +1,12 @@
 //! `trainer`: the CogNVS video-to-video diffusion model (a diffusers `CogVideoXTransformer3DModel`
 //! with the CogVideoX 3D causal VAE and schedulers) in tch, weight-compatible with diffusers.
 //!
-//! Modules are named after the diffusers files they mirror.
+//! Laid out as diffusers is, from the bottom: the foundations ([`error`], [`precision`],
+//! [`diffusers_config`]); [`models`]; [`schedulers`]; [`loaders`] (where models come from);
+//! [`distributed`] (c10d); [`eval`]; [`pipelines`] (sampling and its video processor);
+//! [`training`]; and the `nvs` job in [`pipelines::nvs`]. Files are named after the diffusers
+//! files they mirror; a module uses its own layer and those below (`docs/ARCHITECTURE.md` states
+//! the layers, `scripts/check_module_cycles.py` checks them).
 
 pub mod diffusers_config;
 pub mod distributed;

@@ -221,10 +221,9 @@ fn read_items(dir: &Path) -> Result<(Vec<Item>, Option<Splits>)> {
     let metadata = JsonFile::read(&dir.join(METADATA_FILE), "metadata")?;
     let mut items = Vec::with_capacity(ids.len());
     for name in ids {
-        let entry = metadata
-            .value
-            .get(&name)
-            .ok_or_else(|| Error::invalid(&metadata.path, &name, "missing: every item of dataset.json needs an entry"))?;
+        let entry = metadata.value.get(&name).ok_or_else(|| {
+            Error::invalid(&metadata.path, &name, "missing: every item of dataset.json needs an entry")
+        })?;
         let field = |key: &str| {
             let label = format!("{name}.{key}");
             let value = entry.get(key).ok_or_else(|| Error::invalid(&metadata.path, &label, "missing"))?;
@@ -267,7 +266,8 @@ fn read_splits(dir: &Path, items: &[Item], camera_ids: &BTreeSet<u64>) -> Result
                 Error::invalid(path, format!("frame_names[{i}]"), format!("`{name}` is not an item of dataset.json"))
             })?;
             if item.camera_id != cameras[i] {
-                let reason = format!("{} for `{name}`, whose metadata.json camera_id is {}", cameras[i], item.camera_id);
+                let reason =
+                    format!("{} for `{name}`, whose metadata.json camera_id is {}", cameras[i], item.camera_id);
                 return Err(Error::invalid(path, format!("camera_ids[{i}]"), reason));
             }
             if item.time_id as u64 != times[i] {
@@ -334,7 +334,10 @@ fn read_camera_view(
     let factor = info.factor;
     let rgb_dir = dir.join("rgb").join(format!("{factor}x"));
     if !rgb_dir.is_dir() {
-        let reason = format!("no frames at factor {factor} (folder {} missing); choose a factor the scene has", rgb_dir.display());
+        let reason = format!(
+            "no frames at factor {factor} (folder {} missing); choose a factor the scene has",
+            rgb_dir.display()
+        );
         return Err(Error::invalid(dir.join("rgb"), "factor", reason));
     }
     let cameras = items
@@ -530,9 +533,8 @@ fn area_downsample(values: &[f32], width: usize, height: usize, f: usize) -> Dep
 
 /// A co-visibility mask PNG (non-zero = co-visible) of the frame's size.
 fn read_mask(path: &Path, width: usize, height: usize) -> Result<GrayImage> {
-    let mask = image::open(path)
-        .map_err(|e| Error::invalid(path, "covisible", format!("unreadable image: {e}")))?
-        .to_luma8();
+    let mask =
+        image::open(path).map_err(|e| Error::invalid(path, "covisible", format!("unreadable image: {e}")))?.to_luma8();
     if mask.dimensions() != (width as u32, height as u32) {
         let reason = format!("mask is {}x{}, the frames {width}x{height}", mask.width(), mask.height());
         return Err(Error::invalid(path, "covisible", reason));

@@ -22,7 +22,8 @@ impl JsonFile {
     /// the file and `what` (the format's name for the file's content).
     pub fn read(path: &Path, what: &str) -> Result<Self> {
         let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
-        let value = serde_json::from_str(&text).map_err(|e| Error::invalid(path, what, format!("invalid JSON: {e}")))?;
+        let value =
+            serde_json::from_str(&text).map_err(|e| Error::invalid(path, what, format!("invalid JSON: {e}")))?;
         Ok(Self { path: path.to_owned(), value })
     }
 

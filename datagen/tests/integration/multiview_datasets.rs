@@ -352,3 +352,110 @@ fn broken_kubric4d_scenes_are_refused_naming_the_file_and_field() {
     let text = kubric_refusal(&focal);
     assert!(text.contains("camera.focal_length"), "{text}");
 }
+
+const PARDOM_VIEWS: [&str; 3] = ["camera0", "yaw-0", "yaw-60"];
+
+/// A ParallelDomain-4D scene as GCD reads it, rendered from static rig cameras (PD's cameras
+/// are fixed on the ego rig): view i at the rig's pose of frame 0.
+fn pardom_scene(dir: &Path) -> PathBuf {
+    let out = dir.join("scene_000042");
+    let synth = SynthScene::new(&config()).unwrap();
+    let k = config().intrinsics();
+    let (mut intrinsics, mut extrinsics) = (Vec::new(), Vec::new());
+    for (i, view) in PARDOM_VIEWS.iter().enumerate() {
+        let pose = synth.rig_world_from_camera(0, &RIG, i as u32);
+        for t in 0..3u32 {
+            let truth = synth.render_view(&synth.frame_geometry(t), &pose, &k);
+            let ts = t * 10 + 5;
+            for sub in ["rgb", "depth"] {
+                std::fs::create_dir_all(out.join(sub).join(view)).unwrap();
+            }
+            truth.rgb.save(out.join(format!("rgb/{view}/{ts:018}.png"))).unwrap();
+            crate::tool_layouts::write_npz(
+                &out.join(format!("depth/{view}/{ts:018}.npz")),
+                vec![("data", vec![48, 64], crate::tool_layouts::Values::F32(truth.depth))],
+            );
+        }
+        let q = glam::DQuat::from_mat3(&DMat3::from_mat4(pose));
+        let p = pose.w_axis;
+        intrinsics.push(serde_json::json!({"fx": k.x_axis.x, "fy": k.y_axis.y, "cx": k.z_axis.x, "cy": k.z_axis.y}));
+        extrinsics.push(serde_json::json!({
+            "rotation": {"qw": q.w, "qx": q.x, "qy": q.y, "qz": q.z},
+            "translation": {"x": p.x, "y": p.y, "z": p.z},
+        }));
+    }
+    // The LiDAR entry PD lists beside the cameras: no images, skipped.
+    intrinsics.push(serde_json::json!({"fx": 0.0, "fy": 0.0, "cx": 0.0, "cy": 0.0}));
+    extrinsics.push(extrinsics[0].clone());
+    let names: Vec<&str> = PARDOM_VIEWS.iter().copied().chain(["velodyne"]).collect();
+    std::fs::create_dir_all(out.join("calibration")).unwrap();
+    let calibration = serde_json::json!({"names": names, "intrinsics": intrinsics, "extrinsics": extrinsics});
+    std::fs::write(out.join("calibration/abc123.json"), calibration.to_string()).unwrap();
+    out
+}
+
+#[test]
+fn a_pardom4d_scene_reads_back_and_drops_instants_a_view_lacks() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = pardom_scene(dir.path());
+    assert_eq!(detect_multiview_layout(&path).unwrap(), MultiViewLayoutName::Pardom4d);
+    let scene = read_multiview_as(&path, None).unwrap();
+    let split = scene.split.clone().unwrap();
+    assert_eq!((split.input.as_str(), split.held_out.len()), ("yaw-0", 2), "GCD's input ego camera");
+    let synth = SynthScene::new(&config()).unwrap();
+    let k = config().intrinsics();
+    for (i, camera) in scene.cameras.iter().enumerate() {
+        assert_eq!(camera.id, PARDOM_VIEWS[i]);
+        assert_eq!(camera.time_ids, vec![0, 1, 2]);
+        let pose = synth.rig_world_from_camera(0, &RIG, i as u32);
+        for t in 0..3u32 {
+            let read = camera.sequence.cameras[t as usize];
+            let error = (read.world_from_camera - pose).to_cols_array().iter().fold(0.0f64, |m, e| m.max(e.abs()));
+            assert!(error < 1e-12, "view {i}: {error}");
+            assert_eq!(read.intrinsics, k);
+            let truth = synth.render_view(&synth.frame_geometry(t), &pose, &k);
+            assert!(camera.sequence.frames[t as usize] == truth.rgb);
+            assert_eq!(camera.sequence.depth[t as usize].values, truth.depth);
+        }
+    }
+    // A frame missing from one view is dropped from all, as GCD skips it.
+    std::fs::remove_file(path.join(format!("rgb/yaw-60/{:018}.png", 15))).unwrap();
+    let scene = read_multiview_as(&path, Some(MultiViewLayoutName::Pardom4d)).unwrap();
+    assert!(scene.cameras.iter().all(|c| c.time_ids == [0, 2] && c.sequence.len() == 2));
+    assert_eq!(scene.cameras[0].timestamps.clone().unwrap(), vec![0.0, 0.2]);
+}
+
+#[test]
+fn undocumented_pardom4d_variants_are_refused_by_name() {
+    let dir = tempfile::tempdir().unwrap();
+    let good = pardom_scene(dir.path());
+    let refusal = |path: &Path| {
+        let error = read_multiview_as(path, Some(MultiViewLayoutName::Pardom4d)).unwrap_err();
+        format!("{:#}", anyhow::Error::from(error))
+    };
+    let two = copy(&good, &dir.path().join("two"));
+    std::fs::copy(two.join("calibration/abc123.json"), two.join("calibration/def456.json")).unwrap();
+    assert!(refusal(&two).contains("found 2"));
+    let odd = copy(&good, &dir.path().join("odd"));
+    std::fs::copy(odd.join(format!("rgb/yaw-0/{:018}.png", 5)), odd.join(format!("rgb/yaw-0/{:018}.png", 7))).unwrap();
+    let text = refusal(&odd);
+    assert!(text.contains("000000000000000007.png") && text.contains("timestamp"), "{text}");
+    let keys = copy(&good, &dir.path().join("keys"));
+    edit_json(&keys.join("calibration/abc123.json"), &|j| {
+        let rotation = j["extrinsics"][1]["rotation"].take();
+        j["extrinsics"][1] = serde_json::json!({"orientation": rotation});
+    });
+    let text = refusal(&keys);
+    assert!(text.contains("extrinsics[1].rotation") && text.contains("not documented"), "{text}");
+    let scaled = copy(&good, &dir.path().join("scaled"));
+    edit_json(&scaled.join("calibration/abc123.json"), &|j| {
+        j["extrinsics"][2]["rotation"]["qw"] = serde_json::json!(3.0)
+    });
+    let text = refusal(&scaled);
+    assert!(text.contains("extrinsics[2].rotation") && text.contains("unit quaternion"), "{text}");
+    let unknown = copy(&good, &dir.path().join("unknown"));
+    copy(&unknown.join("rgb/yaw-60"), &unknown.join("rgb/yaw-120"));
+    copy(&unknown.join("depth/yaw-60"), &unknown.join("depth/yaw-120"));
+    let text = refusal(&unknown);
+    assert!(text.contains("yaw-120") && text.contains("names"), "{text}");
+}

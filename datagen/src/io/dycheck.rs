@@ -436,10 +436,11 @@ pub fn read_camera_file(path: &Path, factor: u32) -> Result<PinholeCamera> {
         let reason = format!("{skew}: cameras here have K = [fx 0 cx; 0 fy cy; 0 0 1], without skew");
         return Err(Error::invalid(path, "skew", reason));
     }
-    if !(focal_length > 0.0) {
+    // Both are finite (read as such): only the sign is left to check.
+    if focal_length <= 0.0 {
         return Err(Error::invalid(path, "focal_length", format!("must be positive, found {focal_length}")));
     }
-    if !(pixel_aspect_ratio > 0.0) {
+    if pixel_aspect_ratio <= 0.0 {
         let reason = format!("must be positive, found {pixel_aspect_ratio}");
         return Err(Error::invalid(path, "pixel_aspect_ratio", reason));
     }

@@ -235,7 +235,7 @@ fn read_intrinsics(metadata: &JsonFile, width: u32, height: u32) -> Result<DMat3
     if let (Some(_), Some(_)) = (metadata.find("camera.focal_length"), metadata.find("camera.sensor_width")) {
         let (focal, sensor) = (metadata.f64("camera.focal_length")?, metadata.f64("camera.sensor_width")?);
         let normalised = focal / sensor;
-        if !((normalised - k[0].abs()).abs() <= FOCAL_TOLERANCE * normalised) {
+        if !normalised.is_finite() || (normalised - k[0].abs()).abs() > FOCAL_TOLERANCE * normalised {
             let reason = format!(
                 "{focal} mm on a {sensor} mm sensor is {normalised} of the image width, but camera.K[0][0] is {}",
                 k[0]

@@ -484,3 +484,32 @@ fn undocumented_pardom4d_variants_are_refused_by_name() {
     let text = refusal(&unknown);
     assert!(text.contains("yaw-120") && text.contains("names"), "{text}");
 }
+
+/// `datagen synth --cameras N --format F` writes a scene the reader detects as F.
+#[test]
+fn the_synth_command_writes_each_format() {
+    let dir = tempfile::tempdir().unwrap();
+    for (format, name, layout) in [
+        ("dycheck", "dy", MultiViewLayoutName::Dycheck),
+        ("kubric4d", "scn00005", MultiViewLayoutName::Kubric4d),
+        ("generic", "rig", MultiViewLayoutName::Generic),
+    ] {
+        let out = dir.path().join(name);
+        let status = std::process::Command::new(env!("CARGO_BIN_EXE_datagen"))
+            .args(["synth", "--width", "32", "--height", "24", "--frames", "2", "--cameras", "2", "--format", format])
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap();
+        assert!(status.status.success(), "{format}: {}", String::from_utf8_lossy(&status.stderr));
+        assert_eq!(detect_multiview_layout(&out).unwrap(), layout);
+        assert_eq!(read_multiview_as(&out, None).unwrap().cameras.len(), 2, "{format}");
+    }
+    let refused = std::process::Command::new(env!("CARGO_BIN_EXE_datagen"))
+        .args(["synth", "--cameras", "2", "--format", "colmap", "--out"])
+        .arg(dir.path().join("x"))
+        .output()
+        .unwrap();
+    assert!(!refused.status.success());
+    assert!(String::from_utf8_lossy(&refused.stderr).contains("generic, dycheck, kubric4d"));
+}

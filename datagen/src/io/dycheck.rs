@@ -41,12 +41,13 @@ use image::GrayImage;
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
-use crate::geometry::camera::{PinholeCamera, checked_intrinsics, checked_pose, json_matrix};
-use crate::io::depth_exr::DepthMap;
 use crate::io::json_fields::{JsonFile, integer, numbers};
 use crate::io::multiview::{CameraView, EvalSplit, MultiViewScene};
-use crate::io::sequence::{Sequence, read_frames};
+use crate::io::sequence::Sequence;
 use crate::io::tool_output::check_depth_sign;
+use foundation::camera::{PinholeCamera, checked_intrinsics, checked_pose, json_matrix};
+use foundation::depth::DepthMap;
+use foundation::frames::read_frames;
 
 /// The item list; with [`METADATA_FILE`] and [`CAMERA_DIR`], the mark of the layout.
 pub const DATASET_FILE: &str = "dataset.json";

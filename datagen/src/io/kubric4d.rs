@@ -32,12 +32,13 @@ use image::GrayImage;
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
-use crate::geometry::camera::{PinholeCamera, ROTATION_TOLERANCE, checked_intrinsics, checked_pose, json_matrix};
-use crate::io::depth_exr::DepthMap;
 use crate::io::json_fields::{JsonFile, list, numbers};
 use crate::io::multiview::{CameraView, EvalSplit, MultiViewScene};
 use crate::io::npy::MAX_SIDE_PX;
-use crate::io::sequence::{Sequence, read_frames};
+use crate::io::sequence::Sequence;
+use foundation::camera::{PinholeCamera, ROTATION_TOLERANCE, checked_intrinsics, checked_pose, json_matrix};
+use foundation::depth::DepthMap;
+use foundation::frames::read_frames;
 
 /// The view GCD's Kubric-4D evaluation takes as input (`kubric_arbit.py`: the input camera's
 /// `spherical_start` is view 4's pose).

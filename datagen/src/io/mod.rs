@@ -14,6 +14,7 @@ pub mod gen3c;
 pub(crate) mod json_fields;
 pub mod kubric4d;
 pub mod multiview;
+pub mod multiview_layout;
 pub mod npy;
 pub mod pardom4d;
 pub mod rle;

@@ -26,13 +26,14 @@ use glam::{DMat3, DQuat};
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
-use crate::geometry::camera::{PinholeCamera, ROTATION_TOLERANCE, checked_intrinsics, checked_pose};
-use crate::io::depth_exr::DepthMap;
 use crate::io::json_fields::{JsonFile, list, number};
 use crate::io::multiview::{CameraView, EvalSplit, MultiViewScene};
 use crate::io::npy::{Axis, NpzReader};
-use crate::io::sequence::{Sequence, read_frames};
+use crate::io::sequence::Sequence;
 use crate::io::tool_output::check_depth_sign;
+use foundation::camera::{PinholeCamera, ROTATION_TOLERANCE, checked_intrinsics, checked_pose};
+use foundation::depth::DepthMap;
+use foundation::frames::read_frames;
 
 /// The view GCD's ParallelDomain-4D evaluation takes as input (the forward ego camera).
 pub const GCD_INPUT_VIEW: &str = "yaw-0";

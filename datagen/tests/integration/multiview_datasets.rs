@@ -5,12 +5,12 @@
 
 use std::path::{Path, PathBuf};
 
-use datagen::geometry::camera::PinholeCamera;
 use datagen::io::dycheck::{read_dycheck, read_dycheck_with_info};
 use datagen::io::kubric4d::read_kubric4d;
-use datagen::io::multiview::{MultiViewLayoutName, detect_multiview_layout, read_multiview_as};
+use datagen::io::multiview_layout::{MultiViewLayoutName, detect_multiview_layout, read_multiview_as};
 use datagen::synth::{CameraRig, SynthConfig, SynthScene, ground_truth_covisibility, write_multiview};
 use datagen::synth_layouts::{dycheck_frames, dycheck_world_from_camera, write_dycheck, write_kubric4d};
+use foundation::camera::PinholeCamera;
 use glam::{DMat3, DMat4, DVec3};
 
 const RIG: CameraRig = CameraRig { cameras: 3, spacing_deg: 8.0 };

@@ -10,7 +10,7 @@ use glam::DMat4;
 use image::codecs::png::{CompressionType, FilterType, PngEncoder};
 use image::{EncodableLayout, GrayImage, ImageEncoder, RgbImage};
 use rayon::prelude::*;
-use schemas::{ClipRecord, InputDigest, ShardStats, ShardWriter, ShardWriterOptions, TrajectoryKind, TrajectoryRecord};
+use schemas::{ClipRecord, InputDigest, PairKind, ShardStats, ShardWriter, ShardWriterOptions, TrajectoryKind, TrajectoryRecord};
 use serde::{Deserialize, Serialize};
 
 use crate::config_file::{Checked, Validate, check_count};
@@ -419,6 +419,9 @@ fn generate_clip(
         depth,
         dynamic_mask: sequence.dynamic_masks.as_ref().map(|_| dynamic_masks),
         trajectories,
+        pair_kind: PairKind::Monocular,
+        source_camera: None,
+        target_camera: None,
     };
     Ok((record, times))
 }

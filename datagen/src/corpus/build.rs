@@ -430,7 +430,7 @@ pub fn content_hash(entry: &VideoEntry) -> Result<String> {
     match &entry.frames {
         FrameSource::Video(path) => files.push(path.clone()),
         FrameSource::Images(paths) => files.extend(paths.iter().cloned()),
-        FrameSource::Sequence(dir) => files_under(dir, &mut files)?,
+        FrameSource::Sequence(dir) | FrameSource::MultiView(dir) => files_under(dir, &mut files)?,
     }
     match &entry.masks {
         MaskSource::Sav(path) => files.push(path.clone()),

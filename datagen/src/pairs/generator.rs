@@ -49,6 +49,8 @@ pub struct PairsConfig {
     pub depth_noise: DepthNoiseConfig,
     /// Static-background stacking settings, used by `datagen render --stack-background`.
     pub static_background: StackingConfig,
+    /// Multi-view pairs of multi-camera scenes (camera pairs, how many, least co-visible share).
+    pub multiview: crate::pairs::multiview::MultiViewConfig,
 }
 
 impl PairsConfig {
@@ -65,7 +67,8 @@ impl Validate for PairsConfig {
         self.trajectory.validate().map_err(|e| e.under("trajectory"))?;
         self.covisibility.validate().map_err(|e| e.under("covisibility"))?;
         self.depth_noise.validate().map_err(|e| e.under("depth_noise"))?;
-        self.static_background.validate().map_err(|e| e.under("static_background"))
+        self.static_background.validate().map_err(|e| e.under("static_background"))?;
+        self.multiview.validate().map_err(|e| e.under("multiview"))
     }
 }
 

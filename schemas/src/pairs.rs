@@ -69,7 +69,7 @@ impl TrajectoryKind {
 }
 
 /// What a clip's pairs are made of.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Default, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum PairKind {
     /// Self-supervised from one camera: the target is the source video, the conditioning that video

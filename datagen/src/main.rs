@@ -388,7 +388,7 @@ fn multiview_pairs(args: &PairsArgs, config: &PairsConfig) -> anyhow::Result<()>
             .expect("valid template"),
     );
     let started = std::time::Instant::now();
-    let shard = datagen::pairs::multiview::write_scene_pairs(
+    let shard = datagen::pairs::scene::write_scene_pairs(
         &args.seq_dir,
         &args.out,
         &args.dataset,

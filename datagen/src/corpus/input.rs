@@ -125,7 +125,7 @@ impl SequenceProcessor<'_> {
         scene.scene_id = entry.video_id.clone();
         let load_seconds = started.elapsed().as_secs_f64();
         let clock = Instant::now();
-        let pairs = crate::pairs::multiview::generate_scene_clips(
+        let pairs = crate::pairs::scene::generate_scene_clips(
             &scene,
             entry.dataset.name(),
             &self.config.pairs,

@@ -4,12 +4,13 @@
 //! ([`depth_noise`]), the fused static background ([`static_background`]), and the pair generator
 //! that turns a sequence into shard records and renders it along a path ([`generator`]); and
 //! multi-view pairs of synchronised multi-camera scenes, one real camera rendered into another
-//! ([`multiview`]).
+//! ([`multiview`]), made with a scene's monocular pairs by [`scene`].
 
 pub mod clip;
 pub mod depth_noise;
 pub mod generator;
 pub mod multiview;
+pub mod scene;
 pub mod static_background;
 pub mod trajectory;
 pub mod trajectory_bank;

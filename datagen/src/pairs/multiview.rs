@@ -6,18 +6,17 @@
 //! (the render's non-holes). This is the supervision the CogNVS paper names as missing ("does not
 //! take advantage of 3D/4D datasets") and that GCD and ReCamMaster train on.
 //!
-//! The same scene also gives monocular self-supervised pairs (every camera with depth is a
-//! sequence for [`crate::pairs::generator`]), written beside the multi-view ones. Clip windows are
+//! Clip windows are
 //! cut as for monocular pairs ([`crate::pairs::clip::ClipConfig`]) over the instants both cameras
 //! film, matched by `time_ids` (a camera may film a subset of the instants). Frames stay at the
 //! target camera's resolution, like a monocular clip's.
 //!
 //! Which camera pairs (all ordered pairs, or a list), how many per scene (a subset drawn by seed)
 //! and the least co-visible fraction a pair must reach are the `[multiview]` table of the pairs
-//! config ([`MultiViewConfig`]).
+//! config ([`MultiViewConfig`]). [`crate::pairs::scene`] puts a scene's monocular and multi-view
+//! pairs together.
 
 use std::collections::{BTreeMap, BTreeSet};
-use std::path::{Path, PathBuf};
 
 use image::codecs::png::{CompressionType, FilterType, PngEncoder};
 use image::{EncodableLayout, GrayImage, ImageEncoder, RgbImage};
@@ -25,16 +24,16 @@ use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
-use schemas::{ClipRecord, InputDigest, PairKind, ShardStats, TrajectoryKind, TrajectoryRecord};
+use schemas::{ClipRecord, PairKind, TrajectoryKind, TrajectoryRecord};
 use serde::{Deserialize, Serialize};
 
 use crate::config_file::{Checked, KeyError, Validate, check_float};
 use crate::error::{Error, Result};
 use crate::geometry::camera::{mat3_to_row_major, mat4_to_row_major};
-use crate::geometry::depth_mesh::DepthMesh;
+use crate::geometry::depth_mesh::{DepthMesh, MeshConfig};
 use crate::io::depth_exr::encode_depth_exr;
 use crate::io::multiview::{CameraView, MultiViewScene};
-use crate::pairs::generator::{PairsConfig, TrajectoryRequest, generate_clips};
+use crate::pairs::clip::ClipConfig;
 
 /// Which multi-view pairs a multi-camera scene gives (the `[multiview]` table of a pairs config,
 /// `[pairs.multiview]` of a corpus config).
@@ -92,27 +91,6 @@ pub struct DroppedPair {
     pub clip_start: u32,
     /// Its co-visible fraction, below `min_covisible_fraction`.
     pub covisible_fraction: f64,
-}
-
-/// The records one scene gives.
-#[derive(Debug, Clone, Default)]
-pub struct ScenePairs {
-    /// Monocular records first (camera order), then multi-view ones (camera pair order).
-    pub records: Vec<ClipRecord>,
-    /// The camera pairs used, `(source, target)`, in order.
-    pub camera_pairs: Vec<(String, String)>,
-    /// Windows left out for their co-visible fraction.
-    pub dropped: Vec<DroppedPair>,
-}
-
-/// One unit of work done for a scene (for progress bars): a camera's monocular pairs or a
-/// camera pair's multi-view pairs.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct SceneProgress {
-    /// Units done.
-    pub done: usize,
-    /// Units in all.
-    pub total: usize,
 }
 
 /// The `(source, target)` camera pairs of `scene` that `config` asks for, in order: the listed
@@ -177,60 +155,25 @@ pub fn shared_instants(source: &CameraView, target: &CameraView) -> Vec<(usize, 
     target.time_ids.iter().enumerate().filter_map(|(k, id)| by_instant.get(id).map(|&j| (k, j))).collect()
 }
 
-/// Every record of `scene`: the monocular pairs of each camera with depth (when
-/// `config.multiview.monocular`, `trajectories` sampled ones per clip) and the multi-view pairs
-/// of the chosen camera pairs. `progress` hears of each camera and camera pair done.
-pub fn generate_scene_clips(
-    scene: &MultiViewScene,
-    dataset: &str,
-    config: &PairsConfig,
-    trajectories: u32,
-    seed: u64,
-    progress: &mut dyn FnMut(SceneProgress),
-) -> Result<ScenePairs> {
-    config.validate()?;
-    let pairs = camera_pairs(scene, &config.multiview, seed)?;
-    let monocular: Vec<&CameraView> = if config.multiview.monocular && trajectories > 0 {
-        scene.cameras.iter().filter(|c| c.has_depth).collect()
-    } else {
-        Vec::new()
-    };
-    let total = monocular.len() + pairs.len();
-    let mut done = 0;
-    let mut out = ScenePairs { camera_pairs: pairs.clone(), ..ScenePairs::default() };
-    let request = TrajectoryRequest { sampled: trajectories, explicit: Vec::new() };
-    for camera in monocular {
-        // Seeds and clip ids derive from the source id: the scene's and the camera's, so two
-        // scenes with the same camera names get different trajectories.
-        let mut sequence = camera.sequence.clone();
-        sequence.source_id = format!("{}/{}", scene.scene_id, camera.id);
-        for mut record in generate_clips(&sequence, dataset, config, &request, seed)? {
-            record.source_camera = Some(camera.id.clone());
-            record.target_camera = Some(camera.id.clone());
-            out.records.push(record);
-        }
-        done += 1;
-        progress(SceneProgress { done, total });
-    }
-    for (source, target) in &pairs {
-        let (source, target) = (scene.camera(source).expect("checked"), scene.camera(target).expect("checked"));
-        let (records, dropped) = camera_pair_clips(scene, source, target, dataset, config, seed)?;
-        out.records.extend(records);
-        out.dropped.extend(dropped);
-        done += 1;
-        progress(SceneProgress { done, total });
-    }
-    Ok(out)
+/// What multi-view pairs are made with: the clip windows, the depth mesh of the source and the
+/// `[multiview]` table (borrowed from a [`crate::pairs::generator::PairsConfig`]).
+#[derive(Debug, Clone, Copy)]
+pub struct MultiViewPairsConfig<'a> {
+    /// How the shared instants are cut into clips.
+    pub clip: &'a ClipConfig,
+    /// How the source's depth becomes the mesh the render casts rays into.
+    pub mesh: &'a MeshConfig,
+    /// Camera pairs, how many, least co-visible fraction.
+    pub multiview: &'a MultiViewConfig,
 }
 
 /// The multi-view records of one camera pair: one per clip window of their shared instants,
 /// except those below `min_covisible_fraction` (returned as dropped).
 pub fn camera_pair_clips(
     scene: &MultiViewScene,
-    source: &CameraView,
-    target: &CameraView,
+    (source, target): (&CameraView, &CameraView),
     dataset: &str,
-    config: &PairsConfig,
+    config: &MultiViewPairsConfig,
     seed: u64,
 ) -> Result<(Vec<ClipRecord>, Vec<DroppedPair>)> {
     if !source.has_depth {
@@ -247,7 +190,7 @@ pub fn camera_pair_clips(
     }
     for (start, length) in config.clip.windows(shared.len() as u32) {
         let window = &shared[start as usize..(start + length) as usize];
-        let record = window_record(scene, source, target, window, dataset, config, seed)?;
+        let record = window_record(scene, (source, target), window, dataset, config, seed)?;
         let fraction = record.trajectories[0].covisible_fraction;
         if fraction < config.multiview.min_covisible_fraction {
             dropped.push(DroppedPair {
@@ -269,11 +212,10 @@ type EncodedFrame = (Vec<u8>, Vec<u8>, Option<Vec<u8>>, Vec<u8>, Vec<u8>, usize)
 
 fn window_record(
     scene: &MultiViewScene,
-    source: &CameraView,
-    target: &CameraView,
+    (source, target): (&CameraView, &CameraView),
     window: &[(usize, usize)],
     dataset: &str,
-    config: &PairsConfig,
+    config: &MultiViewPairsConfig,
     seed: u64,
 ) -> Result<ClipRecord> {
     let (s, t) = (&source.sequence, &target.sequence);
@@ -283,7 +225,7 @@ fn window_record(
     let encoded: Vec<EncodedFrame> = window
         .par_iter()
         .map(|&(kt, ks)| -> Result<_> {
-            let (condition, mask) = render_into_target(source, ks, target, kt, config);
+            let (condition, mask) = render_into_target((source, ks), (target, kt), config.mesh);
             let kept = mask.pixels().filter(|p| p.0[0] != 0).count();
             let dynamic = t.dynamic_masks.as_ref().map(|m| png(&m[kt], FilterType::Up));
             Ok((
@@ -349,14 +291,12 @@ fn window_record(
 /// Frame `ks` of `source` rendered into camera `target` at its frame `kt`: the conditioning
 /// (holes black) and the mask (255 where s's surface covers the target pixel, 0 at holes).
 pub fn render_into_target(
-    source: &CameraView,
-    ks: usize,
-    target: &CameraView,
-    kt: usize,
-    config: &PairsConfig,
+    (source, ks): (&CameraView, usize),
+    (target, kt): (&CameraView, usize),
+    mesh: &MeshConfig,
 ) -> (RgbImage, GrayImage) {
     let s = &source.sequence;
-    let mesh = DepthMesh::new(&s.depth[ks], &s.cameras[ks], &config.covisibility.mesh);
+    let mesh = DepthMesh::new(&s.depth[ks], &s.cameras[ks], mesh);
     let (image, mut holes) =
         crate::geometry::render::render_novel_view(&mesh, &s.frames[ks], &s.cameras[ks], &target.sequence.cameras[kt]);
     for pixel in holes.pixels_mut() {
@@ -377,41 +317,3 @@ where
     bytes
 }
 
-/// What [`write_scene_pairs`] wrote.
-#[derive(Debug, Clone)]
-pub struct SceneShard {
-    /// The shard file.
-    pub path: PathBuf,
-    /// Its stats marker's content.
-    pub stats: ShardStats,
-    /// The scene's pairs (records moved into the shard are summarised here: camera pairs and
-    /// dropped windows; `records` is empty).
-    pub pairs: ScenePairs,
-    /// Monocular and multi-view records written.
-    pub counts: (usize, usize),
-}
-
-/// `datagen pairs` on a multi-camera folder: reads the scene, makes its monocular and multi-view
-/// pairs and writes them as one shard `out/{scene id}.parquet`. Nothing is written when the scene
-/// is refused.
-pub fn write_scene_pairs(
-    dir: &Path,
-    out: &Path,
-    dataset: &str,
-    config: &PairsConfig,
-    trajectories: u32,
-    seed: u64,
-    progress: &mut dyn FnMut(SceneProgress),
-) -> Result<SceneShard> {
-    config.validate()?;
-    let (scene, content_hash) =
-        rayon::join(|| crate::io::multiview::read_multiview(dir), || crate::corpus::build::hash_tree(dir));
-    let scene = scene?;
-    let input = InputDigest { source_path: dir.display().to_string(), content_hash: content_hash? };
-    let mut pairs = generate_scene_clips(&scene, dataset, config, trajectories, seed, progress)?;
-    let records = std::mem::take(&mut pairs.records);
-    let multiview = records.iter().filter(|r| r.pair_kind == PairKind::Multiview).count();
-    let counts = (records.len() - multiview, multiview);
-    let (path, stats) = crate::pairs::generator::write_shard(out, &scene.scene_id, &records, input)?;
-    Ok(SceneShard { path, stats, pairs, counts })
-}

@@ -11,7 +11,8 @@ use datagen::geometry::depth_mesh::{DepthMesh, MeshConfig};
 use datagen::geometry::render::{bilinear, render_novel_view};
 use datagen::io::multiview::{MultiViewScene, read_multiview};
 use datagen::pairs::generator::PairsConfig;
-use datagen::pairs::multiview::{MultiViewConfig, generate_scene_clips};
+use datagen::pairs::multiview::MultiViewConfig;
+use datagen::pairs::scene::generate_scene_clips;
 use datagen::synth::{CameraRig, SynthConfig, SynthScene, write_multiview};
 use schemas::{ClipRecord, InputStatus, PairKind, TrajectoryKind};
 

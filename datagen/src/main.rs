@@ -584,6 +584,10 @@ fn trajectories(command: TrajectoriesCommand) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Failed inputs `datagen build` lists with their reasons at the end (the status table and
+/// `datagen inspect` have them all): a screenful.
+const LISTED_FAILURES: usize = 20;
+
 fn build(args: BuildArgs) -> anyhow::Result<()> {
     let mut config = BuildConfig::from_toml_file(&args.config)?;
     if let Some(out) = args.out {
@@ -641,6 +645,20 @@ fn build(args: BuildArgs) -> anyhow::Result<()> {
         summary.bytes as f64 / 1e6,
         summary.seconds
     );
+    if summary.failed > 0 {
+        let status = datagen::corpus::build::read_corpus_status(&config.output.dir)?;
+        let failed: Vec<_> = status.values().filter(|r| r.status == InputStatus::Failed).collect();
+        for record in failed.iter().take(LISTED_FAILURES) {
+            println!("failed: {}: {}", record.input_key, record.reason);
+        }
+        if failed.len() > LISTED_FAILURES {
+            println!(
+                "... and {} more (datagen inspect {})",
+                failed.len() - LISTED_FAILURES,
+                config.output.dir.display()
+            );
+        }
+    }
     if args.timings {
         let t = processor.timings();
         println!(

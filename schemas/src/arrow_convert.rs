@@ -213,9 +213,8 @@ pub fn batch_to_records(batch: &RecordBatch, path: &Path) -> Result<Vec<ClipReco
     let pair_kind = columns.optional_strings("pair_kind")?;
     let source_camera = columns.optional_strings("source_camera")?;
     let target_camera = columns.optional_strings("target_camera")?;
-    let camera = |column: Option<&StringArray>, row: usize| {
-        column.filter(|c| !c.is_null(row)).map(|c| c.value(row).to_owned())
-    };
+    let camera =
+        |column: Option<&StringArray>, row: usize| column.filter(|c| !c.is_null(row)).map(|c| c.value(row).to_owned());
 
     let mut records = Vec::with_capacity(batch.num_rows());
     for row in 0..batch.num_rows() {

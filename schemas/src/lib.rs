@@ -15,12 +15,12 @@ pub mod trajectory_bank;
 pub use arrow_convert::{batch_to_records, records_to_batch};
 pub use error::{Error, Result};
 pub use pairs::{
-    BankProvenance, ClipRecord, DOC_KEY, OLDEST_READABLE_SCHEMA_VERSION, SCHEMA_NAME, SCHEMA_NAME_KEY, SCHEMA_VERSION,
-    SCHEMA_VERSION_KEY, PairKind, TrajectoryKind, TrajectoryRecord, pair_schema,
+    BankProvenance, ClipRecord, DOC_KEY, OLDEST_READABLE_SCHEMA_VERSION, PairKind, SCHEMA_NAME, SCHEMA_NAME_KEY,
+    SCHEMA_VERSION, SCHEMA_VERSION_KEY, TrajectoryKind, TrajectoryRecord, pair_schema,
 };
 pub use shard::{
-    InputDigest, ShardReader, ShardStats, ShardWriter, ShardWriterOptions, clip_count, clip_ids, is_finished, pair_kinds,
-    read_clip, read_shard, read_stats, stats_path, write_atomic,
+    InputDigest, ShardReader, ShardStats, ShardWriter, ShardWriterOptions, clip_count, clip_ids, is_finished,
+    pair_kinds, read_clip, read_shard, read_stats, stats_path, write_atomic,
 };
 pub use status::{InputStatus, StatusRecord, read_status_table, status_schema, write_status_table};
 pub use trajectory_bank::{BANK_SCHEMA_NAME, BANK_SCHEMA_VERSION, BankEntry, bank_schema, read_bank, write_bank};

@@ -24,9 +24,8 @@ use crate::arrow_convert::{batch_to_records, records_to_batch};
 use crate::direct_file::DirectFile;
 use crate::error::{Error, Result};
 use crate::pairs::{
-    PairKind,
-    ClipRecord, OLDEST_READABLE_SCHEMA_VERSION, SCHEMA_NAME, SCHEMA_NAME_KEY, SCHEMA_VERSION, SCHEMA_VERSION_KEY,
-    pair_schema, pair_schema_of_version,
+    ClipRecord, OLDEST_READABLE_SCHEMA_VERSION, PairKind, SCHEMA_NAME, SCHEMA_NAME_KEY, SCHEMA_VERSION,
+    SCHEMA_VERSION_KEY, pair_schema, pair_schema_of_version,
 };
 
 /// Suffix of a shard's stats marker file, appended to the shard's file name.

@@ -50,7 +50,7 @@ fn sample_record(clip_start: u32, frames: usize, trajectories: usize) -> ClipRec
             })
             .collect(),
         pair_kind: if clip_start % 3 == 1 { PairKind::Multiview } else { PairKind::Monocular },
-        source_camera: (clip_start % 3 != 0).then(|| format!("cam{clip_start}")),
+        source_camera: (!clip_start.is_multiple_of(3)).then(|| format!("cam{clip_start}")),
         target_camera: (clip_start % 3 == 1).then(|| "cam_target".to_owned()),
     }
 }

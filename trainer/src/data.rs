@@ -477,7 +477,8 @@ impl Plan {
 /// The mixed plan of `index` for `share`: an error naming `data.multiview_share` when the corpus
 /// lacks a kind the share asks for.
 fn mix(index: &ClipIndex, config: &DataConfig, share: f64) -> Result<Mix> {
-    let (multiview, monocular): (Vec<usize>, Vec<usize>) = (0..index.clips.len()).partition(|&i| index.clips[i].multiview);
+    let (multiview, monocular): (Vec<usize>, Vec<usize>) =
+        (0..index.clips.len()).partition(|&i| index.clips[i].multiview);
     let lacking = if share > 0.0 && multiview.is_empty() {
         Some("multi-view pairs (make them with `datagen pairs` or `datagen build` from multi-camera scenes)")
     } else if share < 1.0 && monocular.is_empty() {

@@ -730,7 +730,9 @@ mod tests {
     fn the_example_corpus_config_parses() {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/corpus_example.toml");
         let config = BuildConfig::from_toml_file(&path).unwrap();
-        assert_eq!(config.sources.len(), 4);
+        assert_eq!(config.sources.len(), 5);
+        assert_eq!(config.sources[4].dataset, super::super::crawl::DatasetKind::Multiview);
+        assert_eq!(config.pairs.multiview.min_covisible_fraction, 0.1);
         assert!(!config.pairs.depth_noise.enabled);
         assert_eq!(config.pairs.depth_noise.correlation_px, 8);
     }

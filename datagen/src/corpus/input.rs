@@ -37,7 +37,11 @@ pub fn load_entry(entry: &VideoEntry) -> Result<Sequence> {
             return Ok(sequence);
         }
         FrameSource::MultiView(dir) => {
-            return Err(Error::invalid(dir, "cameras", "a multi-camera scene is not one sequence (read it as a scene)"));
+            return Err(Error::invalid(
+                dir,
+                "cameras",
+                "a multi-camera scene is not one sequence (read it as a scene)",
+            ));
         }
         FrameSource::Video(path) => {
             let video = crate::io::video::decode_video(path)?;

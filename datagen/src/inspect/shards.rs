@@ -352,7 +352,8 @@ fn export_pair(
 /// cam00`), in the characters the sheet's font has; single-camera monocular pairs keep the plain
 /// headers.
 pub(crate) fn sheet_columns(record: &ClipRecord, with_render: bool) -> Vec<String> {
-    let mut columns: Vec<String> = SHEET_COLUMNS[..if with_render { 4 } else { 3 }].iter().map(|c| c.to_string()).collect();
+    let mut columns: Vec<String> =
+        SHEET_COLUMNS[..if with_render { 4 } else { 3 }].iter().map(|c| c.to_string()).collect();
     if let Some(target) = &record.target_camera {
         columns[0] = format!("{} {target}", columns[0]);
     }

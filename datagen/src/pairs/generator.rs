@@ -10,7 +10,9 @@ use glam::DMat4;
 use image::codecs::png::{CompressionType, FilterType, PngEncoder};
 use image::{EncodableLayout, GrayImage, ImageEncoder, RgbImage};
 use rayon::prelude::*;
-use schemas::{ClipRecord, InputDigest, PairKind, ShardStats, ShardWriter, ShardWriterOptions, TrajectoryKind, TrajectoryRecord};
+use schemas::{
+    ClipRecord, InputDigest, PairKind, ShardStats, ShardWriter, ShardWriterOptions, TrajectoryKind, TrajectoryRecord,
+};
 use serde::{Deserialize, Serialize};
 
 use crate::config_file::{Checked, Validate, check_count};

@@ -316,4 +316,3 @@ where
         .expect("PNG encoding to memory");
     bytes
 }
-

@@ -55,11 +55,8 @@ pub fn generate_scene_clips(
     let total = monocular.len() + pairs.len();
     let mut done = 0;
     let mut out = ScenePairs { camera_pairs: pairs.clone(), ..ScenePairs::default() };
-    let multiview = MultiViewPairsConfig {
-        clip: &config.clip,
-        mesh: &config.covisibility.mesh,
-        multiview: &config.multiview,
-    };
+    let multiview =
+        MultiViewPairsConfig { clip: &config.clip, mesh: &config.covisibility.mesh, multiview: &config.multiview };
     let request = TrajectoryRequest { sampled: trajectories, explicit: Vec::new() };
     for camera in monocular {
         // Seeds and clip ids derive from the source id: the scene's and the camera's, so two

@@ -123,7 +123,8 @@ fn the_target_is_camera_t_and_the_conditioning_matches_it_where_masked() {
             // The conditioning is the real renderer's output: s's frame through s's mesh into t.
             let condition = rgb(&trajectory.condition.as_ref().unwrap()[frame]);
             let mask = grey(&trajectory.covisible_mask[frame]);
-            let mesh = DepthMesh::new(&source.sequence.depth[frame], &source.sequence.cameras[frame], &MeshConfig::default());
+            let mesh =
+                DepthMesh::new(&source.sequence.depth[frame], &source.sequence.cameras[frame], &MeshConfig::default());
             let (render, holes) = render_novel_view(
                 &mesh,
                 &source.sequence.frames[frame],
@@ -278,7 +279,8 @@ fn pairs_are_deterministic_by_seed_and_the_subset_follows_it() {
     let scene = read_multiview(&rig).unwrap();
     let mut config = config(&[], 3);
     config.multiview.pairs_per_scene = 2;
-    let run_with = |config: &PairsConfig, seed| generate_scene_clips(&scene, "synth", config, 1, seed, &mut |_| {}).unwrap();
+    let run_with =
+        |config: &PairsConfig, seed| generate_scene_clips(&scene, "synth", config, 1, seed, &mut |_| {}).unwrap();
     let run = |seed| run_with(&config, seed);
     let (a, b) = (run(5), run(5));
     assert_eq!(a.records, b.records, "same seed, same records");
@@ -384,6 +386,11 @@ fn a_build_fails_a_broken_scene_alone_and_writes_nothing_for_it() {
     .unwrap();
     let build = datagen().arg("build").arg("--config").arg(&config).output().unwrap();
     assert!(build.status.success(), "{}", String::from_utf8_lossy(&build.stderr));
+    let printed = String::from_utf8_lossy(&build.stdout);
+    assert!(
+        printed.contains("failed: multiview/short: ") && printed.contains("failed: multiview/missing: "),
+        "the build lists the failed scenes with their reasons: {printed}"
+    );
     let status = datagen::corpus::build::read_corpus_status(&out).unwrap();
     let expect = |key: &str, state: InputStatus, needles: &[&str]| {
         let record = &status[key];

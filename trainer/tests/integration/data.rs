@@ -191,7 +191,8 @@ fn a_multiview_share_is_kept_per_batch_and_ranks_1_and_2_see_one_sequence() {
     let counts: Vec<usize> = global.iter().map(|b| b.iter().filter(|p| is_multiview(p)).count()).collect();
     assert_eq!(counts, [1, 1, 2, 1, 1, 2]);
     let clip = |p: &String| p.split('#').next().unwrap().to_string();
-    let (multiview, monocular): (Vec<&String>, Vec<&String>) = global[..3].iter().flatten().partition(|p| is_multiview(p));
+    let (multiview, monocular): (Vec<&String>, Vec<&String>) =
+        global[..3].iter().flatten().partition(|p| is_multiview(p));
     assert_eq!(multiview.iter().map(|p| clip(p)).collect::<BTreeSet<_>>().len(), 4, "no clip twice in an epoch");
     assert_eq!(monocular.iter().map(|p| clip(p)).collect::<BTreeSet<_>>().len(), 8, "no clip twice in an epoch");
 
@@ -223,20 +224,31 @@ fn a_multiview_share_is_kept_per_batch_and_ranks_1_and_2_see_one_sequence() {
 
 #[test]
 fn a_multiview_share_without_multiview_pairs_is_an_error_naming_the_key() {
-    let err = ShardLoader::open(&dirs(), DataConfig { multiview_share: Some(0.25), ..config(1, 0, 1) }, DataPosition::default())
-        .err()
-        .unwrap()
-        .to_string();
+    let err = ShardLoader::open(
+        &dirs(),
+        DataConfig { multiview_share: Some(0.25), ..config(1, 0, 1) },
+        DataPosition::default(),
+    )
+    .err()
+    .unwrap()
+    .to_string();
     assert!(err.contains("data.multiview_share") && err.contains("multi-view"), "{err}");
     // The range is checked too; 0 is a share like any other (monocular pairs only).
-    let err = ShardLoader::open(&dirs(), DataConfig { multiview_share: Some(1.5), ..config(1, 0, 1) }, DataPosition::default())
-        .err()
-        .unwrap()
-        .to_string();
+    let err = ShardLoader::open(
+        &dirs(),
+        DataConfig { multiview_share: Some(1.5), ..config(1, 0, 1) },
+        DataPosition::default(),
+    )
+    .err()
+    .unwrap()
+    .to_string();
     assert!(err.contains("data.multiview_share") && err.contains("[0, 1]"), "{err}");
-    let mut monocular =
-        ShardLoader::open(&[mixed_shards().join("mixed")], DataConfig { multiview_share: Some(0.0), ..config(3, 0, 1) }, DataPosition::default())
-            .unwrap();
+    let mut monocular = ShardLoader::open(
+        &[mixed_shards().join("mixed")],
+        DataConfig { multiview_share: Some(0.0), ..config(3, 0, 1) },
+        DataPosition::default(),
+    )
+    .unwrap();
     assert_eq!(monocular.batches_per_epoch(), 3, "9 monocular clips in batches of 3");
     let batch = monocular.next_batch().unwrap();
     assert!(batch.provenance.iter().all(|p| !p.contains("/from-")), "{:?}", batch.provenance);

@@ -6,10 +6,12 @@
 //! (the render's non-holes). This is the supervision the CogNVS paper names as missing ("does not
 //! take advantage of 3D/4D datasets") and that GCD and ReCamMaster train on.
 //!
-//! Clip windows are
-//! cut as for monocular pairs ([`crate::pairs::clip::ClipConfig`]) over the instants both cameras
-//! film, matched by `time_ids` (a camera may film a subset of the instants). Frames stay at the
-//! target camera's resolution, like a monocular clip's.
+//! Clip windows are cut as for monocular pairs ([`crate::pairs::clip::ClipConfig`]) over the
+//! instants both cameras film, matched by `time_ids` (a camera may film a subset of the instants;
+//! `clip_start` is the target's frame index of a window's first instant). Frames stay at the
+//! target camera's resolution, like a monocular clip's. A camera without depth (`has_depth`
+//! false) can be a target, never a source. The dataset's own co-visibility masks (DyCheck's
+//! `covisible/`) are not used: the mask is the render's.
 //!
 //! Which camera pairs (all ordered pairs, or a list), how many per scene (a subset drawn by seed)
 //! and the least co-visible fraction a pair must reach are the `[multiview]` table of the pairs

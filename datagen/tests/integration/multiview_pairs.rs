@@ -426,6 +426,15 @@ fn a_build_fails_a_broken_scene_alone_and_writes_nothing_for_it() {
             (PairKind::Multiview, some("cam01"), some("cam00")),
         ])
     );
+    // The trajectory bank of the same corpus takes every camera's motion of the good scenes.
+    let bank = datagen::corpus::harvest::collect_from_corpus(
+        &datagen::corpus::build::BuildConfig::from_toml_file(&config).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(bank.windows, 4, "2 scenes × 2 cameras × 1 window");
+    let failed: BTreeSet<&str> = bank.failed_inputs.iter().map(|(key, _)| key.as_str()).collect();
+    assert_eq!(failed, BTreeSet::from(["multiview/missing", "multiview/short"]));
+
     let report = datagen().arg("inspect").arg(&out).output().unwrap();
     let text = String::from_utf8_lossy(&report.stdout);
     assert!(text.contains("2 ok, 0 skipped, 2 failed") && text.contains("4 monocular, 4 multiview"), "{text}");

@@ -316,6 +316,34 @@ fn pairs_are_deterministic_by_seed_and_the_subset_follows_it() {
         shards.push(schemas::read_shard(&out.join("rig.parquet")).unwrap());
     }
     assert_eq!(shards[0], shards[1]);
+
+    // The exports and the HTML report name the pair kind and the cameras.
+    let (export, html) = (dir.path().join("export"), dir.path().join("report.html"));
+    let inspect = datagen()
+        .arg("inspect")
+        .arg(dir.path().join("out1"))
+        .arg("--export")
+        .arg(&export)
+        .arg("--report")
+        .arg(&html)
+        .output()
+        .unwrap();
+    assert!(inspect.status.success(), "{}", String::from_utf8_lossy(&inspect.stderr));
+    let html = std::fs::read_to_string(&html).unwrap();
+    assert!(html.contains("Pairs by pair kind: monocular 3, multiview 2"), "{html}");
+    let multiview_record = shards[0].iter().find(|r| r.pair_kind == PairKind::Multiview).unwrap();
+    let (source, target) =
+        (multiview_record.source_camera.clone().unwrap(), multiview_record.target_camera.clone().unwrap());
+    assert!(html.contains(&format!("{source}→{target}")), "{html}");
+    let folder = export.join(format!("{}__t0", multiview_record.clip_id.replace('/', "__")));
+    let meta: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(folder.join("meta.json")).unwrap()).unwrap();
+    assert_eq!(
+        (meta["pair_kind"].as_str(), meta["source_camera"].as_str(), meta["target_camera"].as_str()),
+        (Some("multiview"), Some(source.as_str()), Some(target.as_str()))
+    );
+    assert_eq!(meta["contact_sheet_columns"][0], format!("target {target}"));
+    assert_eq!(meta["contact_sheet_columns"][2], format!("conditioning: from {source}"));
     let library: Vec<ClipRecord> =
         a.records.into_iter().map(|r| ClipRecord { source_path: rig.display().to_string(), ..r }).collect();
     let written: Vec<ClipRecord> =

@@ -722,6 +722,30 @@ mod tests {
     }
 
     #[test]
+    fn multiview_tree_lists_each_scene_folder_once() {
+        let dir = tempfile::tempdir().unwrap();
+        touch(&dir.path().join("s1/cam0/gt_rgb.mp4"));
+        touch(&dir.path().join("s1/cam1/gt_rgb.mp4"));
+        // A scene with one readable camera is still one scene (its reader names the broken one).
+        touch(&dir.path().join("group/s2/cam0/frames/00000.png"));
+        touch(&dir.path().join("group/s2/cam0/depth/00000.exr"));
+        touch(&dir.path().join("group/s2/cam1/readme.txt"));
+        touch(&dir.path().join("notes/readme.txt"));
+        let source = SourceConfig {
+            dataset: DatasetKind::Multiview,
+            root: dir.path().to_owned(),
+            reconstructions: None,
+            annotations: None,
+            split: None,
+            id_prefix: None,
+        };
+        let entries = crawl(&source).unwrap();
+        let keys: Vec<String> = entries.iter().map(VideoEntry::key).collect();
+        assert_eq!(keys, ["multiview/group/s2", "multiview/s1"]);
+        assert_eq!(entries[1].frames, FrameSource::MultiView(dir.path().join("s1")));
+    }
+
+    #[test]
     fn missing_root_is_an_error_naming_it() {
         let source = SourceConfig {
             dataset: DatasetKind::Sav,

@@ -131,7 +131,9 @@ struct SynthCorpusArgs {
 
 #[derive(Debug, Args)]
 struct PairsArgs {
-    /// The sequence folder.
+    /// The sequence folder, or a synchronised multi-camera scene folder (one sub-folder per
+    /// camera): it gives each camera's monocular pairs and the multi-view pairs of the config's
+    /// [multiview] table, in one shard.
     seq_dir: PathBuf,
     /// Layout of the folder (cog-nvs, megasam, generic, vipe, vggt, colmap, gen3c, depth-only)
     /// [default: detected from its files; a folder matching several is an error listing them].
@@ -306,6 +308,9 @@ fn pairs(args: PairsArgs) -> anyhow::Result<()> {
         None => PairsConfig::default(),
     };
     config.depth_noise.enabled |= args.depth_noise || args.second_depth.is_some();
+    if args.layout.is_none() && datagen::io::multiview_layout::detect_multiview_layout(&args.seq_dir).is_ok() {
+        return multiview_pairs(&args, &config);
+    }
     let job = datagen::pairs::job::PairsJob {
         seq_dir: args.seq_dir,
         layout: args.layout,
@@ -352,6 +357,53 @@ fn pairs(args: PairsArgs) -> anyhow::Result<()> {
             t.index,
             100.0 * t.covisible_fraction,
             t.rejected_samples
+        );
+    }
+    Ok(())
+}
+
+/// `datagen pairs` on a multi-camera scene folder: its monocular and multi-view pairs in one shard.
+fn multiview_pairs(args: &PairsArgs, config: &PairsConfig) -> anyhow::Result<()> {
+    if !args.trajectory_files.is_empty() || args.second_depth.is_some() {
+        anyhow::bail!("--trajectory and --second-depth take one sequence folder, not a multi-camera scene");
+    }
+    let trajectories = args.trajectories.unwrap_or(datagen::pairs::generator::PAPER_TRAJECTORIES);
+    let bar = indicatif::ProgressBar::new(0).with_style(
+        indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} cameras and camera pairs [{elapsed_precise}]")
+            .expect("valid template"),
+    );
+    let started = std::time::Instant::now();
+    let shard = datagen::pairs::scene::write_scene_pairs(
+        &args.seq_dir,
+        &args.out,
+        &args.dataset,
+        config,
+        trajectories,
+        args.seed,
+        &mut |p| {
+            bar.set_length(p.total as u64);
+            bar.set_position(p.done as u64);
+        },
+    )?;
+    bar.finish_and_clear();
+    println!(
+        "wrote {} ({} monocular and {} multi-view clips, {} pairs, {:.1} MB) in {:.2} s",
+        shard.path.display(),
+        shard.counts.0,
+        shard.counts.1,
+        shard.stats.pairs,
+        shard.stats.bytes as f64 / 1e6,
+        started.elapsed().as_secs_f64()
+    );
+    let used: Vec<String> = shard.pairs.camera_pairs.iter().map(|(s, t)| format!("{s}→{t}")).collect();
+    println!("  camera pairs: {}", used.join(", "));
+    for dropped in &shard.pairs.dropped {
+        println!(
+            "  left out {}→{} from frame {}: co-visible {:.1} % < multiview.min_covisible_fraction",
+            dropped.source,
+            dropped.target,
+            dropped.clip_start,
+            100.0 * dropped.covisible_fraction
         );
     }
     Ok(())
@@ -517,6 +569,10 @@ fn trajectories(command: TrajectoriesCommand) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Failed inputs `datagen build` lists with their reasons at the end (the status table and
+/// `datagen inspect` have them all): a screenful.
+const LISTED_FAILURES: usize = 20;
+
 fn build(args: BuildArgs) -> anyhow::Result<()> {
     let mut config = BuildConfig::from_toml_file(&args.config)?;
     if let Some(out) = args.out {
@@ -574,6 +630,20 @@ fn build(args: BuildArgs) -> anyhow::Result<()> {
         summary.bytes as f64 / 1e6,
         summary.seconds
     );
+    if summary.failed > 0 {
+        let status = datagen::corpus::build::read_corpus_status(&config.output.dir)?;
+        let failed: Vec<_> = status.values().filter(|r| r.status == InputStatus::Failed).collect();
+        for record in failed.iter().take(LISTED_FAILURES) {
+            println!("failed: {}: {}", record.input_key, record.reason);
+        }
+        if failed.len() > LISTED_FAILURES {
+            println!(
+                "... and {} more (datagen inspect {})",
+                failed.len() - LISTED_FAILURES,
+                config.output.dir.display()
+            );
+        }
+    }
     if args.timings {
         let t = processor.timings();
         println!(

@@ -15,7 +15,7 @@ use arrow_schema::{DataType, FieldRef, SchemaRef};
 
 use crate::error::{Error, Result};
 use crate::pairs::{
-    BankProvenance, ClipRecord, TrajectoryKind, TrajectoryRecord, bank_provenance_fields, pair_schema,
+    BankProvenance, ClipRecord, PairKind, TrajectoryKind, TrajectoryRecord, bank_provenance_fields, pair_schema,
     trajectory_fields,
 };
 
@@ -134,6 +134,9 @@ pub fn records_to_batch(records: &[ClipRecord]) -> Result<RecordBatch> {
         Arc::new(matrix_list(&dt("world_from_camera"), &poses).map_err(arrow_err)?),
         Arc::new(bytes_list(&dt("dynamic_mask"), &masks).map_err(arrow_err)?),
         Arc::new(trajectories_column(&dt("trajectories"), records).map_err(arrow_err)?),
+        strings(|r| r.pair_kind.as_str()),
+        Arc::new(StringArray::from_iter(records.iter().map(|r| r.source_camera.as_deref()))),
+        Arc::new(StringArray::from_iter(records.iter().map(|r| r.target_camera.as_deref()))),
     ];
     RecordBatch::try_new(schema, columns).map_err(arrow_err)
 }
@@ -206,6 +209,12 @@ pub fn batch_to_records(batch: &RecordBatch, path: &Path) -> Result<Vec<ClipReco
     let poses = columns.list("world_from_camera")?;
     let masks = columns.list("dynamic_mask")?;
     let trajectories = columns.list("trajectories")?;
+    // Absent before v3: every clip then reads as monocular, from a single-camera input.
+    let pair_kind = columns.optional_strings("pair_kind")?;
+    let source_camera = columns.optional_strings("source_camera")?;
+    let target_camera = columns.optional_strings("target_camera")?;
+    let camera =
+        |column: Option<&StringArray>, row: usize| column.filter(|c| !c.is_null(row)).map(|c| c.value(row).to_owned());
 
     let mut records = Vec::with_capacity(batch.num_rows());
     for row in 0..batch.num_rows() {
@@ -230,6 +239,14 @@ pub fn batch_to_records(batch: &RecordBatch, path: &Path) -> Result<Vec<ClipReco
                 Some(read_bytes(&masks.value(row), path, "dynamic_mask")?)
             },
             trajectories: read_trajectories(&trajectories.value(row), path)?,
+            pair_kind: match pair_kind {
+                Some(kinds) => PairKind::parse(kinds.value(row)).ok_or_else(|| {
+                    Error::mismatch(path, "pair_kind", format!("row {row}: unknown kind `{}`", kinds.value(row)))
+                })?,
+                None => PairKind::Monocular,
+            },
+            source_camera: camera(source_camera, row),
+            target_camera: camera(target_camera, row),
         };
         if record.frames.len() != num_frames.value(row) as usize {
             return Err(Error::mismatch(
@@ -258,6 +275,14 @@ impl<'a> Columns<'a> {
     fn strings(&self, name: &str) -> Result<&'a StringArray> {
         let column = self.column(name)?;
         column.as_string_opt::<i32>().ok_or_else(|| self.wrong_type(name, column))
+    }
+
+    /// A string column that older schema versions lack (`None` when absent).
+    fn optional_strings(&self, name: &str) -> Result<Option<&'a StringArray>> {
+        match self.batch.column_by_name(name) {
+            Some(column) => column.as_string_opt::<i32>().map(Some).ok_or_else(|| self.wrong_type(name, column)),
+            None => Ok(None),
+        }
     }
 
     fn primitive<T: arrow_array::ArrowPrimitiveType>(&self, name: &str) -> Result<&'a arrow_array::PrimitiveArray<T>> {

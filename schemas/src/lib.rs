@@ -15,12 +15,12 @@ pub mod trajectory_bank;
 pub use arrow_convert::{batch_to_records, records_to_batch};
 pub use error::{Error, Result};
 pub use pairs::{
-    BankProvenance, ClipRecord, DOC_KEY, OLDEST_READABLE_SCHEMA_VERSION, SCHEMA_NAME, SCHEMA_NAME_KEY, SCHEMA_VERSION,
-    SCHEMA_VERSION_KEY, TrajectoryKind, TrajectoryRecord, pair_schema,
+    BankProvenance, ClipRecord, DOC_KEY, OLDEST_READABLE_SCHEMA_VERSION, PairKind, SCHEMA_NAME, SCHEMA_NAME_KEY,
+    SCHEMA_VERSION, SCHEMA_VERSION_KEY, TrajectoryKind, TrajectoryRecord, pair_schema,
 };
 pub use shard::{
     InputDigest, ShardReader, ShardStats, ShardWriter, ShardWriterOptions, clip_count, clip_ids, is_finished,
-    read_clip, read_shard, read_stats, stats_path, write_atomic,
+    pair_kinds, read_clip, read_shard, read_stats, stats_path, write_atomic,
 };
 pub use status::{InputStatus, StatusRecord, read_status_table, status_schema, write_status_table};
 pub use trajectory_bank::{BANK_SCHEMA_NAME, BANK_SCHEMA_VERSION, BankEntry, bank_schema, read_bank, write_bank};
@@ -46,7 +46,9 @@ pub fn reference_markdown() -> String {
     }
     out.push_str(&format!(
         "\nShards of versions {OLDEST_READABLE_SCHEMA_VERSION} to {SCHEMA_VERSION} are read; columns added since a shard's\n\
-         version read as null (v2 added `trajectories[].bank_entry` and the kind `bank`).\n\n\
+         version read as null (v2 added `trajectories[].bank_entry` and the kind `bank`; v3 added `pair_kind`,\n\
+         `source_camera`, `target_camera` and the trajectory kind `camera`, and older shards read as monocular\n\
+         pairs of single-camera inputs).\n\n\
          # Trajectory bank schema `{BANK_SCHEMA_NAME}` v{BANK_SCHEMA_VERSION}\n\n\
          Generated from `schemas/src/trajectory_bank.rs`. Written by `datagen trajectories collect`, read by the\n\
          `bank` and `mixed` trajectory samplers. One Parquet file, one row per clip window of a source video's\n\

@@ -18,13 +18,16 @@ pub const SCHEMA_NAME: &str = "cognvs.pairs";
 /// Parquet key-value metadata key holding the schema version (a decimal integer).
 pub const SCHEMA_VERSION_KEY: &str = "cognvs.schema_version";
 /// The version this code writes. Bump on any change a reader could notice. Version 2 added
-/// `trajectories[].bank_entry` and the trajectory kind `bank`.
-pub const SCHEMA_VERSION: u32 = 2;
+/// `trajectories[].bank_entry` and the trajectory kind `bank`; version 3 the pair kind
+/// (`pair_kind`, `source_camera`, `target_camera`) and the trajectory kind `camera`.
+pub const SCHEMA_VERSION: u32 = 3;
 /// The oldest version this code still reads (older shards lack the columns added since, which
 /// read as null).
 pub const OLDEST_READABLE_SCHEMA_VERSION: u32 = 1;
 /// The first version with `trajectories[].bank_entry`.
 const BANK_ENTRY_SINCE: u32 = 2;
+/// The first version with `pair_kind`, `source_camera` and `target_camera`.
+pub const PAIR_KIND_SINCE: u32 = 3;
 /// Arrow field metadata key holding a field's documentation.
 pub const DOC_KEY: &str = "doc";
 
@@ -38,6 +41,8 @@ pub enum TrajectoryKind {
     Explicit,
     /// The source path composed with a trajectory bank entry's real camera motion (schema v2+).
     Bank,
+    /// Another real camera of a synchronised multi-camera scene (multi-view pairs, schema v3+).
+    Camera,
 }
 
 impl TrajectoryKind {
@@ -47,6 +52,7 @@ impl TrajectoryKind {
             Self::Sampled => "sampled",
             Self::Explicit => "explicit",
             Self::Bank => "bank",
+            Self::Camera => "camera",
         }
     }
 
@@ -56,6 +62,39 @@ impl TrajectoryKind {
             "sampled" => Some(Self::Sampled),
             "explicit" => Some(Self::Explicit),
             "bank" => Some(Self::Bank),
+            "camera" => Some(Self::Camera),
+            _ => None,
+        }
+    }
+}
+
+/// What a clip's pairs are made of.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PairKind {
+    /// Self-supervised from one camera: the target is the source video, the conditioning that video
+    /// masked to what a novel camera sees (every shard before v3).
+    #[default]
+    Monocular,
+    /// From a synchronised multi-camera scene: the target is camera `target_camera`'s real frames,
+    /// the conditioning camera `source_camera`'s frames rendered into it (schema v3+).
+    Multiview,
+}
+
+impl PairKind {
+    /// The string stored in the `pair_kind` column.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Monocular => "monocular",
+            Self::Multiview => "multiview",
+        }
+    }
+
+    /// Parses the `pair_kind` column's value.
+    pub fn parse(value: &str) -> Option<Self> {
+        match value {
+            "monocular" => Some(Self::Monocular),
+            "multiview" => Some(Self::Multiview),
             _ => None,
         }
     }
@@ -142,6 +181,15 @@ pub struct ClipRecord {
     pub dynamic_mask: Option<Vec<Vec<u8>>>,
     /// The clip's trajectories.
     pub trajectories: Vec<TrajectoryRecord>,
+    /// Monocular (self-supervised) or multi-view pairs (`monocular` in shards before v3).
+    pub pair_kind: PairKind,
+    /// The camera whose frames are rendered into the conditioning: for multi-view pairs the
+    /// source camera's id, for monocular pairs of a multi-camera scene the filming camera's id;
+    /// `None` for single-camera inputs (and in shards before v3).
+    pub source_camera: Option<String>,
+    /// The camera whose frames are the target (`frames`): its id in a multi-camera scene; `None`
+    /// for single-camera inputs (and in shards before v3).
+    pub target_camera: Option<String>,
 }
 
 impl ClipRecord {
@@ -201,7 +249,7 @@ pub fn trajectory_fields_of_version(version: u32) -> Fields {
         ),
         doc(
             Field::new("kind", DataType::Utf8, false),
-            "`sampled` (spherical offsets drawn by the generator), `explicit` (given by the user) or `bank` (the source path composed with a trajectory bank entry's motion; v2+).",
+            "`sampled` (spherical offsets drawn by the generator), `explicit` (given by the user), `bank` (the source path composed with a trajectory bank entry's motion; v2+) or `camera` (another real camera of a multi-camera scene: multi-view pairs; v3+).",
         ),
         doc(
             Field::new("pivot_distance", DataType::Float64, false),
@@ -256,7 +304,7 @@ pub fn pair_schema() -> Schema {
 
 /// The Arrow schema of a training-pair shard of schema `version` (for reading older shards).
 pub fn pair_schema_of_version(version: u32) -> Schema {
-    let fields = vec![
+    let mut fields = vec![
         doc(
             Field::new("clip_id", DataType::Utf8, false),
             "Unique id of the clip within a corpus: `{dataset}/{source_id}/{clip_start}`.",
@@ -314,6 +362,22 @@ pub fn pair_schema_of_version(version: u32) -> Schema {
             "The clip's novel camera paths; each element is one training pair (conditioning → `frames`).",
         ),
     ];
+    if version >= PAIR_KIND_SINCE {
+        fields.extend([
+            doc(
+                Field::new("pair_kind", DataType::Utf8, false),
+                "`monocular` (self-supervised: the target is the source video, the conditioning it masked to a novel camera's view) or `multiview` (the target is camera `target_camera`'s real frames, the conditioning camera `source_camera`'s frames rendered into it; the trajectory, of kind `camera`, is the source camera's path and its `condition` is always stored). Added in v3; older shards read as `monocular`.",
+            ),
+            doc(
+                Field::new("source_camera", DataType::Utf8, true),
+                "Multi-view pairs: the source camera's id; monocular pairs of a multi-camera scene: the filming camera's id; null for single-camera inputs (added in v3).",
+            ),
+            doc(
+                Field::new("target_camera", DataType::Utf8, true),
+                "The id of the camera whose frames are `frames`, in a multi-camera scene; null for single-camera inputs (added in v3).",
+            ),
+        ]);
+    }
     Schema::new(fields).with_metadata(HashMap::from([
         (SCHEMA_NAME_KEY.to_owned(), SCHEMA_NAME.to_owned()),
         (SCHEMA_VERSION_KEY.to_owned(), version.to_string()),

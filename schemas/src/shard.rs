@@ -24,8 +24,8 @@ use crate::arrow_convert::{batch_to_records, records_to_batch};
 use crate::direct_file::DirectFile;
 use crate::error::{Error, Result};
 use crate::pairs::{
-    ClipRecord, OLDEST_READABLE_SCHEMA_VERSION, SCHEMA_NAME, SCHEMA_NAME_KEY, SCHEMA_VERSION, SCHEMA_VERSION_KEY,
-    pair_schema, pair_schema_of_version,
+    ClipRecord, OLDEST_READABLE_SCHEMA_VERSION, PairKind, SCHEMA_NAME, SCHEMA_NAME_KEY, SCHEMA_VERSION,
+    SCHEMA_VERSION_KEY, pair_schema, pair_schema_of_version,
 };
 
 /// Suffix of a shard's stats marker file, appended to the shard's file name.
@@ -447,24 +447,45 @@ pub fn clip_count(path: &Path) -> Result<usize> {
 
 /// The clip ids of a shard, in row order, reading only that column.
 pub fn clip_ids(path: &Path) -> Result<Vec<String>> {
+    string_column(path, "clip_id")?.ok_or_else(|| Error::mismatch(path, "clip_id", "column missing"))
+}
+
+/// The pair kind of every clip of a shard, in row order, reading only that column (shards before
+/// v3 have none: all their clips are monocular).
+pub fn pair_kinds(path: &Path) -> Result<Vec<PairKind>> {
+    let Some(kinds) = string_column(path, "pair_kind")? else {
+        return Ok(vec![PairKind::Monocular; clip_count(path)?]);
+    };
+    kinds
+        .iter()
+        .enumerate()
+        .map(|(row, kind)| {
+            PairKind::parse(kind)
+                .ok_or_else(|| Error::mismatch(path, "pair_kind", format!("row {row}: unknown kind `{kind}`")))
+        })
+        .collect()
+}
+
+/// One string column of a shard, in row order, reading only that column; `None` if the shard
+/// has no such column.
+fn string_column(path: &Path, name: &str) -> Result<Option<Vec<String>>> {
     use arrow_array::Array as _;
     let builder = open_checked(path)?;
     let parquet = |source| Error::Parquet { path: path.to_owned(), source };
-    let column =
-        builder.schema().index_of("clip_id").map_err(|_| Error::mismatch(path, "clip_id", "column missing"))?;
+    let Ok(column) = builder.schema().index_of(name) else { return Ok(None) };
     let mask = parquet::arrow::ProjectionMask::roots(builder.parquet_schema(), [column]);
     let reader = builder.with_projection(mask).build().map_err(parquet)?;
-    let mut ids = Vec::new();
+    let mut values = Vec::new();
     for batch in reader {
         let batch = batch.map_err(|source| Error::Arrow { path: path.to_owned(), source })?;
-        let values = batch
+        let strings = batch
             .column(0)
             .as_any()
             .downcast_ref::<arrow_array::StringArray>()
-            .ok_or_else(|| Error::mismatch(path, "clip_id", "not a string column"))?;
-        ids.extend(values.iter().map(|id| id.unwrap_or_default().to_string()));
+            .ok_or_else(|| Error::mismatch(path, name, "not a string column"))?;
+        values.extend(strings.iter().map(|v| v.unwrap_or_default().to_string()));
     }
-    Ok(ids)
+    Ok(Some(values))
 }
 
 /// Reads every clip of a shard.
@@ -487,6 +508,12 @@ mod tests {
 
     /// A v1 shard of `records` (no `trajectories[].bank_entry`), written as a v1 writer did.
     fn write_v1(path: &Path, records: &[ClipRecord], version: &str) {
+        write_old(path, records, 1, version)
+    }
+
+    /// A shard of `records` in the layout of schema version `layout` (the columns and trajectory
+    /// fields that version has), labelled `version`, written as that version's writer did.
+    fn write_old(path: &Path, records: &[ClipRecord], layout: u32, version: &str) {
         use arrow_array::cast::AsArray;
         use arrow_array::{Array, ArrayRef, ListArray, RecordBatch, StructArray};
         use std::sync::Arc;
@@ -494,7 +521,7 @@ mod tests {
         let index = batch.schema().index_of("trajectories").unwrap();
         let list = batch.column(index).as_list::<i32>();
         let structs = list.values().as_struct();
-        let v1 = pair_schema_of_version(1);
+        let v1 = pair_schema_of_version(layout);
         let arrow_schema::DataType::List(item) = v1.field_with_name("trajectories").unwrap().data_type().clone() else {
             unreachable!()
         };
@@ -502,7 +529,7 @@ mod tests {
         let children: Vec<ArrayRef> = structs.columns()[..fields.len()].to_vec();
         let structs = StructArray::try_new(fields, children, None).unwrap();
         let list = ListArray::try_new(item, list.offsets().clone(), Arc::new(structs), list.nulls().cloned()).unwrap();
-        let mut columns = batch.columns().to_vec();
+        let mut columns = batch.columns()[..v1.fields().len()].to_vec();
         columns[index] = Arc::new(list);
         let batch = RecordBatch::try_new(Arc::new(v1), columns).unwrap();
         let properties = WriterProperties::builder()
@@ -549,6 +576,9 @@ mod tests {
                 covisible_fraction: 0.5,
                 bank_entry: None,
             }],
+            pair_kind: PairKind::Monocular,
+            source_camera: None,
+            target_camera: None,
         };
         let old = dir.path().join("v1.parquet");
         write_v1(&old, std::slice::from_ref(&record), "1");
@@ -558,5 +588,61 @@ mod tests {
         write_v1(&future, std::slice::from_ref(&record), "9");
         let error = read_shard(&future).err().unwrap().to_string();
         assert!(error.contains("v9.parquet") && error.contains(SCHEMA_VERSION_KEY) && error.contains("`9`"), "{error}");
+    }
+
+    #[test]
+    fn version_2_shards_read_as_monocular_single_camera_pairs() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut record = ClipRecord {
+            clip_id: "synth/a/0".into(),
+            source_id: "a".into(),
+            dataset: "synth".into(),
+            source_path: "/a".into(),
+            clip_start: 0,
+            fps: 24.0,
+            width: 2,
+            height: 2,
+            seed: 1,
+            tool_version: "datagen 0.1.0".into(),
+            frames: vec![vec![1, 2, 3]],
+            depth: vec![vec![4]],
+            intrinsics: vec![[1.0; 9]],
+            world_from_camera: vec![[2.0; 16]],
+            dynamic_mask: None,
+            trajectories: vec![crate::TrajectoryRecord {
+                index: 0,
+                kind: crate::TrajectoryKind::Camera,
+                pivot_distance: 0.0,
+                azimuth_deg: Vec::new(),
+                elevation_deg: Vec::new(),
+                radius_frac: Vec::new(),
+                rejected_samples: 0,
+                world_from_camera: vec![[3.0; 16]],
+                covisible_mask: vec![vec![5]],
+                condition: Some(vec![vec![6]]),
+                covisible_fraction: 0.5,
+                bank_entry: None,
+            }],
+            // Written with the v3 fields set: the v2 layout must drop them, and reading must not
+            // invent them.
+            pair_kind: PairKind::Multiview,
+            source_camera: Some("cam0".into()),
+            target_camera: Some("cam1".into()),
+        };
+        let current = dir.path().join("v3.parquet");
+        let mut writer = ShardWriter::create(&current, ShardWriterOptions::default()).unwrap();
+        writer.write(&record).unwrap();
+        writer.finish().unwrap();
+        assert_eq!(read_shard(&current).unwrap(), vec![record.clone()]);
+        assert_eq!(pair_kinds(&current).unwrap(), [PairKind::Multiview]);
+
+        let old = dir.path().join("v2.parquet");
+        write_old(&old, std::slice::from_ref(&record), 2, "2");
+        record.pair_kind = PairKind::Monocular;
+        record.source_camera = None;
+        record.target_camera = None;
+        assert_eq!(read_shard(&old).unwrap(), vec![record.clone()]);
+        assert_eq!(read_clip(&old, 0).unwrap(), record);
+        assert_eq!(pair_kinds(&old).unwrap(), [PairKind::Monocular]);
     }
 }

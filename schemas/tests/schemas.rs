@@ -1,7 +1,7 @@
 //! Integration tests of the shard contract: round trips, the generated reference, atomic writing
 //! and version checks.
 
-use schemas::{ClipRecord, ShardWriter, ShardWriterOptions, TrajectoryKind, TrajectoryRecord};
+use schemas::{ClipRecord, PairKind, ShardWriter, ShardWriterOptions, TrajectoryKind, TrajectoryRecord};
 
 /// A small record with distinct, non-trivial values in every field.
 fn sample_record(clip_start: u32, frames: usize, trajectories: usize) -> ClipRecord {
@@ -49,6 +49,9 @@ fn sample_record(clip_start: u32, frames: usize, trajectories: usize) -> ClipRec
                 }),
             })
             .collect(),
+        pair_kind: if clip_start % 3 == 1 { PairKind::Multiview } else { PairKind::Monocular },
+        source_camera: (!clip_start.is_multiple_of(3)).then(|| format!("cam{clip_start}")),
+        target_camera: (clip_start % 3 == 1).then(|| "cam_target".to_owned()),
     }
 }
 

@@ -65,6 +65,9 @@ mod shards_in_python {
                 covisible_fraction: 1.0,
                 bank_entry: None,
             }],
+            pair_kind: schemas::PairKind::Monocular,
+            source_camera: None,
+            target_camera: None,
         }
     }
 

@@ -431,7 +431,7 @@ pub fn content_hash(entry: &VideoEntry) -> Result<String> {
     match &entry.frames {
         FrameSource::Video(path) => files.push(path.clone()),
         FrameSource::Images(paths) => files.extend(paths.iter().cloned()),
-        FrameSource::Sequence(dir) => files_under(dir, &mut files)?,
+        FrameSource::Sequence(dir) | FrameSource::MultiView(dir) => files_under(dir, &mut files)?,
     }
     match &entry.masks {
         MaskSource::Sav(path) => files.push(path.clone()),
@@ -692,7 +692,9 @@ mod tests {
     fn the_example_corpus_config_parses() {
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../configs/corpus_example.toml");
         let config = BuildConfig::from_toml_file(&path).unwrap();
-        assert_eq!(config.sources.len(), 4);
+        assert_eq!(config.sources.len(), 5);
+        assert_eq!(config.sources[4].dataset, super::super::crawl::DatasetKind::Multiview);
+        assert_eq!(config.pairs.multiview.min_covisible_fraction, 0.1);
         assert!(!config.pairs.depth_noise.enabled);
         assert_eq!(config.pairs.depth_noise.correlation_px, 8);
     }

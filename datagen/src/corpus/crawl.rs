@@ -36,6 +36,9 @@ pub enum DatasetKind {
     Davis,
     /// A tree of sequence folders in the cog-nvs, MegaSAM or generic layout.
     Sequences,
+    /// A tree of synchronised multi-camera scene folders ([`crate::io::multiview`]): each scene
+    /// is one input, giving monocular and multi-view pairs.
+    Multiview,
 }
 
 impl DatasetKind {
@@ -47,6 +50,7 @@ impl DatasetKind {
             Self::Ytvos => "ytvos",
             Self::Davis => "davis",
             Self::Sequences => "sequences",
+            Self::Multiview => "multiview",
         }
     }
 }
@@ -136,6 +140,8 @@ pub enum FrameSource {
     Images(Vec<PathBuf>),
     /// A sequence folder that holds its own frames and reconstruction.
     Sequence(PathBuf),
+    /// A synchronised multi-camera scene folder (one sub-folder per camera).
+    MultiView(PathBuf),
 }
 
 /// Where a video's dynamic-object annotations are.
@@ -206,7 +212,7 @@ impl VideoEntry {
     /// Where its frames are (a video file or a folder), for messages.
     pub fn frames_path(&self) -> &Path {
         match &self.frames {
-            FrameSource::Video(path) | FrameSource::Sequence(path) => path,
+            FrameSource::Video(path) | FrameSource::Sequence(path) | FrameSource::MultiView(path) => path,
             FrameSource::Images(paths) => paths.first().and_then(|p| p.parent()).unwrap_or(Path::new("")),
         }
     }
@@ -267,6 +273,7 @@ pub fn crawl(source: &SourceConfig) -> Result<Vec<VideoEntry>> {
         }
         DatasetKind::Davis => crawl_davis(source)?,
         DatasetKind::Sequences => crawl_sequences(source)?,
+        DatasetKind::Multiview => crawl_multiview(source)?,
     };
     if let Some(prefix) = &source.id_prefix {
         for entry in &mut entries {
@@ -535,6 +542,45 @@ pub fn is_sequence_folder(dir: &Path) -> bool {
             .unwrap_or(false)
 }
 
+/// Whether `dir` is a multi-camera scene folder: not a sequence folder itself, and at least one of
+/// its sub-folders is. One camera is enough to list it: a scene whose other cameras are broken is
+/// then one failed input (the reader names the broken camera), not a single-camera sequence.
+/// A folder in a benchmark dataset's layout (DyCheck, Kubric-4D, ParallelDomain-4D) is one too.
+pub fn is_multiview_folder(dir: &Path) -> bool {
+    use crate::io::multiview_layout::{MultiViewLayoutName, detect_multiview_layout};
+    if detect_multiview_layout(dir).is_ok_and(|layout| layout != MultiViewLayoutName::Generic) {
+        return true;
+    }
+    !is_sequence_folder(dir)
+        && std::fs::read_dir(dir)
+            .map(|entries| entries.filter_map(|e| e.ok()).any(|e| e.path().is_dir() && is_sequence_folder(&e.path())))
+            .unwrap_or(false)
+}
+
+/// A tree of multi-camera scenes: every folder that [`is_multiview_folder`] is one scene (its id
+/// the path below the root), found at any depth.
+fn crawl_multiview(source: &SourceConfig) -> Result<Vec<VideoEntry>> {
+    let mut entries = Vec::new();
+    let mut pending = vec![source.root.clone()];
+    while let Some(dir) = pending.pop() {
+        if is_multiview_folder(&dir) {
+            let id = dir.strip_prefix(&source.root).unwrap_or(&dir).to_string_lossy().into_owned();
+            let id = if id.is_empty() { file_name(&dir) } else { id };
+            let reconstruction = Some(dir.clone());
+            entries.push(VideoEntry::new(
+                DatasetKind::Multiview,
+                id,
+                FrameSource::MultiView(dir),
+                MaskSource::None,
+                reconstruction,
+            ));
+        } else if !is_sequence_folder(&dir) {
+            pending.extend(sorted_dir(&dir)?.into_iter().filter(|p| p.is_dir()));
+        }
+    }
+    Ok(entries)
+}
+
 fn crawl_sequences(source: &SourceConfig) -> Result<Vec<VideoEntry>> {
     let mut entries = Vec::new();
     let mut pending = vec![source.root.clone()];
@@ -678,6 +724,30 @@ mod tests {
         };
         let keys: Vec<String> = crawl(&source).unwrap().iter().map(VideoEntry::key).collect();
         assert_eq!(keys, ["sequences/a", "sequences/group/b", "sequences/group/c"]);
+    }
+
+    #[test]
+    fn multiview_tree_lists_each_scene_folder_once() {
+        let dir = tempfile::tempdir().unwrap();
+        touch(&dir.path().join("s1/cam0/gt_rgb.mp4"));
+        touch(&dir.path().join("s1/cam1/gt_rgb.mp4"));
+        // A scene with one readable camera is still one scene (its reader names the broken one).
+        touch(&dir.path().join("group/s2/cam0/frames/00000.png"));
+        touch(&dir.path().join("group/s2/cam0/depth/00000.exr"));
+        touch(&dir.path().join("group/s2/cam1/readme.txt"));
+        touch(&dir.path().join("notes/readme.txt"));
+        let source = SourceConfig {
+            dataset: DatasetKind::Multiview,
+            root: dir.path().to_owned(),
+            reconstructions: None,
+            annotations: None,
+            split: None,
+            id_prefix: None,
+        };
+        let entries = crawl(&source).unwrap();
+        let keys: Vec<String> = entries.iter().map(VideoEntry::key).collect();
+        assert_eq!(keys, ["multiview/group/s2", "multiview/s1"]);
+        assert_eq!(entries[1].frames, FrameSource::MultiView(dir.path().join("s1")));
     }
 
     #[test]

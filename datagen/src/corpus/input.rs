@@ -37,6 +37,13 @@ pub fn load_entry(entry: &VideoEntry) -> Result<Sequence> {
             sequence.source_id = entry.video_id.clone();
             return Ok(sequence);
         }
+        FrameSource::MultiView(dir) => {
+            return Err(Error::invalid(
+                dir,
+                "cameras",
+                "a multi-camera scene is not one sequence (read it as a scene)",
+            ));
+        }
         FrameSource::Video(path) => {
             let video = foundation::video::decode_video(path)?;
             read_with_frames(&entry.video_id, reconstruction, video.fps, video.frames, path)?
@@ -111,8 +118,38 @@ impl<'a> SequenceProcessor<'a> {
     }
 }
 
+impl SequenceProcessor<'_> {
+    /// A multi-camera scene: its monocular and multi-view pairs ([`crate::pairs::multiview`]).
+    /// A scene the reader refuses is an error, so the build records it as failed and writes
+    /// nothing for it. The reconstruction filter (`[check]`) judges single sequences and is not
+    /// applied to scenes.
+    fn process_scene(&self, entry: &VideoEntry, dir: &std::path::Path) -> Result<Outcome> {
+        let started = Instant::now();
+        let mut scene = crate::io::multiview_layout::read_multiview_as(dir, None)?;
+        // Keys, clip ids and seeds derive from the video id, unique in the build.
+        scene.scene_id = entry.video_id.clone();
+        let load_seconds = started.elapsed().as_secs_f64();
+        let clock = Instant::now();
+        let pairs = crate::pairs::scene::generate_scene_clips(
+            &scene,
+            entry.dataset.name(),
+            &self.config.pairs,
+            self.config.trajectories,
+            self.config.seed,
+            &mut |_| {},
+        )?;
+        let mut timings = self.timings.lock().expect("timings lock");
+        timings.load_seconds += load_seconds;
+        timings.pairs.masks_and_encode += clock.elapsed().as_secs_f64();
+        Ok(Outcome::Clips(pairs.records))
+    }
+}
+
 impl InputProcessor for SequenceProcessor<'_> {
     fn process(&self, entry: &VideoEntry) -> Result<Outcome> {
+        if let FrameSource::MultiView(dir) = &entry.frames {
+            return self.process_scene(entry, dir);
+        }
         let started = Instant::now();
         let mut sequence = load_entry(entry)?;
         let noise = &self.config.pairs.depth_noise;

@@ -16,7 +16,7 @@ use image::RgbImage;
 use schemas::{ClipRecord, InputStatus, ShardReader, TrajectoryRecord};
 
 use crate::error::{Error, Result};
-use crate::inspect::shards::{SHEET_COLUMNS, pair_id, shard_paths};
+use crate::inspect::shards::{pair_id, shard_paths, sheet_columns};
 use crate::pairs::trajectory::{PathParameters, path_parameters};
 use foundation::camera::mat4_from_row_major;
 
@@ -101,6 +101,10 @@ pub struct CorpusValues {
     pub pairs: BTreeMap<String, usize>,
     /// Pairs per trajectory kind.
     pub kinds: BTreeMap<String, usize>,
+    /// Pairs per pair kind (`monocular`, `multiview`).
+    pub pair_kinds: BTreeMap<String, usize>,
+    /// Multi-view pairs per camera pair (`source→target`).
+    pub camera_pairs: BTreeMap<String, usize>,
     /// Co-visible fraction of every pair.
     pub covisible_fraction: Vec<f64>,
     /// Path parameters of every pair with a pivot distance (sampled and bank paths).
@@ -114,6 +118,12 @@ impl CorpusValues {
         let sources: Vec<_> = record.world_from_camera.iter().map(|m| mat4_from_row_major(m)).collect();
         for trajectory in &record.trajectories {
             *self.kinds.entry(trajectory.kind.as_str().to_owned()).or_default() += 1;
+            *self.pair_kinds.entry(record.pair_kind.as_str().to_owned()).or_default() += 1;
+            if let (schemas::PairKind::Multiview, Some(source), Some(target)) =
+                (record.pair_kind, &record.source_camera, &record.target_camera)
+            {
+                *self.camera_pairs.entry(format!("{source}→{target}")).or_default() += 1;
+            }
             self.covisible_fraction.push(trajectory.covisible_fraction);
             let novel: Vec<_> = trajectory.world_from_camera.iter().map(|m| mat4_from_row_major(m)).collect();
             if let Some(parameters) = path_parameters(&sources, &novel, trajectory.pivot_distance) {
@@ -263,6 +273,14 @@ pub fn svg_histogram(title: &str, unit: &str, series: &[(&str, &[f64])]) -> Stri
     svg
 }
 
+/// `name n, name n, ...` of a count table, escaped (`none` when empty).
+fn counts(table: &BTreeMap<String, usize>) -> String {
+    if table.is_empty() {
+        return "none".to_owned();
+    }
+    table.iter().map(|(k, n)| format!("{} {n}", escape(k))).collect::<Vec<_>>().join(", ")
+}
+
 /// The thumbnail of one pair: the clip's first and last frames × target, mask, conditioning.
 fn thumbnail(record: &ClipRecord, trajectory: &TrajectoryRecord) -> Result<Vec<u8>> {
     let decode = |bytes: &[u8], what: &str| {
@@ -285,7 +303,9 @@ fn thumbnail(record: &ClipRecord, trajectory: &TrajectoryRecord) -> Result<Vec<u
         rows.push(vec![target, foundation::contact_sheet::mask_to_rgb(&mask), condition]);
     }
     let labels: Vec<String> = picked.iter().map(|i| format!("frame {i}")).collect();
-    let mut sheet = foundation::contact_sheet::labelled_contact_sheet(&SHEET_COLUMNS[..3], &labels, &rows);
+    let columns = sheet_columns(record, false);
+    let columns: Vec<&str> = columns.iter().map(String::as_str).collect();
+    let mut sheet = foundation::contact_sheet::labelled_contact_sheet(&columns, &labels, &rows);
     if sheet.width() > THUMBNAIL_WIDTH {
         let height = (f64::from(sheet.height()) * f64::from(THUMBNAIL_WIDTH) / f64::from(sheet.width())).round() as u32;
         sheet = image::imageops::resize(&sheet, THUMBNAIL_WIDTH, height.max(1), image::imageops::FilterType::Triangle);
@@ -343,7 +363,11 @@ pub fn write_report(dir: &Path, out: &Path, options: &ReportOptions) -> Result<R
                 Some(export) => export.join(&id).join("contact_sheet.png"),
                 None => shard.to_owned(),
             };
-            thumbnails.push((id, link(&target), base64(&thumbnail(record, trajectory)?)));
+            let caption = match (&record.source_camera, &record.target_camera) {
+                (Some(source), Some(target)) => format!("{id} ({} {source}→{target})", record.pair_kind.as_str()),
+                _ => id,
+            };
+            thumbnails.push((caption, link(&target), base64(&thumbnail(record, trajectory)?)));
         }
         Ok(())
     })?;
@@ -372,13 +396,12 @@ pub fn write_report(dir: &Path, out: &Path, options: &ReportOptions) -> Result<R
     }
     let _ = write!(
         html,
-        "<tr><th>total ({} shards)</th><th>{clips}</th><th>{pairs}</th></tr></table><p>Pairs by trajectory kind: {}</p></section>",
+        "<tr><th>total ({} shards)</th><th>{clips}</th><th>{pairs}</th></tr></table><p>Pairs by trajectory kind: {}</p>\
+         <p id=\"pair-kinds\">Pairs by pair kind: {}</p><p id=\"camera-pairs\">Multi-view pairs by camera pair (source→target): {}</p></section>",
         values.shards,
-        if values.kinds.is_empty() {
-            "none".to_owned()
-        } else {
-            values.kinds.iter().map(|(k, n)| format!("{} {n}", escape(k))).collect::<Vec<_>>().join(", ")
-        }
+        counts(&values.kinds),
+        counts(&values.pair_kinds),
+        counts(&values.camera_pairs)
     );
     let _ = write!(html, "<section id=\"failures\"><h2>Inputs and failures</h2>");
     let mut failures = 0;

@@ -31,6 +31,10 @@ pub struct PairStats {
     pub pair_id: String,
     /// Trajectory kind.
     pub kind: String,
+    /// Pair kind: `monocular` or `multiview`.
+    pub pair_kind: String,
+    /// Source and target camera ids, for pairs of a multi-camera scene.
+    pub cameras: Option<(String, String)>,
     /// Mean co-visible fraction over the clip's frames.
     pub covisible_fraction: f64,
     /// Rejected samples before this trajectory.
@@ -92,6 +96,8 @@ fn pair_stats(record: &ClipRecord, trajectory: &TrajectoryRecord) -> PairStats {
     PairStats {
         pair_id: pair_id(record, trajectory),
         kind: trajectory.kind.as_str().to_owned(),
+        pair_kind: record.pair_kind.as_str().to_owned(),
+        cameras: record.source_camera.clone().zip(record.target_camera.clone()),
         covisible_fraction: trajectory.covisible_fraction,
         rejected_samples: trajectory.rejected_samples,
         stored_condition: trajectory.condition.is_some(),
@@ -108,6 +114,7 @@ pub fn report(path: &Path) -> Result<String> {
     let mut out = String::new();
     let (mut total_clips, mut total_pairs, mut total_bytes) = (0usize, 0usize, 0u64);
     let mut per_dataset: BTreeMap<String, (usize, usize)> = BTreeMap::new();
+    let mut per_kind: BTreeMap<String, usize> = BTreeMap::new();
     for shard in shard_paths(path)? {
         let summary = summarize_shard(&shard)?;
         let pairs: usize = summary.clips.iter().map(|c| c.5.len()).sum();
@@ -125,8 +132,10 @@ pub fn report(path: &Path) -> Result<String> {
             for pair in pairs {
                 let _ = writeln!(
                     out,
-                    "    t{}: {} trajectory, co-visible {:.1} %, {} rejected samples{}",
+                    "    t{}: {}{}, {} trajectory, co-visible {:.1} %, {} rejected samples{}",
                     pair.pair_id.rsplit("__t").next().unwrap_or("?"),
+                    pair.pair_kind,
+                    pair.cameras.as_ref().map_or(String::new(), |(s, t)| format!(" {s}→{t}")),
                     pair.kind,
                     100.0 * pair.covisible_fraction,
                     pair.rejected_samples,
@@ -136,6 +145,9 @@ pub fn report(path: &Path) -> Result<String> {
             let entry = per_dataset.entry(dataset.clone()).or_default();
             entry.0 += 1;
             entry.1 += pairs.len();
+            for pair in pairs {
+                *per_kind.entry(pair.pair_kind.clone()).or_default() += 1;
+            }
         }
         total_clips += summary.clips.len();
         total_pairs += pairs;
@@ -145,6 +157,8 @@ pub fn report(path: &Path) -> Result<String> {
     for (dataset, (clips, pairs)) in &per_dataset {
         let _ = writeln!(out, "  {dataset}: {clips} clips, {pairs} pairs");
     }
+    let kinds: Vec<String> = per_kind.iter().map(|(kind, n)| format!("{n} {kind}")).collect();
+    let _ = writeln!(out, "pairs by kind: {}", if kinds.is_empty() { "none".to_owned() } else { kinds.join(", ") });
     if path.join("status").is_dir() {
         let status = crate::corpus::build::read_corpus_status(path)?;
         let count = |s: InputStatus| status.values().filter(|r| r.status == s).count();
@@ -286,11 +300,12 @@ fn export_pair(
         })
         .collect::<Result<_>>()?;
     let sheet: Vec<Vec<RgbImage>> = rows.into_iter().flatten().collect();
-    let columns = &SHEET_COLUMNS[..if render.is_some() { 4 } else { 3 }];
+    let columns = sheet_columns(record, render.is_some());
+    let columns: Vec<&str> = columns.iter().map(String::as_str).collect();
     let labels: Vec<String> = sheet_frames.iter().map(|i| format!("frame {i}")).collect();
     foundation::contact_sheet::write_labelled_contact_sheet(
         &folder.join("contact_sheet.png"),
-        columns,
+        &columns,
         &labels,
         &sheet,
     )?;
@@ -307,6 +322,9 @@ fn export_pair(
         "fps": record.fps,
         "seed": record.seed,
         "tool_version": record.tool_version,
+        "pair_kind": record.pair_kind.as_str(),
+        "source_camera": record.source_camera,
+        "target_camera": record.target_camera,
         "intrinsics": record.intrinsics,
         "source_world_from_camera": record.world_from_camera,
         "trajectory": {
@@ -327,6 +345,24 @@ fn export_pair(
     std::fs::write(&meta_path, serde_json::to_vec_pretty(&meta).expect("json"))
         .map_err(|e| Error::io(&meta_path, e))?;
     Ok(folder)
+}
+
+/// The contact sheet's column headers ([`SHEET_COLUMNS`]), naming for pairs of a multi-camera
+/// scene the target camera and the pair kind or source camera (`target cam01`, `conditioning: from
+/// cam00`), in the characters the sheet's font has; single-camera monocular pairs keep the plain
+/// headers.
+pub(crate) fn sheet_columns(record: &ClipRecord, with_render: bool) -> Vec<String> {
+    let mut columns: Vec<String> =
+        SHEET_COLUMNS[..if with_render { 4 } else { 3 }].iter().map(|c| c.to_string()).collect();
+    if let Some(target) = &record.target_camera {
+        columns[0] = format!("{} {target}", columns[0]);
+    }
+    match (record.pair_kind, &record.source_camera) {
+        (schemas::PairKind::Multiview, Some(source)) => columns[2] = format!("{}: from {source}", columns[2]),
+        (kind, _) if record.target_camera.is_some() => columns[2] = format!("{}: {}", columns[2], kind.as_str()),
+        _ => {}
+    }
+    columns
 }
 
 fn camera(record: &ClipRecord, pose: &[f64; 16], frame: usize) -> PinholeCamera {
@@ -419,6 +455,9 @@ fn export_clip_cog_nvs(record: &ClipRecord, out: &Path) -> Result<PathBuf> {
             "file": name,
             "trajectory_index": trajectory.index,
             "kind": trajectory.kind.as_str(),
+            "pair_kind": record.pair_kind.as_str(),
+            "source_camera": record.source_camera,
+            "target_camera": record.target_camera,
             "covisible_fraction": trajectory.covisible_fraction,
         }));
     }

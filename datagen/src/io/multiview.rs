@@ -100,21 +100,18 @@ pub fn camera_folders(dir: &Path) -> Option<Vec<PathBuf>> {
 /// Reads the multi-camera scene in `dir` (see the module documentation); an error names the file
 /// and field at fault, the camera's folder for disagreements between cameras.
 pub fn read_multiview(dir: &Path) -> Result<MultiViewScene> {
-    let folders = camera_folders(dir).ok_or_else(|| {
-        Error::invalid(
+    let Some(folders) = camera_folders(dir) else {
+        // A scene of two cameras, one of them broken, has one camera folder: name the broken one.
+        if detect_layout(dir).is_err() {
+            check_camera_folders(dir, &[])?;
+        }
+        return Err(Error::invalid(
             dir,
             "cameras",
             "not a multi-camera folder: expected two or more camera sub-folders, each a sequence folder",
-        )
-    })?;
-    // Every other sub-folder is a camera whose files are missing or unrecognised.
-    for entry in std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))? {
-        let path = entry.map_err(|e| Error::io(dir, e))?.path();
-        let hidden = path.file_name().is_some_and(|n| n.to_string_lossy().starts_with('.'));
-        if path.is_dir() && !hidden && !folders.contains(&path) {
-            detect_layout(&path)?;
-        }
-    }
+        ));
+    };
+    check_camera_folders(dir, &folders)?;
     let mut cameras = Vec::with_capacity(folders.len());
     for folder in &folders {
         let id = folder.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
@@ -142,6 +139,19 @@ pub fn read_multiview(dir: &Path) -> Result<MultiViewScene> {
     check_timestamps(&cameras)?;
     let scene_id = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     Ok(MultiViewScene { scene_id, path: dir.to_owned(), cameras, split: None })
+}
+
+/// Every sub-folder of `dir` but hidden ones and `readable` is a camera whose files are missing or
+/// unrecognised: the error names it.
+fn check_camera_folders(dir: &Path, readable: &[PathBuf]) -> Result<()> {
+    for entry in std::fs::read_dir(dir).map_err(|e| Error::io(dir, e))? {
+        let path = entry.map_err(|e| Error::io(dir, e))?.path();
+        let hidden = path.file_name().is_some_and(|n| n.to_string_lossy().starts_with('.'));
+        if path.is_dir() && !hidden && !readable.contains(&path) {
+            detect_layout(&path)?;
+        }
+    }
+    Ok(())
 }
 
 /// `timestamps` of the camera's `cameras.json`, if it has one: `frames` finite, increasing numbers.

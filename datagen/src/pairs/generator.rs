@@ -10,7 +10,9 @@ use glam::DMat4;
 use image::codecs::png::{CompressionType, FilterType, PngEncoder};
 use image::{EncodableLayout, GrayImage, ImageEncoder, RgbImage};
 use rayon::prelude::*;
-use schemas::{ClipRecord, InputDigest, ShardStats, ShardWriter, ShardWriterOptions, TrajectoryKind, TrajectoryRecord};
+use schemas::{
+    ClipRecord, InputDigest, PairKind, ShardStats, ShardWriter, ShardWriterOptions, TrajectoryKind, TrajectoryRecord,
+};
 use serde::{Deserialize, Serialize};
 
 use crate::config_file::{Checked, Validate, check_count};
@@ -49,6 +51,8 @@ pub struct PairsConfig {
     pub depth_noise: DepthNoiseConfig,
     /// Static-background stacking settings, used by `datagen render --stack-background`.
     pub static_background: StackingConfig,
+    /// Multi-view pairs of multi-camera scenes (camera pairs, how many, least co-visible share).
+    pub multiview: crate::pairs::multiview::MultiViewConfig,
 }
 
 impl PairsConfig {
@@ -65,7 +69,8 @@ impl Validate for PairsConfig {
         self.trajectory.validate().map_err(|e| e.under("trajectory"))?;
         self.covisibility.validate().map_err(|e| e.under("covisibility"))?;
         self.depth_noise.validate().map_err(|e| e.under("depth_noise"))?;
-        self.static_background.validate().map_err(|e| e.under("static_background"))
+        self.static_background.validate().map_err(|e| e.under("static_background"))?;
+        self.multiview.validate().map_err(|e| e.under("multiview"))
     }
 }
 
@@ -419,6 +424,9 @@ fn generate_clip(
         depth,
         dynamic_mask: sequence.dynamic_masks.as_ref().map(|_| dynamic_masks),
         trajectories,
+        pair_kind: PairKind::Monocular,
+        source_camera: None,
+        target_camera: None,
     };
     Ok((record, times))
 }

@@ -53,6 +53,9 @@ impl InputProcessor for KeyProcessor {
                 covisible_fraction: 1.0,
                 bank_entry: None,
             }],
+            pair_kind: schemas::PairKind::Monocular,
+            source_camera: None,
+            target_camera: None,
         };
         Ok(Outcome::Clips(vec![clip(0), clip(2)]))
     }

@@ -30,7 +30,7 @@ impl InputProcessor for FileProcessor {
     fn process(&self, entry: &VideoEntry) -> datagen::Result<Outcome> {
         self.calls.fetch_add(1, Ordering::SeqCst);
         let path = match &entry.frames {
-            FrameSource::Sequence(dir) => dir.join("gt_rgb.mp4"),
+            FrameSource::Sequence(dir) | FrameSource::MultiView(dir) => dir.join("gt_rgb.mp4"),
             FrameSource::Images(paths) => paths[0].clone(),
             FrameSource::Video(path) => path.clone(),
         };

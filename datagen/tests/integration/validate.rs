@@ -48,6 +48,9 @@ pub fn record(id: &str) -> ClipRecord {
             covisible_fraction: 0.0,
             bank_entry: None,
         }],
+        pair_kind: schemas::PairKind::Monocular,
+        source_camera: None,
+        target_camera: None,
     }
 }
 

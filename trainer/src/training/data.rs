@@ -65,6 +65,15 @@ pub struct DataConfig {
     /// Batches decoded ahead of the trainer. Valid: 1 to [`MAX_PREFETCH_BATCHES`].
     #[serde(default = "two")]
     pub prefetch_batches: usize,
+    /// Share of multi-view pairs (`pair_kind = multiview`: one real camera rendered into
+    /// another) in every global batch; the rest are monocular pairs. Each global batch holds
+    /// the share × the global batch, rounded so that the running total over the epoch's batches
+    /// stays at the share (a batch of 8 at 0.3 alternates 2 and 3); which slots are multi-view
+    /// is drawn from the seed, epoch and batch, so it does not depend on the world size. Unset:
+    /// every pair of the corpus in one order, whatever its kind (the corpus's own proportion).
+    /// Valid: in [0, 1]; above 0 the corpus must hold multi-view pairs, below 1 monocular ones.
+    #[serde(default)]
+    pub multiview_share: Option<f64>,
 }
 
 /// Most samples per batch and rank (the paper: 8).
@@ -122,6 +131,11 @@ impl DataConfig {
         if self.rank >= self.world_size {
             return Err(bad("rank", format!("{} must be below world_size {}", self.rank, self.world_size)));
         }
+        if let Some(share) = self.multiview_share
+            && !(share.is_finite() && (0.0..=1.0).contains(&share))
+        {
+            return Err(bad("multiview_share", format!("{share} must be a finite number in [0, 1]")));
+        }
         if !(1..=MAX_PREFETCH_BATCHES).contains(&self.prefetch_batches) {
             return Err(bad(
                 "prefetch_batches",
@@ -164,11 +178,12 @@ pub struct Batch {
     pub position: DataPosition,
 }
 
-/// A clip in the corpus: its shard and row.
+/// A clip in the corpus: its shard and row, and whether its pairs are multi-view.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 struct ClipRef {
     shard: usize,
     row: usize,
+    multiview: bool,
 }
 
 /// Every clip of a set of shard folders (finished shards only).
@@ -211,8 +226,13 @@ impl ClipIndex {
         }
         let mut clips = Vec::new();
         for (shard, path) in shards.iter().enumerate() {
-            let rows = schemas::clip_count(path)?;
-            clips.extend((0..rows).map(|row| ClipRef { shard, row }));
+            // One entry per row (the footer's count for shards before v3, which are monocular).
+            let kinds = schemas::pair_kinds(path)?;
+            clips.extend(kinds.into_iter().enumerate().map(|(row, kind)| ClipRef {
+                shard,
+                row,
+                multiview: kind == schemas::PairKind::Multiview,
+            }));
         }
         if clips.is_empty() {
             let names: Vec<String> = shards.iter().map(|d| d.display().to_string()).collect();
@@ -237,6 +257,11 @@ impl ClipIndex {
         self.clips.is_empty()
     }
 
+    /// Number of clips of multi-view pairs.
+    pub fn multiview_len(&self) -> usize {
+        self.clips.iter().filter(|c| c.multiview).count()
+    }
+
     /// The shard files, in index order.
     pub fn shards(&self) -> &[PathBuf] {
         &self.shards
@@ -253,7 +278,7 @@ impl ClipIndex {
     /// This index's clips followed by `other`'s.
     pub fn joined(&self, other: &Self) -> Self {
         let offset = self.shards.len();
-        let moved = other.clips.iter().map(|c| ClipRef { shard: c.shard + offset, row: c.row });
+        let moved = other.clips.iter().map(|c| ClipRef { shard: c.shard + offset, ..*c });
         Self {
             shards: self.shards.iter().chain(&other.shards).cloned().collect(),
             clips: self.clips.iter().copied().chain(moved).collect(),
@@ -273,8 +298,82 @@ fn rng(seed: u64, parts: &[u64]) -> ChaCha8Rng {
 
 /// The epoch's global clip order (Fisher–Yates on a seeded generator).
 fn epoch_order(len: usize, seed: u64, epoch: u64) -> Vec<usize> {
+    shuffled(len, rng(seed, &[epoch]))
+}
+
+/// Purpose tags leading the seed's parts of a mixed plan's draws ([`Mix`]): far above any epoch,
+/// so they never coincide with the unmixed order's `[epoch]` or a clip's `[epoch, shard, row]`.
+const MONOCULAR_ORDER: u64 = u64::MAX - 1;
+const MULTIVIEW_ORDER: u64 = u64::MAX - 2;
+const MULTIVIEW_SLOTS: u64 = u64::MAX - 3;
+
+/// A plan with a fixed share of multi-view pairs per global batch (`data.multiview_share`): the
+/// two kinds' clips are ordered separately each epoch, and each global batch takes its multi-view
+/// slots from one order and the others from the other.
+struct Mix {
+    /// Index positions of the monocular clips.
+    monocular: Vec<usize>,
+    /// Index positions of the multi-view clips.
+    multiview: Vec<usize>,
+    /// The share.
+    share: f64,
+    /// Samples per global batch (all ranks).
+    global_batch: usize,
+}
+
+impl Mix {
+    /// Multi-view slots in the epoch's global batches before batch `b`: the share of their slots,
+    /// rounded, so each batch holds the share rounded down or up and the total stays on it.
+    fn multiview_before(&self, b: u64) -> usize {
+        (self.share * self.global_batch as f64 * b as f64).round() as usize
+    }
+
+    /// Whole global batches an epoch can fill without reusing a clip of either kind.
+    fn batches_per_epoch(&self) -> u64 {
+        let fits = |n: u64| {
+            let multiview = self.multiview_before(n);
+            multiview <= self.multiview.len() && n as usize * self.global_batch - multiview <= self.monocular.len()
+        };
+        // Both counts grow with n: the largest n that fits, by bisection.
+        let (mut low, mut high) = (0u64, ((self.monocular.len() + self.multiview.len()) / self.global_batch) as u64);
+        while low < high {
+            let mid = (low + high).div_ceil(2);
+            if fits(mid) { low = mid } else { high = mid - 1 }
+        }
+        low
+    }
+
+    /// The index positions of the clips of every slot of global batch `b` of `epoch`, in slot
+    /// order (rank r of w takes slots r, r + w, ...).
+    fn global_batch_clips(&self, seed: u64, epoch: u64, b: u64) -> Vec<usize> {
+        let before = self.multiview_before(b);
+        let here = self.multiview_before(b + 1) - before;
+        let mut multiview = vec![false; self.global_batch];
+        for &slot in &shuffled(self.global_batch, rng(seed, &[MULTIVIEW_SLOTS, epoch, b]))[..here] {
+            multiview[slot] = true;
+        }
+        let multiview_order = shuffled(self.multiview.len(), rng(seed, &[MULTIVIEW_ORDER, epoch]));
+        let monocular_order = shuffled(self.monocular.len(), rng(seed, &[MONOCULAR_ORDER, epoch]));
+        // Each kind's slots continue that kind's order after the epoch's earlier batches.
+        let (mut next_multiview, mut next_monocular) = (before, b as usize * self.global_batch - before);
+        multiview
+            .into_iter()
+            .map(|is_multiview| {
+                if is_multiview {
+                    next_multiview += 1;
+                    self.multiview[multiview_order[next_multiview - 1]]
+                } else {
+                    next_monocular += 1;
+                    self.monocular[monocular_order[next_monocular - 1]]
+                }
+            })
+            .collect()
+    }
+}
+
+/// `0..len` in the order of a Fisher–Yates shuffle drawn from `rng`.
+fn shuffled(len: usize, mut rng: ChaCha8Rng) -> Vec<usize> {
     let mut order: Vec<usize> = (0..len).collect();
-    let mut rng = rng(seed, &[epoch]);
     for i in (1..len).rev() {
         order.swap(i, rng.random_range(0..=i));
     }
@@ -286,14 +385,36 @@ struct Plan {
     index: Arc<ClipIndex>,
     config: DataConfig,
     batches_per_epoch: u64,
+    /// Set with `multiview_share`; otherwise one order over every clip.
+    mix: Option<Mix>,
 }
 
 impl Plan {
     fn new(index: Arc<ClipIndex>, config: DataConfig) -> Result<Self> {
         let bad = |name: &str, reason: String| Error::InvalidArgument { name: name.to_string(), reason };
         config.validate("data config")?;
-        let per_rank = index.len() / config.world_size;
-        let batches_per_epoch = (per_rank / config.batch_size) as u64;
+        let mix = match config.multiview_share {
+            Some(share) => Some(mix(&index, &config, share)?),
+            None => None,
+        };
+        let batches_per_epoch = match &mix {
+            Some(mix) => mix.batches_per_epoch(),
+            None => (index.len() / config.world_size / config.batch_size) as u64,
+        };
+        if let (Some(mix), 0) = (&mix, batches_per_epoch) {
+            return Err(bad(
+                "batch_size",
+                format!(
+                    "{} monocular and {} multi-view clips cannot fill one global batch of {} × {} ranks \
+                     with a multi-view share of {}",
+                    mix.monocular.len(),
+                    mix.multiview.len(),
+                    config.batch_size,
+                    config.world_size,
+                    mix.share
+                ),
+            ));
+        }
         if batches_per_epoch == 0 {
             return Err(bad(
                 "batch_size",
@@ -305,17 +426,27 @@ impl Plan {
                 ),
             ));
         }
-        Ok(Self { index, config, batches_per_epoch })
+        Ok(Self { index, config, batches_per_epoch, mix })
     }
 
     fn batch(&self, position: DataPosition) -> Result<Batch> {
         let c = &self.config;
-        let order = epoch_order(self.index.len(), c.seed, position.epoch);
+        // The clips of the global batch's slots, from one order over all clips or, mixed, from
+        // one order per kind.
+        let global = c.batch_size * c.world_size;
+        let slots = match &self.mix {
+            Some(mix) => mix.global_batch_clips(c.seed, position.epoch, position.batch),
+            None => {
+                let start = position.batch as usize * global;
+                epoch_order(self.index.len(), c.seed, position.epoch)[start..start + global].to_vec()
+            }
+        };
         let samples = (0..c.batch_size)
             .into_par_iter()
             .map(|k| {
-                let slot = (position.batch as usize * c.batch_size + k) * c.world_size + c.rank;
-                let clip = self.index.clips[order[slot]];
+                // Slot j of the global batch: ranks take interleaved slots of the same global draw.
+                let j = k * c.world_size + c.rank;
+                let clip = self.index.clips[slots[j]];
                 let mut choice = rng(c.seed, &[position.epoch, clip.shard as u64, clip.row as u64]);
                 let record = schemas::read_clip(&self.index.shards[clip.shard], clip.row)?;
                 sample(&record, c, &mut choice)
@@ -338,6 +469,34 @@ impl Plan {
             DataPosition { epoch: position.epoch, batch: position.batch + 1 }
         }
     }
+}
+
+/// The mixed plan of `index` for `share`: an error naming `data.multiview_share` when the corpus
+/// lacks a kind the share asks for.
+fn mix(index: &ClipIndex, config: &DataConfig, share: f64) -> Result<Mix> {
+    let (multiview, monocular): (Vec<usize>, Vec<usize>) =
+        (0..index.clips.len()).partition(|&i| index.clips[i].multiview);
+    let lacking = if share > 0.0 && multiview.is_empty() {
+        Some("multi-view pairs (make them with `datagen pairs` or `datagen build` from multi-camera scenes)")
+    } else if share < 1.0 && monocular.is_empty() {
+        Some("monocular pairs")
+    } else {
+        None
+    };
+    if let Some(lacking) = lacking {
+        let shards: Vec<String> = index.shards.iter().take(3).map(|p| p.display().to_string()).collect();
+        return Err(Error::InvalidConfig {
+            source_name: "data config".to_string(),
+            field: "data.multiview_share".to_string(),
+            reason: format!(
+                "{share} asks for {lacking}, but the {} clips of the shards ({}{}) hold none",
+                index.clips.len(),
+                shards.join(", "),
+                if index.shards.len() > 3 { ", ..." } else { "" }
+            ),
+        });
+    }
+    Ok(Mix { monocular, multiview, share, global_batch: config.batch_size * config.world_size })
 }
 
 struct Sample {

@@ -45,7 +45,9 @@ const ENCODE_VIDEO_TENSORS: u64 = 4;
 /// Video channels (RGB).
 const RGB: u64 = 3;
 /// fp32 values per pixel of one prefetched sample: 3 target + 3 condition + 1 mask channels
-/// (`data.rs`'s `SAMPLE_BYTES_PER_PIXEL`).
+/// (`data.rs`'s `SAMPLE_BYTES_PER_PIXEL`), for monocular and multi-view pairs alike (a multi-view
+/// pair's stored render takes the place of the masked target), so `data.multiview_share` does
+/// not change the plan.
 const LOADER_VALUES_PER_PIXEL: u64 = 7;
 /// Resident memory of a training process on the CPU besides its tensors: libtorch's (and its
 /// CUDA libraries') code and static data, FFmpeg's, OpenMP/oneDNN thread pools and allocator

@@ -147,7 +147,15 @@ impl Validation {
             (Some(v), Some(index)) => Some(HeldOut {
                 pairs: v.pairs.min(index.len()),
                 index: Arc::new(index),
-                data: DataConfig { batch_size: 1, rank: 0, world_size: 1, seed: v.seed, ..config.data.clone() },
+                // Every held-out pair is measured, whatever its kind: no training mix here.
+                data: DataConfig {
+                    batch_size: 1,
+                    rank: 0,
+                    world_size: 1,
+                    seed: v.seed,
+                    multiview_share: None,
+                    ..config.data.clone()
+                },
                 lpips: match &v.lpips_weights {
                     Some(path) => Some(Lpips::load(path, v.lpips_net, device)?),
                     None => None,

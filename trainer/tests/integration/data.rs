@@ -1,5 +1,6 @@
 //! The shard data loader: batch shapes and values, determinism per seed, exact resume from a
-//! stored position, disjoint and complete rank partitions, and named errors for bad shard folders.
+//! stored position, disjoint and complete rank partitions, named errors for bad shard folders,
+//! and a fixed share of multi-view pairs per batch that does not depend on the world size.
 
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
@@ -36,7 +37,17 @@ fn shards() -> &'static Path {
 }
 
 fn config(batch_size: usize, rank: usize, world_size: usize) -> DataConfig {
-    DataConfig { frames: 5, height: 24, width: 40, batch_size, seed: 9, rank, world_size, prefetch_batches: 2 }
+    DataConfig {
+        frames: 5,
+        height: 24,
+        width: 40,
+        batch_size,
+        seed: 9,
+        rank,
+        world_size,
+        prefetch_batches: 2,
+        multiview_share: None,
+    }
 }
 
 fn dirs() -> Vec<PathBuf> {
@@ -134,4 +145,111 @@ fn bad_shard_folders_are_named_errors() {
         .unwrap()
         .to_string();
     assert!(err.contains("other.parquet"), "{err}");
+}
+
+/// The shards of [`shards`] plus one of a synthetic 3-camera scene (generated once): its 3
+/// cameras' monocular clips and the 6 camera pairs' multi-view clips, 5 frames each.
+fn mixed_shards() -> &'static Path {
+    static DIR: OnceLock<tempfile::TempDir> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("mixed");
+        for entry in std::fs::read_dir(shards().join("shards")).unwrap() {
+            let path = entry.unwrap().path();
+            std::fs::copy(&path, out_path(&out, &path)).unwrap();
+        }
+        let scene = datagen::synth::SynthConfig { width: 48, height: 32, frames: 5, ..Default::default() };
+        let rig = datagen::synth::CameraRig { cameras: 3, spacing_deg: 8.0 };
+        let folder = datagen::synth::write_multiview(&scene, &rig, &dir.path().join("rig"), |_| {}).unwrap();
+        let mut pairs = datagen::pairs::generator::PairsConfig::default();
+        pairs.clip.length = 5;
+        datagen::pairs::scene::write_scene_pairs(&folder, &out, "synth", &pairs, 1, 4, &mut |_| {}).unwrap();
+        dir
+    })
+    .path()
+}
+
+fn out_path(out: &Path, path: &Path) -> PathBuf {
+    std::fs::create_dir_all(out).unwrap();
+    out.join(path.file_name().unwrap())
+}
+
+fn mixed(batch_size: usize, rank: usize, world_size: usize, share: f64) -> DataConfig {
+    DataConfig { multiview_share: Some(share), ..config(batch_size, rank, world_size) }
+}
+
+#[test]
+fn a_multiview_share_is_kept_per_batch_and_ranks_1_and_2_see_one_sequence() {
+    let dirs = vec![mixed_shards().join("mixed")];
+    // 6 + 3 monocular clips, 6 multi-view ones. A global batch of 4 at 0.3 holds 1.2 multi-view
+    // slots on average: the running total rounds to 1, 2, 4, 5, 6, ..., so batches hold 1, 1, 2,
+    // 1, 1; monocular slots then run out first: 3 batches take 8 of the 9.
+    let mut one = ShardLoader::open(&dirs, mixed(4, 0, 1, 0.3), DataPosition::default()).unwrap();
+    assert_eq!(one.batches_per_epoch(), 3);
+    let global = provenance(&mut one, 6);
+    let is_multiview = |p: &String| p.contains("/from-");
+    let counts: Vec<usize> = global.iter().map(|b| b.iter().filter(|p| is_multiview(p)).count()).collect();
+    assert_eq!(counts, [1, 1, 2, 1, 1, 2]);
+    let clip = |p: &String| p.split('#').next().unwrap().to_string();
+    let (multiview, monocular): (Vec<&String>, Vec<&String>) =
+        global[..3].iter().flatten().partition(|p| is_multiview(p));
+    assert_eq!(multiview.iter().map(|p| clip(p)).collect::<BTreeSet<_>>().len(), 4, "no clip twice in an epoch");
+    assert_eq!(monocular.iter().map(|p| clip(p)).collect::<BTreeSet<_>>().len(), 8, "no clip twice in an epoch");
+
+    // Two ranks with half the batch each: rank r takes global slots r, r + 2, ... of the same draw.
+    let mut rank0 = ShardLoader::open(&dirs, mixed(2, 0, 2, 0.3), DataPosition::default()).unwrap();
+    let mut rank1 = ShardLoader::open(&dirs, mixed(2, 1, 2, 0.3), DataPosition::default()).unwrap();
+    assert_eq!(rank0.batches_per_epoch(), 3);
+    let (a, b) = (provenance(&mut rank0, 6), provenance(&mut rank1, 6));
+    for (i, batch) in global.iter().enumerate() {
+        let interleaved = vec![a[i][0].clone(), b[i][0].clone(), a[i][1].clone(), b[i][1].clone()];
+        assert_eq!(&interleaved, batch, "batch {i}");
+    }
+
+    // A multi-view sample's conditioning is the stored render, not the target × mask.
+    let mut all_multiview = ShardLoader::open(&dirs, mixed(2, 0, 1, 1.0), DataPosition::default()).unwrap();
+    assert_eq!(all_multiview.batches_per_epoch(), 3);
+    let batch = all_multiview.next_batch().unwrap();
+    assert!(batch.provenance.iter().all(is_multiview), "{:?}", batch.provenance);
+    let masked_target = &batch.target * &batch.mask + (batch.mask.ones_like() - &batch.mask) * -1.0;
+    let differs = (&batch.condition - masked_target).abs().max().double_value(&[]);
+    assert!(differs > 0.01, "another camera's render differs from the target somewhere: {differs}");
+    let outside = ((&batch.condition + 1.0) * (batch.mask.ones_like() - &batch.mask)).abs().max().double_value(&[]);
+    assert!(outside < 1e-6, "black outside the mask: {outside}");
+
+    // Unset, every clip in one order, as before the mix existed.
+    let unmixed = ShardLoader::open(&dirs, config(3, 0, 1), DataPosition::default()).unwrap();
+    assert_eq!(unmixed.batches_per_epoch(), 5, "15 clips in batches of 3");
+}
+
+#[test]
+fn a_multiview_share_without_multiview_pairs_is_an_error_naming_the_key() {
+    let err = ShardLoader::open(
+        &dirs(),
+        DataConfig { multiview_share: Some(0.25), ..config(1, 0, 1) },
+        DataPosition::default(),
+    )
+    .err()
+    .unwrap()
+    .to_string();
+    assert!(err.contains("data.multiview_share") && err.contains("multi-view"), "{err}");
+    // The range is checked too; 0 is a share like any other (monocular pairs only).
+    let err = ShardLoader::open(
+        &dirs(),
+        DataConfig { multiview_share: Some(1.5), ..config(1, 0, 1) },
+        DataPosition::default(),
+    )
+    .err()
+    .unwrap()
+    .to_string();
+    assert!(err.contains("data.multiview_share") && err.contains("[0, 1]"), "{err}");
+    let mut monocular = ShardLoader::open(
+        &[mixed_shards().join("mixed")],
+        DataConfig { multiview_share: Some(0.0), ..config(3, 0, 1) },
+        DataPosition::default(),
+    )
+    .unwrap();
+    assert_eq!(monocular.batches_per_epoch(), 3, "9 monocular clips in batches of 3");
+    let batch = monocular.next_batch().unwrap();
+    assert!(batch.provenance.iter().all(|p| !p.contains("/from-")), "{:?}", batch.provenance);
 }

@@ -66,6 +66,17 @@ fn parameter_counts_equal_the_built_models() {
 }
 
 #[test]
+fn a_multiview_share_leaves_the_plan_as_it_is() {
+    // Both pair kinds decode to the same target, conditioning and mask tensors.
+    let monocular = plan_of(&tiny(), 2, Device::Cpu);
+    for share in [0.0, 0.5, 1.0] {
+        let mut config = tiny();
+        config.data.multiview_share = Some(share);
+        assert_eq!(plan_of(&config, 2, Device::Cpu), monocular, "share {share}");
+    }
+}
+
+#[test]
 fn lora_zero2_and_checkpointing_shrink_what_they_should() {
     let full = preset("finetune_5b_full.toml");
     let one = plan_of(&full, 1, Device::Cuda(0));

@@ -63,6 +63,42 @@ fn ok(output: &std::process::Output) {
     );
 }
 
+/// Training on a mix: a 2-camera synthetic scene's shard (2 monocular and 2 multi-view clips of
+/// 9 frames) with half of every batch multi-view; on a corpus without multi-view pairs the same
+/// config stops at the start naming the key.
+#[test]
+fn pretrain_trains_on_a_mix_of_monocular_and_multiview_pairs() {
+    let dir = tempfile::tempdir().unwrap();
+    let scene = datagen::synth::SynthConfig { width: 96, height: 64, frames: 9, seed: 2, ..Default::default() };
+    let rig = datagen::synth::CameraRig { cameras: 2, spacing_deg: 8.0 };
+    let folder = datagen::synth::write_multiview(&scene, &rig, &dir.path().join("rig"), |_| {}).unwrap();
+    let mut pairs = datagen::pairs::generator::PairsConfig::default();
+    pairs.clip.length = 9;
+    let shards = dir.path().join("mixed");
+    let written =
+        datagen::pairs::scene::write_scene_pairs(&folder, &shards, "synth", &pairs, 1, 1, &mut |_| {}).unwrap();
+    assert_eq!(written.counts, (2, 2));
+    let text = std::fs::read_to_string(config(dir.path(), 3)).unwrap();
+    assert!(text.contains("# multiview_share = 0.25"), "the preset shows the key");
+    let mixed = dir.path().join("pretrain_mixed.toml");
+    std::fs::write(&mixed, text.replace("# multiview_share = 0.25", "multiview_share = 0.5")).unwrap();
+    let run = dir.path().join("run");
+    ok(&pretrain(&mixed, &shards, &run, false));
+    let losses: Vec<f64> = read_metrics(&run).unwrap().iter().map(|m| m.loss).collect();
+    assert_eq!(losses.len(), 3);
+    assert!(losses.iter().all(|l| l.is_finite()), "{losses:?}");
+
+    let refused = pretrain(&mixed, &pairs_of_one_camera(dir.path()), &dir.path().join("refused"), false);
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(!refused.status.success() && stderr.contains("data.multiview_share"), "{stderr}");
+}
+
+fn pairs_of_one_camera(dir: &Path) -> PathBuf {
+    let single = dir.join("single");
+    std::fs::create_dir_all(&single).unwrap();
+    pairs(&single)
+}
+
 #[test]
 fn pretrain_learns_and_resume_repeats_the_uninterrupted_run() {
     let dir = tempfile::tempdir().unwrap();

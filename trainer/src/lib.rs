@@ -5,6 +5,7 @@
 
 pub mod attention;
 pub mod autoencoder_kl_cogvideox;
+pub mod benchmark;
 pub mod cogvideox_transformer_3d;
 pub mod data;
 pub mod diffusers_config;

@@ -17,5 +17,6 @@ pub mod inspect;
 pub mod io;
 pub mod pairs;
 pub mod synth;
+pub mod synth_layouts;
 
 pub use error::{Error, Result};

@@ -675,6 +675,11 @@ struct SynthArgs {
     /// With --cameras: yaw between neighbouring cameras about the scene's centre, in degrees.
     #[arg(long, default_value_t = 10.0, requires = "cameras")]
     camera_spacing_deg: f64,
+    /// With --cameras: the layout to write: generic (camNN/ sequence folders), dycheck (DyCheck
+    /// iPhone: camera 0 moving with depth, the others static and held out) or kubric4d (Kubric-4D
+    /// as GCD ships it; OUT's name is the scene id).
+    #[arg(long, default_value = "generic", requires = "cameras")]
+    format: datagen::synth_layouts::SynthFormat,
 }
 
 fn synth(args: SynthArgs) -> anyhow::Result<()> {
@@ -704,10 +709,18 @@ fn synth(args: SynthArgs) -> anyhow::Result<()> {
     );
     if let Some(cameras) = args.cameras {
         let rig = datagen::synth::CameraRig { cameras, spacing_deg: args.camera_spacing_deg };
-        datagen::synth::write_multiview(&config, &rig, &args.out, |done| bar.set_position(done as u64))?;
+        let progress = |done| bar.set_position(done as u64);
+        datagen::synth_layouts::write_multiview_as(&config, &rig, args.format, &args.out, progress)?;
         bar.finish_and_clear();
+        let layout = match args.format {
+            datagen::synth_layouts::SynthFormat::Generic => "camNN/: frames/, depth/, cameras.json",
+            datagen::synth_layouts::SynthFormat::Dycheck => {
+                "DyCheck layout: camera/, rgb/, depth/, covisible/, splits/"
+            }
+            datagen::synth_layouts::SynthFormat::Kubric4d => "Kubric-4D layout: frames_p0_vN/, <scene>_p0_vN.json",
+        };
         println!(
-            "wrote a {}x{} scene of {} frames from {cameras} synchronised cameras to {} (camNN/: frames/, depth/, cameras.json)",
+            "wrote a {}x{} scene of {} frames from {cameras} synchronised cameras to {} ({layout})",
             config.width,
             config.height,
             config.frames,

@@ -124,15 +124,15 @@ impl SynthConfig {
 }
 
 /// Room extents (world units; y up): floor at y = 0, walls at x = ±ROOM_HALF_WIDTH and z = ROOM_BACK.
-const ROOM_HALF_WIDTH: f64 = 5.0;
-const ROOM_FRONT: f64 = -4.0;
-const ROOM_BACK: f64 = 12.0;
-const WALL_HEIGHT: f64 = 3.5;
+pub(crate) const ROOM_HALF_WIDTH: f64 = 5.0;
+pub(crate) const ROOM_FRONT: f64 = -4.0;
+pub(crate) const ROOM_BACK: f64 = 12.0;
+pub(crate) const WALL_HEIGHT: f64 = 3.5;
 /// Region of the floor where objects are placed and move.
 const PLAY_X: (f64, f64) = (-2.5, 2.5);
 const PLAY_Z: (f64, f64) = (3.0, 8.0);
 /// The camera looks at this point while moving on an arc around it.
-const LOOK_AT: DVec3 = DVec3::new(0.0, 0.6, 5.5);
+pub(crate) const LOOK_AT: DVec3 = DVec3::new(0.0, 0.6, 5.5);
 const SPHERE_SEGMENTS: (usize, usize) = (32, 16);
 /// Direction towards the light and the ambient term of the Lambertian shading.
 const LIGHT_DIRECTION: DVec3 = DVec3::new(0.35, 0.85, -0.4);
@@ -349,7 +349,8 @@ impl SynthScene {
         &self.config
     }
 
-    fn seconds(&self, frame: u32) -> f64 {
+    /// Time of `frame` in seconds.
+    pub fn seconds(&self, frame: u32) -> f64 {
         frame as f64 / self.config.fps
     }
 
@@ -621,6 +622,20 @@ pub const MAX_RIG_CAMERAS: u32 = 64;
 /// room.
 pub const MAX_RIG_SPACING_DEG: f64 = 90.0;
 
+impl CameraRig {
+    /// Rejects a rig outside the documented ranges, naming the parameter.
+    pub fn validate(&self) -> Result<()> {
+        if !(2..=MAX_RIG_CAMERAS).contains(&self.cameras) {
+            return Err(Error::parameter("cameras", format!("must be 2 to {MAX_RIG_CAMERAS}, got {}", self.cameras)));
+        }
+        if !(self.spacing_deg > 0.0 && self.spacing_deg <= MAX_RIG_SPACING_DEG) {
+            let reason = format!("must be a finite number in (0, {MAX_RIG_SPACING_DEG}], got {}", self.spacing_deg);
+            return Err(Error::parameter("camera_spacing_deg", reason));
+        }
+        Ok(())
+    }
+}
+
 impl SynthScene {
     /// Pose of `camera` of `rig` at `frame`: the source path's pose turned about the look-at
     /// point's vertical axis by (camera − (cameras − 1) / 2) × spacing.
@@ -643,13 +658,7 @@ pub fn write_multiview(
     out: &Path,
     mut progress: impl FnMut(u32),
 ) -> Result<PathBuf> {
-    if !(2..=MAX_RIG_CAMERAS).contains(&rig.cameras) {
-        return Err(Error::parameter("cameras", format!("must be 2 to {MAX_RIG_CAMERAS}, got {}", rig.cameras)));
-    }
-    if !(rig.spacing_deg > 0.0 && rig.spacing_deg <= MAX_RIG_SPACING_DEG) {
-        let reason = format!("must be a finite number in (0, {MAX_RIG_SPACING_DEG}], got {}", rig.spacing_deg);
-        return Err(Error::parameter("camera_spacing_deg", reason));
-    }
+    rig.validate()?;
     let scene = SynthScene::new(config)?;
     let (width, height) = (config.width as usize, config.height as usize);
     let intrinsics = config.intrinsics();
@@ -695,7 +704,10 @@ fn sheet_frames(frames: u32) -> Vec<u32> {
     picked
 }
 
-fn save_png<P: image::PixelWithColorType>(image: &image::ImageBuffer<P, Vec<P::Subpixel>>, path: &Path) -> Result<()>
+pub(crate) fn save_png<P: image::PixelWithColorType>(
+    image: &image::ImageBuffer<P, Vec<P::Subpixel>>,
+    path: &Path,
+) -> Result<()>
 where
     [P::Subpixel]: image::EncodableLayout,
 {

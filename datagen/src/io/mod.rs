@@ -2,15 +2,20 @@
 //! through FFmpeg, dataset annotations (run-length encoded masks, palette PNGs, boxes), and whole
 //! sequence folders in their layouts, including the outputs of the reconstruction tools in use
 //! (ViPE, VGGT, COLMAP, GEN3C, depth-only tools), each converted at the door, and synchronised
-//! multi-camera scenes made of them.
+//! multi-camera scenes: made of them, or as the benchmark datasets ship them (DyCheck, Kubric-4D,
+//! ParallelDomain-4D).
 
 pub mod annotations;
 pub mod colmap;
 pub mod depth_exr;
 pub mod depth_only;
+pub mod dycheck;
 pub mod gen3c;
+pub(crate) mod json_fields;
+pub mod kubric4d;
 pub mod multiview;
 pub mod npy;
+pub mod pardom4d;
 pub mod rle;
 pub mod sequence;
 pub mod tool_output;

@@ -11,6 +11,7 @@ mod hostile_files;
 mod hostile_sequences;
 mod inspect;
 mod multiview;
+mod multiview_datasets;
 mod novel_view;
 mod pairs;
 mod pairs_golden;

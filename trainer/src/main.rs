@@ -192,6 +192,10 @@ struct BenchmarkArgs {
     /// Scenes to evaluate (folder names under --root) [default: every scene].
     #[arg(long, num_args = 1.., value_delimiter = ',')]
     scenes: Vec<String>,
+    /// The scenes' layout: dycheck, kubric4d, pardom4d or generic (a sequence folder per camera)
+    /// [default: detected per scene from its files].
+    #[arg(long)]
+    layout: Option<datagen::io::multiview::MultiViewLayoutName>,
     /// What the source video is rendered from: `dataset` (the input camera's own depth and
     /// cameras) or a folder with one reconstruction per scene, DIR/<scene>/ (MegaSAM's, MoSca's
     /// exported, any layout datagen reads), scaled to the dataset's units by the median depth
@@ -937,6 +941,7 @@ fn run_benchmark(args: BenchmarkArgs) -> anyhow::Result<bool> {
         dataset,
         root,
         scenes: args.scenes,
+        layout: args.layout,
         split: benchmark::SplitOverride { input: args.input_camera, held_out: args.held_out_cameras },
         reconstruction: match args.reconstruction.as_str() {
             "dataset" => benchmark::Reconstruction::Dataset,

@@ -2,7 +2,8 @@
 //! command (CogNVS Table 1: Kubric-4D and ParallelDomain-4D under GCD's protocol; Table 2 and the
 //! appendix's masked table: DyCheck iPhone).
 //!
-//! Per scene of `ROOT` (each sub-folder a multi-camera scene, [`datagen::io::multiview`]): the
+//! Per scene of `ROOT` (each sub-folder a multi-camera scene in the DyCheck, Kubric-4D,
+//! ParallelDomain-4D or generic layout, [`datagen::io::multiview::read_multiview_as`]): the
 //! source is the split's input camera over a window of `--frames` instants (from the first one a
 //! held-out camera films), rendered from the dataset's own depth and cameras or from a
 //! reconstruction folder ([`Reconstruction`]); each held-out camera's poses at those instants are
@@ -27,6 +28,7 @@ pub mod scene;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use datagen::io::multiview::MultiViewLayoutName;
 use serde::{Deserialize, Serialize};
 use tch::Device;
 
@@ -96,6 +98,8 @@ pub struct Request {
     pub root: PathBuf,
     /// Scenes to evaluate, by folder name (empty: every scene of `root`, sorted).
     pub scenes: Vec<String>,
+    /// The scenes' layout (None: detected per scene from its files).
+    pub layout: Option<MultiViewLayoutName>,
     /// Input and held-out cameras other than the dataset's split.
     pub split: SplitOverride,
     /// What the source is rendered from.
@@ -256,6 +260,7 @@ fn settings(r: &Request, checkpoint_digest: &str) -> serde_json::Value {
     serde_json::json!({
         "dataset": r.dataset.name(),
         "root": r.root.display().to_string(),
+        "layout": r.layout.map(|l| l.as_str()),
         "input_camera": r.split.input,
         "held_out_cameras": r.split.held_out,
         "reconstruction": match &r.reconstruction {
@@ -390,9 +395,9 @@ fn scene_names(request: &Request) -> Result<Vec<String>> {
     Ok(names)
 }
 
-/// Reads one scene folder.
-fn read_scene(dir: &Path) -> Result<datagen::io::multiview::MultiViewScene> {
-    Ok(datagen::io::multiview::read_multiview(dir)?)
+/// Reads one scene folder in `layout` (None: detected).
+fn read_scene(dir: &Path, layout: Option<MultiViewLayoutName>) -> Result<datagen::io::multiview::MultiViewScene> {
+    Ok(datagen::io::multiview::read_multiview_as(dir, layout)?)
 }
 
 /// The eval request of one scene's cameras (LPIPS, no FID) or of the pooled frames (FID/KID only).
@@ -561,7 +566,7 @@ fn run_scene(
             reason: "no such scene folder".to_string(),
         });
     }
-    let scene = read_scene(&dir)?;
+    let scene = read_scene(&dir, request.layout)?;
     let work = request.out.join(SCENES_DIR).join(name);
     let prepared = scene::prepare(&scene, &request.split, &request.reconstruction, request.framing.frames, &work)?;
     let nvs_out = work.join("nvs");

@@ -1,7 +1,9 @@
-//! `trainer benchmark` end to end on a tiny model and tiny synthetic multi-camera scenes: the
+//! `trainer benchmark` end to end on a tiny model and tiny synthetic multi-camera scenes (generic,
+//! DyCheck and Kubric-4D layouts, as `datagen synth --cameras N --format` writes them): the
 //! table and its JSON with the paper's rows, the held-out camera's poses as the trajectory (the
-//! source as its own target renders back exactly), a reconstruction folder in other units,
-//! a broken scene reported while the rest go on, resumption, refused settings and `--compare`.
+//! source as its own target renders back exactly), DyCheck's own co-visibility masks in the
+//! masked metrics, a reconstruction folder in other units, a broken scene reported while the
+//! rest go on, resumption, refused settings and `--compare`.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -61,6 +63,37 @@ fn stderr(output: &Output) -> String {
     String::from_utf8_lossy(&output.stderr).to_string()
 }
 
+/// PSNR of the source frames (the camera left where it was) against held-out camera `camera`'s
+/// frames over the pixels the benchmark's render covers, from the run's work folder (every
+/// window frame scored, both cameras of one K and size).
+fn unmoved_psnr(out: &Path, scene: &str, camera: &str) -> f64 {
+    let work = out.join("scenes").join(scene);
+    let read = |path: PathBuf| image::open(path).unwrap();
+    let (mut squared, mut count) = (0.0, 0usize);
+    for i in 0..FRAMES {
+        let name = format!("{i:05}.png");
+        let source = read(work.join("source/frames").join(&name)).to_rgb8();
+        let target = read(work.join("target").join(camera).join(&name)).to_rgb8();
+        let holes = read(work.join(format!("nvs/renders/view-{camera}/holes")).join(&name)).to_luma8();
+        for ((s, t), h) in source.pixels().zip(target.pixels()).zip(holes.pixels()) {
+            if h.0[0] == 0 {
+                count += 3;
+                squared += (0..3).map(|c| ((f64::from(s.0[c]) - f64::from(t.0[c])) / 255.0).powi(2)).sum::<f64>();
+            }
+        }
+    }
+    -10.0 * (squared / count as f64).log10()
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for entry in std::fs::read_dir(from).unwrap() {
+        let path = entry.unwrap().path();
+        let target = to.join(path.file_name().unwrap());
+        if path.is_dir() { copy_dir(&path, &target) } else { std::fs::copy(&path, &target).map(|_| ()).unwrap() }
+    }
+}
+
 /// The whole command on three scenes: the table with the paper's rows, the broken scene failed
 /// with its reason; the render at the held-out camera's poses matches that camera's frames far
 /// better than the source frames do; after a scene's result is deleted only that scene runs again
@@ -107,22 +140,7 @@ fn benchmark_table_trajectory_resume_and_failures() {
     assert_eq!(a["cameras"][0]["camera"], "cam01");
     assert_eq!(a["cameras"][0]["time_ids"], serde_json::json!([0, 1, 2, 3, 4]));
     let render_psnr = -10.0 * a["cameras"][0]["render_mse"].as_f64().unwrap().log10();
-    let frame = |cam: &str, i: u32| image::open(f.root.join(format!("a/{cam}/frames/{i:05}.png"))).unwrap().to_rgb8();
-    let holes = |i: u32| {
-        let path = out.join(format!("scenes/a/nvs/renders/view-cam01/holes/{i:05}.png"));
-        image::open(path).unwrap().to_luma8()
-    };
-    let (mut squared, mut count) = (0.0, 0usize);
-    for i in 0..FRAMES {
-        let (source, target, holes) = (frame("cam00", i), frame("cam01", i), holes(i));
-        for ((s, t), h) in source.pixels().zip(target.pixels()).zip(holes.pixels()) {
-            if h.0[0] == 0 {
-                count += 3;
-                squared += (0..3).map(|c| ((f64::from(s.0[c]) - f64::from(t.0[c])) / 255.0).powi(2)).sum::<f64>();
-            }
-        }
-    }
-    let unmoved = -10.0 * (squared / count as f64).log10();
+    let unmoved = unmoved_psnr(&out, "a", "cam01");
     eprintln!("render {render_psnr:.2} dB, source frames {unmoved:.2} dB on the covered pixels");
     assert!(render_psnr > unmoved + 3.0, "render {render_psnr:.2} dB vs source frames {unmoved:.2} dB");
     assert!(a["cameras"][0]["render_coverage"].as_f64().unwrap() > 0.5);
@@ -238,4 +256,99 @@ fn benchmark_identity_and_reconstruction_folder() {
     assert!((r["reconstruction_scale"].as_f64().unwrap() - 0.5).abs() < 1e-6, "{r}");
     let (md, mr) = (d["cameras"][0]["render_mse"].as_f64().unwrap(), r["cameras"][0]["render_mse"].as_f64().unwrap());
     assert!((md - mr).abs() <= 0.05 * md, "render MSE with the dataset's reconstruction {md}, with the folder's {mr}");
+}
+
+/// The datasets' own layouts. DyCheck: the split's cameras (0 in, 1 held out, its dropped
+/// instant skipped), masked metrics over the covisible masks it ships, and those masks are the
+/// ones used: blanking their left half leaves PSNR as it was and changes mPSNR to the value of
+/// the prediction over the blanked masks. Kubric-4D: the split's input view 4, and the render at
+/// held-out view 3's poses agrees with view 3's frames far better than the source frames do
+/// (Kubric's axes, quaternions and ray depth converted right).
+#[test]
+fn benchmark_dycheck_masks_and_kubric4d_layouts() {
+    let dir = tempfile::tempdir().unwrap();
+    let (transformer, base, _) = released_layout(dir.path());
+    let rig = |cameras| datagen::synth::CameraRig { cameras, spacing_deg: 10.0 };
+    // DyCheck is read at its 2x factor: a 160 × 128 render gives 80 × 64 frames.
+    let dycheck =
+        datagen::synth::SynthConfig { width: 2 * W, height: 2 * H, frames: FRAMES, seed: 4, ..Default::default() };
+    let root = dir.path().join("dycheck");
+    datagen::synth_layouts::write_dycheck(&dycheck, &rig(2), &root.join("apple"), |_| {}).unwrap();
+    let fixture = Fixture {
+        _dir: tempfile::tempdir().unwrap(),
+        root: root.clone(),
+        transformer,
+        base,
+        work: dir.path().to_path_buf(),
+    };
+    let lpips = goldens().join("lpips_alex.safetensors").display().to_string();
+    let args = ["--dataset", "dycheck", "--lpips-weights", &lpips];
+    let whole = dir.path().join("whole");
+    assert_success(&benchmark(&fixture, &whole, &args));
+    let report = json(&whole.join("report.json"));
+    for key in ["masked_psnr", "masked_ssim", "masked_lpips"] {
+        assert!(report["mean"][key].is_number(), "{key}: {report}");
+    }
+    assert_eq!(report["paper"][0]["metrics"]["masked_psnr"], 15.35);
+    assert!(std::fs::read_to_string(whole.join("report.md")).unwrap().contains("| mPSNR ↑ |"));
+    let apple = json(&whole.join("results/apple.json"));
+    assert_eq!((&apple["input_camera"], &apple["cameras"][0]["camera"]), (&"0".into(), &"1".into()));
+    assert_eq!(apple["cameras"][0]["time_ids"], serde_json::json!([0, 2, 3, 4]), "instant 1 is not filmed by camera 1");
+    let shipped = image::open(root.join("apple/covisible/2x/val/1_00002.png")).unwrap().to_luma8();
+    let used = image::open(whole.join("scenes/apple/mask/1/00001.png")).unwrap().to_luma8();
+    assert_eq!(shipped, used, "instant 2's mask is the dataset's");
+
+    // The same scene with the left half of every co-visibility mask blanked.
+    let half_root = dir.path().join("half");
+    copy_dir(&root, &half_root);
+    let masks = half_root.join("apple/covisible/2x/val");
+    for entry in std::fs::read_dir(&masks).unwrap() {
+        let path = entry.unwrap().path();
+        let mut mask = image::open(&path).unwrap().to_luma8();
+        for y in 0..mask.height() {
+            for x in 0..mask.width() / 2 {
+                mask.put_pixel(x, y, image::Luma([0]));
+            }
+        }
+        mask.save(&path).unwrap();
+    }
+    let half = dir.path().join("half-out");
+    let fixture = Fixture { root: half_root, ..fixture };
+    assert_success(&benchmark(&fixture, &half, &args));
+    let blanked = json(&half.join("results/apple.json"));
+    let (before, after) = (&apple["cameras"][0]["metrics"], &blanked["cameras"][0]["metrics"]);
+    assert_eq!(before["psnr"], after["psnr"], "the predictions do not depend on the masks");
+    assert_ne!(before["masked_psnr"], after["masked_psnr"]);
+    let work = half.join("scenes/apple");
+    let expected =
+        trainer::metrics::evaluate(&work.join("pred/1"), &work.join("target/1"), Some(&work.join("mask/1"))).unwrap();
+    assert!((after["masked_psnr"].as_f64().unwrap() - expected.masked_psnr.unwrap()).abs() < 1e-9);
+    let used = image::open(work.join("mask/1/00000.png")).unwrap().to_luma8();
+    assert!(used.enumerate_pixels().all(|(x, _, p)| x >= used.width() / 2 || p.0[0] == 0));
+
+    // Kubric-4D: five views, input view 4 (GCD's), scored on view 3.
+    let kubric = datagen::synth::SynthConfig { width: W, height: H, frames: FRAMES, seed: 5, ..Default::default() };
+    let root = dir.path().join("kubric");
+    datagen::synth_layouts::write_kubric4d(&kubric, &rig(5), &root.join("scn00000"), |_| {}).unwrap();
+    let fixture = Fixture { root, ..fixture };
+    let out = dir.path().join("kubric-out");
+    assert_success(&benchmark(&fixture, &out, &["--dataset", "kubric4d", "--held-out-camera", "3"]));
+    let result = json(&out.join("results/scn00000.json"));
+    assert_eq!((&result["input_camera"], &result["cameras"][0]["camera"]), (&"4".into(), &"3".into()));
+    let render_psnr = -10.0 * result["cameras"][0]["render_mse"].as_f64().unwrap().log10();
+    let unmoved = unmoved_psnr(&out, "scn00000", "3");
+    // The same scene and rig in the generic layout (no conversion at all), cameras 4 → 3.
+    let generic_root = dir.path().join("generic");
+    datagen::synth::write_multiview(&kubric, &rig(5), &generic_root.join("scn00000"), |_| {}).unwrap();
+    let fixture = Fixture { root: generic_root, ..fixture };
+    let generic_out = dir.path().join("generic-out");
+    let cams = ["--dataset", "kubric4d", "--input-camera", "cam04", "--held-out-camera", "cam03"];
+    assert_success(&benchmark(&fixture, &generic_out, &cams));
+    let generic = json(&generic_out.join("results/scn00000.json"));
+    let generic_psnr = -10.0 * generic["cameras"][0]["render_mse"].as_f64().unwrap().log10();
+    eprintln!(
+        "kubric4d: render {render_psnr:.2} dB (generic layout {generic_psnr:.2} dB), source frames {unmoved:.2} dB"
+    );
+    assert!(render_psnr > unmoved + 3.0, "render {render_psnr:.2} dB vs source frames {unmoved:.2} dB");
+    assert!((render_psnr - generic_psnr).abs() < 0.5, "Kubric-4D {render_psnr:.2} dB, generic {generic_psnr:.2} dB");
 }

@@ -506,7 +506,7 @@ pub fn run(request: &Request, progress: &mut dyn FnMut(Progress)) -> Result<Outc
                 std::fs::create_dir_all(&results).map_err(|error| Error::Io { path: results, error })?;
                 write_atomic(&result_path, &serde_json::to_vec_pretty(&result).expect("json"))?;
                 progress(Progress::Done(name, &scene_line(&result)));
-                done.push(result);
+                done.push(*result);
             }
             Ok(SceneOutcome::Preempted) => return Ok(Outcome { report: None, preempted: true }),
             Err(error) => {
@@ -544,8 +544,9 @@ fn scene_line(result: &SceneResult) -> report::SceneLine {
     }
 }
 
+/// How one scene ended: scored, or stopped by a preemption signal (run again to continue).
 enum SceneOutcome {
-    Done(SceneResult),
+    Done(Box<SceneResult>),
     Preempted,
 }
 
@@ -627,7 +628,7 @@ fn run_scene(
     let frames = cameras.iter().map(|c| c.time_ids.len()).sum();
     let metrics = Metrics::weighted_mean(cameras.iter().map(|c| (&c.metrics, c.time_ids.len() as f64)));
     let sample_seconds: Vec<f64> = record.outputs.iter().filter_map(|o| o.sample_seconds).collect();
-    Ok(SceneOutcome::Done(SceneResult {
+    Ok(SceneOutcome::Done(Box::new(SceneResult {
         scene: name.to_string(),
         input_camera: input.id.clone(),
         window_start: prepared.window_start,
@@ -642,7 +643,7 @@ fn run_scene(
             total: started.elapsed().as_secs_f64(),
         },
         toolkit_commit: commit,
-    }))
+    })))
 }
 
 /// The report over the scored scenes: means, pooled FID/KID, the paper's rows, the summary.

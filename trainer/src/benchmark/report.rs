@@ -269,7 +269,7 @@ pub fn summary(report: &Report) -> String {
         metrics(&report.mean, report.fid, report.kid)
     );
     if let Some(paper) = report.paper.first() {
-        line += &format!(" | paper {}: {}", paper.row, metrics(&paper.metrics, Some(paper.fid), Some(paper.kid)));
+        line += &format!(" | {}: {}", paper.row, metrics(&paper.metrics, Some(paper.fid), Some(paper.kid)));
     }
     if !report.protocol_size {
         line += " | evaluated at another size than the protocol's: not comparable to the paper";

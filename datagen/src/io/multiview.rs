@@ -10,6 +10,9 @@
 //! `cameras.json` may give `timestamps` (seconds, one per frame, increasing); where one camera
 //! has them, all must, and they must agree within [`TIMESTAMP_TOLERANCE`] of a frame interval.
 //! The poses of all cameras are read as one world frame (nothing here can check that).
+//!
+//! [`read_multiview_as`] also reads the benchmark datasets' own layouts ([`MultiViewLayoutName`]:
+//! DyCheck iPhone / Nerfies, Kubric-4D, ParallelDomain-4D), detected from their files.
 
 use std::path::{Path, PathBuf};
 

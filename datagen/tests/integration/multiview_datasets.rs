@@ -108,6 +108,30 @@ fn a_dycheck_scene_reads_at_its_benchmark_factor_with_area_averaged_depth() {
     }
 }
 
+/// The Nerfies layout DyCheck extends: no `extra.json` (factor 1, no frame rate) and no
+/// `splits/` (the split comes from `dataset.json`'s `train_ids` / `val_ids`).
+#[test]
+fn a_nerfies_layout_scene_reads_without_extra_or_splits() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dycheck_scene(dir.path());
+    std::fs::remove_file(path.join("extra.json")).unwrap();
+    std::fs::remove_dir_all(path.join("splits")).unwrap();
+    let (scene, info) = read_dycheck_with_info(&path, None).unwrap();
+    assert_eq!((info.factor, info.fps, info.bbox), (1, None, None));
+    assert_eq!(scene.cameras[0].sequence.size(), (64, 48));
+    assert!(scene.cameras.iter().all(|c| c.timestamps.is_none()));
+    let split = scene.split.unwrap();
+    assert_eq!((split.input.as_str(), split.held_out.len()), ("0", 2));
+    assert_eq!(scene.cameras[2].time_ids, vec![0, 2]);
+    // Training items on two cameras leave no single input camera: no split, every frame kept.
+    edit_json(&path.join("dataset.json"), &|j| {
+        j["train_ids"].as_array_mut().unwrap().push(serde_json::json!("1_00000"));
+        j["num_exemplars"] = serde_json::json!(4);
+    });
+    let scene = read_dycheck(&path, None).unwrap();
+    assert!(scene.split.is_none());
+}
+
 /// Kubric's Z-up world from the synthetic scene's y-up one: (x, y, z) ↦ (x, −z, y).
 fn kubric_from_synth() -> DMat4 {
     DMat4::from_mat3(DMat3::from_cols(DVec3::X, DVec3::Z, -DVec3::Y))
@@ -145,6 +169,7 @@ fn a_kubric4d_scene_reads_back_in_opencv_axes_with_z_depth() {
             }
         }
     }
+    eprintln!("Kubric-4D round trip: pose {worst_pose:.1e}, K {worst_k:.1e}, z-depth {worst_depth:.1e} relative");
     assert!(worst_pose < 1e-12, "poses: {worst_pose}");
     assert!(worst_k < 1e-12, "K: {worst_k}");
     // float32 ray lengths divided back by the ray's length: a few float32 ulps.
@@ -458,4 +483,33 @@ fn undocumented_pardom4d_variants_are_refused_by_name() {
     copy(&unknown.join("depth/yaw-60"), &unknown.join("depth/yaw-120"));
     let text = refusal(&unknown);
     assert!(text.contains("yaw-120") && text.contains("names"), "{text}");
+}
+
+/// `datagen synth --cameras N --format F` writes a scene the reader detects as F.
+#[test]
+fn the_synth_command_writes_each_format() {
+    let dir = tempfile::tempdir().unwrap();
+    for (format, name, layout) in [
+        ("dycheck", "dy", MultiViewLayoutName::Dycheck),
+        ("kubric4d", "scn00005", MultiViewLayoutName::Kubric4d),
+        ("generic", "rig", MultiViewLayoutName::Generic),
+    ] {
+        let out = dir.path().join(name);
+        let status = std::process::Command::new(env!("CARGO_BIN_EXE_datagen"))
+            .args(["synth", "--width", "32", "--height", "24", "--frames", "2", "--cameras", "2", "--format", format])
+            .arg("--out")
+            .arg(&out)
+            .output()
+            .unwrap();
+        assert!(status.status.success(), "{format}: {}", String::from_utf8_lossy(&status.stderr));
+        assert_eq!(detect_multiview_layout(&out).unwrap(), layout);
+        assert_eq!(read_multiview_as(&out, None).unwrap().cameras.len(), 2, "{format}");
+    }
+    let refused = std::process::Command::new(env!("CARGO_BIN_EXE_datagen"))
+        .args(["synth", "--cameras", "2", "--format", "colmap", "--out"])
+        .arg(dir.path().join("x"))
+        .output()
+        .unwrap();
+    assert!(!refused.status.success());
+    assert!(String::from_utf8_lossy(&refused.stderr).contains("generic, dycheck, kubric4d"));
 }

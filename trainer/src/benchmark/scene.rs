@@ -258,10 +258,7 @@ fn write_generic(sequence: &Sequence, dir: &Path) -> Result<()> {
     write_file(&dir.join("cameras.json"), &serde_json::to_vec_pretty(&cameras).expect("json"))
 }
 
-/// The held-out view's folders of predictions, renders, render coverage, targets and masks,
-/// written from the `nvs` job's outputs (`sampled`: the sampled frames; `render`, `holes`: the
-/// render of every window frame), each frame brought from the source camera to the held-out
-/// camera. Only window positions below `sampled.len()` count. Returns the folders.
+/// What [`write_view`] wrote for one held-out camera, and the render's accuracy there.
 pub struct ViewFolders {
     /// Predictions at the held-out camera's intrinsics and size.
     pub pred: PathBuf,
@@ -278,8 +275,10 @@ pub struct ViewFolders {
     pub render_coverage: f64,
 }
 
-/// Writes `work/{pred,target,mask}/<camera>/%05d.png` for `view`; see [`ViewFolders`].
-#[allow(clippy::too_many_arguments)]
+/// Writes `work/{pred,target,mask}/<camera>/%05d.png` for `view` from the `nvs` job's outputs
+/// (`sampled`: the sampled frames; `render`, `holes`: the render of every window frame), each
+/// frame brought from the source camera to the held-out camera, with the render's error over the
+/// pixels it covers there. Only window positions below `sampled.len()` count.
 pub fn write_view(
     work: &Path,
     view: &HeldOutView,

@@ -352,3 +352,32 @@ fn benchmark_dycheck_masks_and_kubric4d_layouts() {
     assert!(render_psnr > unmoved + 3.0, "render {render_psnr:.2} dB vs source frames {unmoved:.2} dB");
     assert!((render_psnr - generic_psnr).abs() < 0.5, "Kubric-4D {render_psnr:.2} dB, generic {generic_psnr:.2} dB");
 }
+
+/// A benchmark killed (SIGKILL) once its first scene is scored continues when run again: the
+/// scored scene is skipped, the rest are evaluated, and the report holds both.
+#[test]
+fn benchmark_continues_after_a_kill() {
+    let f = fixture();
+    let out = f.work.join("killed");
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_trainer"));
+    cmd.arg("benchmark").arg("--root").arg(&f.root).arg("--init").arg(&f.transformer);
+    cmd.arg("--base-model").arg(&f.base).arg("--out").arg(&out);
+    cmd.args(["--steps", "0", "--sample-steps", "2", "--frames", &FRAMES.to_string(), "--eval-size", "80x64"]);
+    cmd.args(["--dataset", "kubric4d", "--scenes", "a,b"]);
+    let mut child = cmd.stderr(std::process::Stdio::null()).spawn().unwrap();
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(600);
+    while !out.join("results/a.json").exists() && child.try_wait().unwrap().is_none() {
+        assert!(std::time::Instant::now() < deadline, "scene a was not scored");
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    assert!(!out.join("report.json").exists() || out.join("results/b.json").exists());
+    let again = benchmark(&f, &out, &["--dataset", "kubric4d", "--scenes", "a,b"]);
+    assert_success(&again);
+    let log = stderr(&again);
+    assert!(log.contains("scene a: scored by an earlier run, skipped"), "{log}");
+    let report = json(&out.join("report.json"));
+    let scenes: Vec<&str> = report["scenes"].as_array().unwrap().iter().map(|s| s["scene"].as_str().unwrap()).collect();
+    assert_eq!(scenes, ["a", "b"]);
+}

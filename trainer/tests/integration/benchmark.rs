@@ -29,12 +29,14 @@ struct Fixture {
     root: PathBuf,
     transformer: PathBuf,
     base: PathBuf,
+    /// A finetuning TOML for the tiny released layout.
+    config: PathBuf,
     work: PathBuf,
 }
 
 fn fixture() -> Fixture {
     let dir = tempfile::tempdir().unwrap();
-    let (transformer, base, _) = released_layout(dir.path());
+    let (transformer, base, config) = released_layout(dir.path());
     let root = dir.path().join("root");
     scene(&root.join("a"), 1);
     scene(&root.join("b"), 2);
@@ -43,7 +45,7 @@ fn fixture() -> Fixture {
     let text = std::fs::read_to_string(&cameras).unwrap();
     std::fs::write(&cameras, &text[..text.len() / 2]).unwrap();
     let work = dir.path().to_path_buf();
-    Fixture { _dir: dir, root, transformer, base, work }
+    Fixture { _dir: dir, root, transformer, base, config, work }
 }
 
 fn benchmark(f: &Fixture, out: &Path, extra: &[&str]) -> Output {
@@ -267,7 +269,7 @@ fn benchmark_identity_and_reconstruction_folder() {
 #[test]
 fn benchmark_dycheck_masks_and_kubric4d_layouts() {
     let dir = tempfile::tempdir().unwrap();
-    let (transformer, base, _) = released_layout(dir.path());
+    let (transformer, base, config) = released_layout(dir.path());
     let rig = |cameras| datagen::synth::CameraRig { cameras, spacing_deg: 10.0 };
     // DyCheck is read at its 2x factor: a 160 × 128 render gives 80 × 64 frames.
     let dycheck =
@@ -279,6 +281,7 @@ fn benchmark_dycheck_masks_and_kubric4d_layouts() {
         root: root.clone(),
         transformer,
         base,
+        config,
         work: dir.path().to_path_buf(),
     };
     let lpips = goldens().join("lpips_alex.safetensors").display().to_string();
@@ -380,4 +383,25 @@ fn benchmark_continues_after_a_kill() {
     let report = json(&out.join("report.json"));
     let scenes: Vec<&str> = report["scenes"].as_array().unwrap().iter().map(|s| s["scene"].as_str().unwrap()).collect();
     assert_eq!(scenes, ["a", "b"]);
+}
+
+/// With --steps > 0 every scene is finetuned on its own source video first (the `nvs` job's
+/// finetuning phase), and the finetuned checkpoint is the one sampled and recorded.
+#[test]
+fn benchmark_finetunes_each_scene() {
+    let f = fixture();
+    let out = f.work.join("finetuned");
+    let config = f.config.display().to_string();
+    let args = ["--dataset", "kubric4d", "--scenes", "a", "--config", &config, "--finetune-trajectories", "1"];
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_trainer"));
+    cmd.arg("benchmark").arg("--root").arg(&f.root).arg("--init").arg(&f.transformer);
+    cmd.arg("--base-model").arg(&f.base).arg("--out").arg(&out);
+    cmd.args(["--steps", "1", "--sample-steps", "2", "--frames", &FRAMES.to_string(), "--eval-size", "80x64"]);
+    let output = cmd.args(args).output().unwrap();
+    assert_success(&output);
+    let a = json(&out.join("results/a.json"));
+    let checkpoint = a["checkpoint"].as_str().unwrap();
+    assert!(checkpoint.contains("scenes/a/nvs/finetune/checkpoints/step-"), "{checkpoint}");
+    assert!(a["seconds"]["finetune"].as_f64().unwrap() > 0.0);
+    assert_eq!(json(&out.join("report.json"))["settings"]["finetune_trajectories"], 1);
 }

@@ -372,15 +372,17 @@ fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
 }
 
 /// The scenes to evaluate: `--scenes` in the order given, else every non-hidden sub-folder of
-/// ROOT, sorted.
+/// ROOT but OUT, sorted.
 fn scene_names(request: &Request) -> Result<Vec<String>> {
     if !request.scenes.is_empty() {
         return Ok(request.scenes.clone());
     }
     let read = std::fs::read_dir(&request.root).map_err(|error| Error::Io { path: request.root.clone(), error })?;
+    // OUT may live inside ROOT: it is no scene.
+    let out = request.out.canonicalize().ok();
     let mut names: Vec<String> = read
         .filter_map(|e| e.ok())
-        .filter(|e| e.path().is_dir())
+        .filter(|e| e.path().is_dir() && (out.is_none() || e.path().canonicalize().ok() != out))
         .map(|e| e.file_name().to_string_lossy().into_owned())
         .filter(|n| !n.starts_with('.'))
         .collect();

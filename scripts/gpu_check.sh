@@ -40,6 +40,11 @@
 #   nccl          torchrun --nproc-per-node 1 trainer comm-check (NCCL at world size 1) and
 #                 trainer comm-cost (the overlapped exchange: streams, events, no-op baseline) [60 s]
 #   parity        tiny models, sampled by both on the device in bf16: frame differences [90 s]
+#   benchmark     trainer benchmark on synthetic scenes in the DyCheck and Kubric-4D layouts with
+#                 the sampling stage's random 5B-shaped weights, no finetuning, 10 denoising steps:
+#                 seconds per scene (sampling and whole) at the protocols' sizes. The released
+#                 checkpoint and the datasets cannot be reached from the GPU machine, so the
+#                 metrics say nothing about CogNVS; the stage times the path [240 s]
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 gc="$root/.gpu-check"
@@ -401,6 +406,39 @@ stage_parity() {
     fields "${all[@]}"
 }
 
+# trainer benchmark on one synthetic scene per layout with the sampling stage's models (random
+# weights: the figures are times, not quality).
+stage_benchmark() {
+    local case=cognvs_5b
+    ((TINY)) && case=cognvs
+    local folder="$WORK/sampling/$case"
+    [[ -d "$folder/transformer" ]] || { echo "no models: the sampling stage did not write $folder" >&2; exit 1; }
+    fields "note=random 5B-shaped weights on synthetic scenes: the released checkpoint and the datasets cannot be reached from this machine"
+    local layout extra=()
+    ((TINY)) && extra+=(--eval-size "${WIDTH}x${HEIGHT}")
+    for layout in dycheck kubric4d; do
+        local cameras=2 held=1
+        # Kubric-4D's split takes view 4 as the input: five views, scored on view 3.
+        [[ $layout == kubric4d ]] && cameras=5 held=3
+        "$BIN/datagen" synth --width "$WIDTH" --height "$HEIGHT" --frames "$FRAMES" --cameras "$cameras" \
+            --format "$layout" --out "$WORK/bench-$layout/scene0"
+        "$BIN/trainer" benchmark --dataset "$layout" --root "$WORK/bench-$layout" --init "$folder/transformer" \
+            --base-model "$folder" --text-embedding "$folder/text.safetensors" --held-out-camera "$held" --steps 0 \
+            --sample-steps 10 --frames "$FRAMES" --dtype "$DTYPE" --device "$DEVICE" --out "$WORK/bench-$layout/out" \
+            "${extra[@]}"
+        "$PY" - "$WORK/bench-$layout/out" "$layout" "$WORK/$STAGE.json" <<'PY'
+import json, sys
+out, layout, fields = sys.argv[1:4]
+report = json.load(open(f"{out}/report.json"))
+result = json.load(open(f"{out}/results/scene0.json"))
+data = json.load(open(fields))
+data[layout] = dict(eval_size=report["eval_size"], frames=result["frames"], psnr=report["mean"]["psnr"],
+                    sample_s=result["seconds"]["sample"], scene_s=result["seconds"]["total"])
+json.dump(data, open(fields, "w"))
+PY
+    done
+}
+
 summary() {
     "$PY" - "$OUT/results.jsonl" <<'PY' | tee "$OUT/summary.txt"
 import json, sys
@@ -475,6 +513,7 @@ run() {
     stage sampling 300
     stage nccl 60
     stage parity 90
+    stage benchmark 240
     summary
     rm -rf "$WORK"
     return "$FAILED"

@@ -8,6 +8,7 @@
 //! files they mirror; a module uses its own layer and those below (`docs/ARCHITECTURE.md` states
 //! the layers, `scripts/check_module_cycles.py` checks them).
 
+pub mod benchmark;
 pub mod diffusers_config;
 pub mod distributed;
 pub mod error;

@@ -47,6 +47,14 @@ enum Command {
     /// digests). Run again with the same arguments after a kill, it continues from the last
     /// finished phase.
     Nvs(NvsArgs),
+    /// The paper's evaluation of a checkpoint on a dataset folder in one command: per scene, the
+    /// split's input camera is the source, each held-out camera's poses a trajectory, `nvs`
+    /// (finetuning with the paper's settings unless --steps 0) samples the novel views, and
+    /// PSNR/SSIM/LPIPS (DyCheck: also over its co-visibility masks) and pooled FID/KID are
+    /// computed at the protocol's size. Writes OUT/report.{md,json} with the paper's CogNVS rows
+    /// beside ours; rerun with the same arguments it continues, skipping scored scenes.
+    /// --compare RUN_A RUN_B prints the per-scene differences of two benchmark folders.
+    Benchmark(BenchmarkArgs),
     /// Merge a LoRA file into a base transformer and write the full diffusers transformer folder
     /// (config.json + diffusion_pytorch_model.safetensors).
     MergeLora(MergeLoraArgs),
@@ -143,7 +151,7 @@ struct NvsArgs {
     #[arg(long)]
     out: PathBuf,
     /// Test-time finetuning steps (0: sample the checkpoint as it is).
-    #[arg(long, default_value_t = 200)]
+    #[arg(long, default_value_t = trainer::pipelines::nvs::DEFAULT_FINETUNE_STEPS)]
     steps: u64,
     /// Sampled trajectories per clip for the finetuning pairs (the paper: 5 for DyCheck, 9 for
     /// Kubric-4D and ParDom-4D).
@@ -167,6 +175,100 @@ struct NvsArgs {
     /// Compute device: cpu, cuda or cuda:N.
     #[arg(long, default_value = "cpu")]
     device: String,
+}
+
+#[derive(Debug, Args)]
+struct BenchmarkArgs {
+    /// Print the per-scene differences (B − A) of two finished benchmark folders and exit;
+    /// refused when their protocols or scene lists differ.
+    #[arg(long, num_args = 2, value_names = ["RUN_A", "RUN_B"], conflicts_with_all = ["dataset", "root", "init", "out"])]
+    compare: Option<Vec<PathBuf>>,
+    /// The dataset, which fixes the protocol (dycheck: DyCheck's, with masked metrics over its
+    /// co-visibility masks; kubric4d, pardom4d: GCD's) and the paper's rows shown.
+    #[arg(long, value_enum, required_unless_present = "compare")]
+    dataset: Option<DatasetArg>,
+    /// The dataset folder: one sub-folder per multi-camera scene.
+    #[arg(long, required_unless_present = "compare")]
+    root: Option<PathBuf>,
+    /// Scenes to evaluate (folder names under --root) [default: every scene].
+    #[arg(long, num_args = 1.., value_delimiter = ',')]
+    scenes: Vec<String>,
+    /// The scenes' layout: dycheck, kubric4d, pardom4d or generic (a sequence folder per camera)
+    /// [default: detected per scene from its files].
+    #[arg(long)]
+    layout: Option<datagen::io::multiview_layout::MultiViewLayoutName>,
+    /// What the source video is rendered from: `dataset` (the input camera's own depth and
+    /// cameras) or a folder with one reconstruction per scene, DIR/<scene>/ (MegaSAM's, MoSca's
+    /// exported, any layout datagen reads), scaled to the dataset's units by the median depth
+    /// ratio.
+    #[arg(long, default_value = "dataset")]
+    reconstruction: String,
+    /// The input camera, overriding the dataset's split (the generic layout has none: its first
+    /// camera).
+    #[arg(long)]
+    input_camera: Option<String>,
+    /// A held-out camera, overriding the dataset's split; repeatable (the generic layout's
+    /// default: every camera but the input).
+    #[arg(long = "held-out-camera")]
+    held_out_cameras: Vec<String>,
+    /// Checkpoint to evaluate (as `nvs --init`).
+    #[arg(long, required_unless_present = "compare")]
+    init: Option<PathBuf>,
+    /// Output folder.
+    #[arg(long, required_unless_present = "compare")]
+    out: Option<PathBuf>,
+    /// Test-time finetuning steps per scene (0: sample the checkpoint as it is).
+    #[arg(long, default_value_t = trainer::pipelines::nvs::DEFAULT_FINETUNE_STEPS)]
+    steps: u64,
+    /// Sampled trajectories per clip for the finetuning pairs [default: the paper's, 5 for
+    /// DyCheck, 9 for Kubric-4D and ParDom-4D].
+    #[arg(long = "finetune-trajectories")]
+    finetune_trajectories: Option<u32>,
+    /// Training TOML for finetuning (as `nvs --config`).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    #[command(flatten)]
+    model: ModelArgs,
+    /// Denoising steps per sample.
+    #[arg(long, default_value_t = 50)]
+    sample_steps: usize,
+    #[command(flatten)]
+    sampling: SamplingArgs,
+    /// Fill render holes from the stacked static background: auto, on or off.
+    #[arg(long, value_enum, default_value_t = SwitchArg::Auto)]
+    stack_background: SwitchArg,
+    /// Compute the metrics at WIDTHxHEIGHT instead of the protocol's size (the paper's numbers
+    /// then do not compare; for quick checks).
+    #[arg(long, value_parser = parse_size)]
+    eval_size: Option<(u32, u32)>,
+    /// LPIPS weights (safetensors from `scripts/convert_eval_weights.py lpips`) [default: no LPIPS].
+    #[arg(long)]
+    lpips_weights: Option<PathBuf>,
+    /// LPIPS backbone of --lpips-weights.
+    #[arg(long, value_enum, default_value = "alex")]
+    lpips_net: LpipsNetArg,
+    /// Inception weights for FID/KID (`scripts/convert_eval_weights.py inception`) [default: none].
+    #[arg(long)]
+    inception_weights: Option<PathBuf>,
+    /// KID's largest subset size (clean-fid's max_subset_size; smaller sets use all frames).
+    #[arg(long, default_value_t = trainer::eval::fid::KID_SUBSET_SIZE)]
+    kid_subset_size: usize,
+    /// KID subsets.
+    #[arg(long, default_value_t = trainer::eval::fid::KID_SUBSETS)]
+    kid_subsets: usize,
+    /// Compute device: cpu, cuda or cuda:N.
+    #[arg(long, default_value = "cpu")]
+    device: String,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum DatasetArg {
+    /// DyCheck iPhone (DyCheck protocol, masked metrics).
+    Dycheck,
+    /// Kubric-4D (GCD protocol).
+    Kubric4d,
+    /// ParallelDomain-4D (GCD protocol).
+    Pardom4d,
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -537,6 +639,7 @@ fn main() -> anyhow::Result<()> {
         Command::Sample(args) => run_sample(args),
         Command::Finetune(args) => training_exit(run_finetune(args)),
         Command::Nvs(args) => training_exit(run_nvs(args)),
+        Command::Benchmark(args) => training_exit(run_benchmark(args)),
         Command::Plan(args) => run_plan(args),
         Command::CommCheck(args) => run_comm_check(args),
         Command::CommCost(args) => run_comm_cost(args),
@@ -713,6 +816,89 @@ fn run_nvs(args: NvsArgs) -> anyhow::Result<bool> {
         }
         println!("settings, seeds and digests: {}", args.out.join("nvs.json").display());
     }
+    Ok(false)
+}
+
+fn run_benchmark(args: BenchmarkArgs) -> anyhow::Result<bool> {
+    use trainer::benchmark::{self, Progress};
+    if let Some(runs) = &args.compare {
+        let comparison = benchmark::compare(&runs[0], &runs[1])?;
+        println!("{}", benchmark::report::comparison_markdown(&comparison));
+        return Ok(false);
+    }
+    let (Some(dataset), Some(root), Some(init), Some(out)) = (args.dataset, args.root, args.init, args.out) else {
+        unreachable!("clap requires them without --compare")
+    };
+    let dataset = match dataset {
+        DatasetArg::Dycheck => benchmark::Dataset::Dycheck,
+        DatasetArg::Kubric4d => benchmark::Dataset::Kubric4d,
+        DatasetArg::Pardom4d => benchmark::Dataset::Pardom4d,
+    };
+    let device = trainer::precision::usable_device(&args.device)?;
+    let request = benchmark::Request {
+        dataset,
+        root,
+        scenes: args.scenes,
+        layout: args.layout,
+        split: benchmark::SplitOverride { input: args.input_camera, held_out: args.held_out_cameras },
+        reconstruction: match args.reconstruction.as_str() {
+            "dataset" => benchmark::Reconstruction::Dataset,
+            dir => benchmark::Reconstruction::Folder(PathBuf::from(dir)),
+        },
+        out: out.clone(),
+        model: args.model.source(init),
+        steps: args.steps,
+        finetune_trajectories: args.finetune_trajectories.unwrap_or(dataset.finetune_trajectories()),
+        config: args.config,
+        sample_steps: args.sample_steps,
+        guidance: args.sampling.guidance,
+        seed: args.sampling.seed,
+        load: args.sampling.load(device),
+        framing: args.sampling.framing(),
+        stack_background: match args.stack_background {
+            SwitchArg::Auto => None,
+            SwitchArg::On => Some(true),
+            SwitchArg::Off => Some(false),
+        },
+        eval_size: args.eval_size,
+        lpips: args.lpips_weights,
+        lpips_net: match args.lpips_net {
+            LpipsNetArg::Alex => trainer::eval::lpips::LpipsNet::Alex,
+            LpipsNetArg::Vgg => trainer::eval::lpips::LpipsNet::Vgg,
+        },
+        inception: args.inception_weights,
+        kid_subsets: args.kid_subsets,
+        kid_subset_size: args.kid_subset_size,
+    };
+    let outcome = benchmark::run(&request, &mut |event| match event {
+        Progress::Scene(name, i, n) => eprintln!("scene {}/{n}: {name}", i + 1),
+        Progress::Skipped(name) => eprintln!("scene {name}: scored by an earlier run, skipped"),
+        Progress::Failed(name, reason) => eprintln!("scene {name}: FAILED: {reason}"),
+        Progress::Done(name, line) => eprintln!(
+            "scene {name}: {} frames, PSNR {}",
+            line.frames,
+            line.metrics.psnr.map_or("–".to_string(), |v| format!("{v:.3}"))
+        ),
+        Progress::Nvs(trainer::pipelines::nvs::Progress::Phase(phase, len)) => eprintln!("  {phase} ({len})"),
+        Progress::Nvs(trainer::pipelines::nvs::Progress::Skipped(phase)) => {
+            eprintln!("  {phase}: finished by an earlier run")
+        }
+        Progress::Nvs(_) => {}
+    })?;
+    let Some(report) = outcome.report else {
+        eprintln!(
+            "preempted: scored scenes are kept in {}; run the same command again to continue (exit status {})",
+            out.display(),
+            trainer::training::preempt::EXIT_PREEMPTED
+        );
+        return Ok(true);
+    };
+    println!("{}", benchmark::report::markdown(&report));
+    println!(
+        "table: {}, JSON: {}",
+        out.join(benchmark::REPORT_MD).display(),
+        out.join(benchmark::REPORT_JSON).display()
+    );
     Ok(false)
 }
 

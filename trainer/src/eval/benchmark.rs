@@ -134,7 +134,7 @@ fn entries(dir: &Path) -> Result<BTreeMap<String, PathBuf>> {
 }
 
 /// One video to score: `(name, pred, target, mask folder)`.
-type Pair = (String, PathBuf, PathBuf, Option<PathBuf>);
+pub type Pair = (String, PathBuf, PathBuf, Option<PathBuf>);
 
 /// Every video's [`Pair`], or an error naming what does not match.
 fn pairs(req: &BenchmarkRequest) -> Result<Vec<Pair>> {
@@ -270,8 +270,17 @@ fn features(model: &FidInception, frames: &[RgbImage]) -> Result<Tensor> {
 }
 
 /// Runs the evaluation; `progress(done, total)` after each video.
-pub fn run(req: &BenchmarkRequest, mut progress: impl FnMut(usize, usize)) -> Result<BenchmarkReport> {
-    let pairs = pairs(req)?;
+pub fn run(req: &BenchmarkRequest, progress: impl FnMut(usize, usize)) -> Result<BenchmarkReport> {
+    run_pairs(req, &pairs(req)?, progress)
+}
+
+/// [`run`] on videos listed by the caller instead of found in `req.pred`/`req.target` (whose
+/// paths are then not read): the dataset benchmark scores its own folders this way.
+pub fn run_pairs(
+    req: &BenchmarkRequest,
+    pairs: &[Pair],
+    mut progress: impl FnMut(usize, usize),
+) -> Result<BenchmarkReport> {
     let lpips = req.lpips.as_deref().map(|p| Lpips::load(p, req.lpips_net, req.device)).transpose()?;
     let inception = req.inception.as_deref().map(|p| FidInception::load(p, req.device)).transpose()?;
     let (mut rows, mut pred_feats, mut target_feats) = (Vec::new(), Vec::new(), Vec::new());

@@ -36,6 +36,10 @@ use crate::pipelines::sampling::{CogNvsPipeline, Framing, LoadOptions};
 use crate::training::preempt::Checkpointable;
 use crate::training::{FinetuneRequest, StepMetrics};
 
+/// Test-time finetuning steps by default: the paper finetunes 200 to 400 steps per video (CogNVS
+/// §3.3); the lower end, as the public code's default.
+pub const DEFAULT_FINETUNE_STEPS: u64 = 200;
+
 /// Everything `trainer nvs` is asked to do.
 #[derive(Debug, Clone)]
 pub struct NvsRequest {

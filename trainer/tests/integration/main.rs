@@ -1,5 +1,6 @@
 //! The `trainer` integration tests: one binary, a module per feature.
 
+mod benchmark;
 mod checkpointing;
 mod data;
 mod distributed;

@@ -1,0 +1,708 @@
+//! `trainer benchmark`: the paper's evaluation of a checkpoint on a multi-camera dataset in one
+//! command (CogNVS Table 1: Kubric-4D and ParallelDomain-4D under GCD's protocol; Table 2 and the
+//! appendix's masked table: DyCheck iPhone).
+//!
+//! Per scene of `ROOT` (each sub-folder a multi-camera scene in the DyCheck, Kubric-4D,
+//! ParallelDomain-4D or generic layout, [`datagen::io::multiview_layout::read_multiview_as`]): the
+//! source is the split's input camera over a window of `--frames` instants (from the first one a
+//! held-out camera films), rendered from the dataset's own depth and cameras or from a
+//! reconstruction folder ([`Reconstruction`]); each held-out camera's poses at those instants are
+//! a trajectory; [`crate::pipelines::nvs::run`] (the `trainer nvs` job) finetunes on the source and samples
+//! every trajectory; each result is brought to the held-out camera's intrinsics and size
+//! ([`scene::write_view`]) and scored against its frames at the same instants by `trainer eval`'s
+//! code ([`crate::eval::benchmark::run_pairs`]) at the protocol's size, over the co-visibility
+//! masks the dataset ships where it ships them (DyCheck). FID/KID pool every frame of every
+//! scene, as GCD and the paper do.
+//!
+//! `OUT/settings.json` holds every setting and the checkpoint's digest; a rerun with other
+//! settings is refused naming what changed. `OUT/scenes/<scene>/` is a scene's work (its source
+//! sequence, trajectories, `nvs/` job, and `pred/`, `target/`, `mask/` per held-out camera);
+//! `OUT/results/<scene>.json`, written atomically when the scene is scored, marks it done: a rerun
+//! skips it, and a scene killed part way continues its `nvs` job. A scene whose inputs are broken
+//! is reported as failed with its reason (and tried again by the next run); the rest go on.
+//! `OUT/report.{json,md}` hold the table (see [`report`]).
+
+pub mod report;
+pub mod scene;
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use datagen::io::multiview_layout::MultiViewLayoutName;
+use serde::{Deserialize, Serialize};
+use tch::Device;
+
+use crate::error::{Error, Result};
+use crate::eval::benchmark::{BenchmarkRequest as EvalRequest, Protocol};
+use crate::eval::lpips::LpipsNet;
+use crate::loaders::ModelSource;
+use crate::pipelines::sampling::{Framing, LoadOptions};
+pub use report::{Comparison, Metrics, Report, compare};
+pub use scene::{Reconstruction, SplitOverride};
+
+/// The benchmark datasets of the paper.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Dataset {
+    /// DyCheck iPhone (the paper's Table 2).
+    Dycheck,
+    /// Kubric-4D as GCD distributes it (Table 1).
+    Kubric4d,
+    /// ParallelDomain-4D as GCD distributes it (Table 1).
+    Pardom4d,
+}
+
+impl Dataset {
+    /// The protocol whose size the metrics are computed at: DyCheck's, else GCD's.
+    pub fn protocol(self) -> Protocol {
+        match self {
+            Dataset::Dycheck => Protocol::Dycheck,
+            Dataset::Kubric4d | Dataset::Pardom4d => Protocol::Gcd,
+        }
+    }
+
+    /// Trajectories per clip of the paper's test-time finetuning: N = 5 on DyCheck, 9 on
+    /// Kubric-4D and ParallelDomain-4D (CogNVS §4, implementation details).
+    pub fn finetune_trajectories(self) -> u32 {
+        match self {
+            Dataset::Dycheck => 5,
+            Dataset::Kubric4d | Dataset::Pardom4d => 9,
+        }
+    }
+
+    /// The command-line name.
+    pub fn name(self) -> &'static str {
+        match self {
+            Dataset::Dycheck => "dycheck",
+            Dataset::Kubric4d => "kubric4d",
+            Dataset::Pardom4d => "pardom4d",
+        }
+    }
+
+    /// The name in a table's title.
+    pub fn title(self) -> &'static str {
+        match self {
+            Dataset::Dycheck => "DyCheck iPhone",
+            Dataset::Kubric4d => "Kubric-4D",
+            Dataset::Pardom4d => "ParallelDomain-4D",
+        }
+    }
+}
+
+/// Everything `trainer benchmark` is asked to do.
+#[derive(Debug, Clone)]
+pub struct Request {
+    /// The dataset (protocol, paper rows, finetuning trajectories).
+    pub dataset: Dataset,
+    /// The dataset folder: one sub-folder per scene.
+    pub root: PathBuf,
+    /// Scenes to evaluate, by folder name (empty: every scene of `root`, sorted).
+    pub scenes: Vec<String>,
+    /// The scenes' layout (None: detected per scene from its files).
+    pub layout: Option<MultiViewLayoutName>,
+    /// Input and held-out cameras other than the dataset's split.
+    pub split: SplitOverride,
+    /// What the source is rendered from.
+    pub reconstruction: Reconstruction,
+    /// Output folder.
+    pub out: PathBuf,
+    /// The checkpoint and where its other models come from (as `trainer nvs`).
+    pub model: ModelSource,
+    /// Test-time finetuning steps per scene (0: none).
+    pub steps: u64,
+    /// Trajectories per clip of the finetuning pairs.
+    pub finetune_trajectories: u32,
+    /// Training TOML for finetuning (needed for a checkpoint that is not a trainer run's).
+    pub config: Option<PathBuf>,
+    /// Denoising steps per sample.
+    pub sample_steps: usize,
+    /// Classifier-free guidance scale.
+    pub guidance: f64,
+    /// Seed of every sampling draw.
+    pub seed: u64,
+    /// Device, arithmetic and VAE tiling of sampling.
+    pub load: LoadOptions,
+    /// Frames, sizes and frame rate of sampling; `frames` is also the source window's length.
+    pub framing: Framing,
+    /// Fill render holes from the stacked static background (None: `nvs`'s rule).
+    pub stack_background: Option<bool>,
+    /// (width, height) of the metrics; None: the protocol's.
+    pub eval_size: Option<(u32, u32)>,
+    /// LPIPS weights (None: no LPIPS).
+    pub lpips: Option<PathBuf>,
+    /// LPIPS backbone.
+    pub lpips_net: LpipsNet,
+    /// Inception weights (None: no FID/KID).
+    pub inception: Option<PathBuf>,
+    /// KID subsets.
+    pub kid_subsets: usize,
+    /// KID's largest subset size (clean-fid's `max_subset_size`).
+    pub kid_subset_size: usize,
+}
+
+/// What the benchmark reports while it runs.
+#[derive(Debug)]
+pub enum Progress<'a> {
+    /// Scene `name` starts (index, of scenes).
+    Scene(&'a str, usize, usize),
+    /// Scene `name` was scored by an earlier run with these settings.
+    Skipped(&'a str),
+    /// Scene `name` failed; the reason.
+    Failed(&'a str, &'a str),
+    /// The scene's `nvs` job reports.
+    Nvs(crate::pipelines::nvs::Progress<'a>),
+    /// Scene `name` is scored.
+    Done(&'a str, &'a report::SceneLine),
+}
+
+/// How a call of [`run`] ended.
+#[derive(Debug)]
+pub struct Outcome {
+    /// The report as written (None when preempted).
+    pub report: Option<Report>,
+    /// Whether a preemption signal stopped it (run it again to continue).
+    pub preempted: bool,
+}
+
+/// The settings record in OUT.
+const SETTINGS_JSON: &str = "settings.json";
+/// The report in OUT.
+pub const REPORT_JSON: &str = "report.json";
+/// The Markdown table in OUT.
+pub const REPORT_MD: &str = "report.md";
+/// Per-scene results in OUT.
+const RESULTS_DIR: &str = "results";
+/// Per-scene work in OUT.
+const SCENES_DIR: &str = "scenes";
+
+/// One held-out camera's scores in a scene.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CameraResult {
+    /// The camera's id.
+    pub camera: String,
+    /// Time ids of the frames scored.
+    pub time_ids: Vec<usize>,
+    /// Its metrics.
+    pub metrics: Metrics,
+    /// Mean squared error of the render over the pixels it covers ([0, 1] intensities).
+    pub render_mse: Option<f64>,
+    /// Share of the held-out camera's pixels the render covers.
+    pub render_coverage: f64,
+}
+
+/// `OUT/results/<scene>.json`: a scored scene.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SceneResult {
+    /// The scene.
+    pub scene: String,
+    /// The input camera.
+    pub input_camera: String,
+    /// First frame of the source window.
+    pub window_start: usize,
+    /// Dataset units per reconstruction unit (1 for the dataset's reconstruction).
+    pub reconstruction_scale: f64,
+    /// Per held-out camera.
+    pub cameras: Vec<CameraResult>,
+    /// Frames scored (all cameras).
+    pub frames: usize,
+    /// The frame-weighted mean over cameras.
+    pub metrics: Metrics,
+    /// The checkpoint sampled (the finetuned one with steps > 0).
+    pub checkpoint: Option<String>,
+    /// Seconds of finetuning, sampling (all trajectories) and the whole scene.
+    pub seconds: SceneSeconds,
+    /// The toolkit's commit that produced it.
+    pub toolkit_commit: Option<String>,
+}
+
+/// Where a scene's time went.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct SceneSeconds {
+    /// Test-time finetuning.
+    pub finetune: Option<f64>,
+    /// Sampling, all trajectories.
+    pub sample: Option<f64>,
+    /// The scene from start to scores, in the run that finished it.
+    pub total: f64,
+}
+
+impl SceneResult {
+    /// PSNR of the render over its covered pixels, pooled over cameras (None if exact or empty).
+    pub fn render_psnr(&self) -> Option<f64> {
+        let (sum, weight) = self
+            .cameras
+            .iter()
+            .filter_map(|c| {
+                c.render_mse.map(|m| {
+                    (m * c.render_coverage * c.time_ids.len() as f64, c.render_coverage * c.time_ids.len() as f64)
+                })
+            })
+            .fold((0.0, 0.0), |(s, w), (m, c)| (s + m, w + c));
+        (weight > 0.0 && sum > 0.0).then(|| -10.0 * (sum / weight).log10())
+    }
+}
+
+/// The toolkit's commit: `git describe --always --dirty` in the source tree this binary was
+/// built from, when it is still there.
+pub fn toolkit_commit() -> Option<String> {
+    let output = std::process::Command::new("git")
+        .args(["-C", env!("CARGO_MANIFEST_DIR"), "describe", "--always", "--dirty", "--abbrev=12"])
+        .stderr(std::process::Stdio::null())
+        .output()
+        .ok()?;
+    let text = String::from_utf8(output.stdout).ok()?.trim().to_string();
+    (output.status.success() && !text.is_empty()).then_some(text)
+}
+
+/// The settings `settings.json` records: everything that changes a scene's result.
+fn settings(r: &Request, checkpoint_digest: &str) -> serde_json::Value {
+    let show = |p: &Option<PathBuf>| p.as_ref().map(|p| p.display().to_string());
+    serde_json::json!({
+        "dataset": r.dataset.name(),
+        "root": r.root.display().to_string(),
+        "layout": r.layout.map(|l| l.as_str()),
+        "input_camera": r.split.input,
+        "held_out_cameras": r.split.held_out,
+        "reconstruction": match &r.reconstruction {
+            Reconstruction::Dataset => "dataset".to_string(),
+            Reconstruction::Folder(dir) => dir.display().to_string(),
+        },
+        "init": r.model.checkpoint.display().to_string(),
+        "checkpoint_digest": checkpoint_digest,
+        "base_model": show(&r.model.base_model),
+        "vae": show(&r.model.vae),
+        "lora": show(&r.model.lora),
+        "text_embedding": show(&r.model.text_embedding),
+        "zero_text_embedding": r.model.zero_text_embedding,
+        "steps": r.steps,
+        "finetune_trajectories": r.finetune_trajectories,
+        "config": show(&r.config),
+        "sample_steps": r.sample_steps,
+        "guidance": r.guidance,
+        "seed": r.seed,
+        "precision": format!("{:?}", r.load.precision),
+        "vae_tiling": r.load.vae_tiling,
+        "frames": r.framing.frames,
+        "resize": format!("{:?}", r.framing.resize),
+        "size": r.framing.size,
+        "restore_size": r.framing.restore_size,
+        "stack_background": r.stack_background,
+        "eval_size": r.eval_size.unwrap_or(r.dataset.protocol().size()),
+        "lpips": show(&r.lpips),
+        "lpips_net": format!("{:?}", r.lpips_net),
+        "inception": show(&r.inception),
+        "kid_subsets": r.kid_subsets,
+        "kid_subset_size": r.kid_subset_size,
+    })
+}
+
+/// blake3 of the checkpoint folder, with the LoRA file's when one is given.
+fn checkpoint_digest(model: &ModelSource) -> Result<String> {
+    let mut digest = foundation::hashing::hash_tree(&model.checkpoint)?;
+    if let Some(lora) = &model.lora {
+        digest =
+            blake3::hash(format!("{digest}{}", foundation::hashing::hash_tree(lora)?).as_bytes()).to_hex().to_string();
+    }
+    Ok(digest)
+}
+
+/// Checks OUT and its settings (writing them for a new benchmark); refuses other settings,
+/// naming each that changed.
+fn check_settings(out: &Path, settings: &serde_json::Value) -> Result<()> {
+    if out.exists() && !out.is_dir() {
+        return Err(Error::InvalidArgument {
+            name: "out".to_string(),
+            reason: format!("{} exists and is not a folder", out.display()),
+        });
+    }
+    let path = out.join(SETTINGS_JSON);
+    match std::fs::read_to_string(&path) {
+        Ok(text) => {
+            let recorded: serde_json::Value = serde_json::from_str(&text).map_err(|e| Error::InvalidInput {
+                path: path.clone(),
+                what: "settings".to_string(),
+                reason: e.to_string(),
+            })?;
+            if &recorded == settings {
+                return Ok(());
+            }
+            let (Some(old), Some(new)) = (recorded.as_object(), settings.as_object()) else {
+                return Err(Error::InvalidInput {
+                    path,
+                    what: "settings".to_string(),
+                    reason: "not an object".to_string(),
+                });
+            };
+            let changed: Vec<String> = new
+                .keys()
+                .chain(old.keys())
+                .filter(|k| old.get(*k) != new.get(*k))
+                .map(|k| {
+                    format!(
+                        "{k}: {} → {}",
+                        old.get(k).cloned().unwrap_or_default(),
+                        new.get(k).cloned().unwrap_or_default()
+                    )
+                })
+                .collect();
+            Err(Error::InvalidArgument {
+                name: "out".to_string(),
+                reason: format!(
+                    "{} holds a benchmark with other settings ({}); rerun it with the same arguments to continue it, \
+                     or give another --out",
+                    out.display(),
+                    changed.join(", ")
+                ),
+            })
+        }
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            std::fs::create_dir_all(out).map_err(|error| Error::Io { path: out.to_path_buf(), error })?;
+            write_atomic(&path, &serde_json::to_vec_pretty(settings).expect("json"))
+        }
+        Err(error) => Err(Error::Io { path, error }),
+    }
+}
+
+/// Writes `bytes` to a temporary name beside `path` and renames it over `path`.
+fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    let temporary = path.with_extension("tmp");
+    std::fs::write(&temporary, bytes).map_err(|error| Error::Io { path: temporary.clone(), error })?;
+    std::fs::rename(&temporary, path).map_err(|error| Error::Io { path: path.to_path_buf(), error })
+}
+
+/// The scenes to evaluate: `--scenes` in the order given, else every non-hidden sub-folder of
+/// ROOT but OUT, sorted.
+fn scene_names(request: &Request) -> Result<Vec<String>> {
+    if !request.scenes.is_empty() {
+        return Ok(request.scenes.clone());
+    }
+    let read = std::fs::read_dir(&request.root).map_err(|error| Error::Io { path: request.root.clone(), error })?;
+    // OUT may live inside ROOT: it is no scene.
+    let out = request.out.canonicalize().ok();
+    let mut names: Vec<String> = read
+        .filter_map(|e| e.ok())
+        .filter(|e| e.path().is_dir() && (out.is_none() || e.path().canonicalize().ok() != out))
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| !n.starts_with('.'))
+        .collect();
+    names.sort();
+    if names.is_empty() {
+        return Err(Error::InvalidInput {
+            path: request.root.clone(),
+            what: "scenes".to_string(),
+            reason: "no scene folders".to_string(),
+        });
+    }
+    Ok(names)
+}
+
+/// Reads one scene folder in `layout` (None: detected).
+fn read_scene(dir: &Path, layout: Option<MultiViewLayoutName>) -> Result<datagen::io::multiview::MultiViewScene> {
+    Ok(datagen::io::multiview_layout::read_multiview_as(dir, layout)?)
+}
+
+/// The eval request of one scene's cameras (LPIPS, no FID) or of the pooled frames (FID/KID only).
+fn eval_request(request: &Request, pooled: bool) -> EvalRequest {
+    EvalRequest {
+        pred: PathBuf::new(),
+        target: PathBuf::new(),
+        mask: None,
+        single: false,
+        protocol: None,
+        top_k: None,
+        lpips: if pooled { None } else { request.lpips.clone() },
+        lpips_net: request.lpips_net,
+        inception: if pooled { request.inception.clone() } else { None },
+        kid: pooled,
+        kid_subsets: request.kid_subsets,
+        kid_subset_size: request.kid_subset_size,
+        seed: request.seed,
+        device: request.load.device,
+    }
+}
+
+/// Every frame of `frames` at `size` (the protocol's), as `trainer eval --protocol` resizes.
+fn resize_folder(dir: &Path, size: (u32, u32), nearest: bool) -> Result<()> {
+    let mut paths: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map_err(|error| Error::Io { path: dir.to_path_buf(), error })?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .collect();
+    paths.sort();
+    for path in paths {
+        let image = image::open(&path).map_err(|e| Error::InvalidInput {
+            path: path.clone(),
+            what: "image".to_string(),
+            reason: e.to_string(),
+        })?;
+        if (image.width(), image.height()) == size {
+            continue;
+        }
+        let filter = if nearest { image::imageops::FilterType::Nearest } else { image::imageops::FilterType::Triangle };
+        let resized = image.resize_exact(size.0, size.1, filter);
+        let resized = if nearest {
+            image::DynamicImage::ImageLuma8(resized.to_luma8())
+        } else {
+            image::DynamicImage::ImageRgb8(resized.to_rgb8())
+        };
+        resized.save(&path).map_err(|e| Error::InvalidInput {
+            path: path.clone(),
+            what: "image".to_string(),
+            reason: e.to_string(),
+        })?;
+    }
+    Ok(())
+}
+
+/// Runs (or continues) the benchmark.
+pub fn run(request: &Request, progress: &mut dyn FnMut(Progress)) -> Result<Outcome> {
+    if request.scenes.iter().any(|s| s.is_empty() || s.contains(['/', '\\']) || s == "." || s == "..") {
+        return Err(Error::InvalidArgument {
+            name: "scenes".to_string(),
+            reason: format!("scene names are folder names under --root, got {:?}", request.scenes),
+        });
+    }
+    // The models are checked once here, so a scene fails only for its own inputs.
+    let paths = request.model.resolve()?;
+    let checked = crate::pipelines::sampling::CheckedModels::read(&paths, Device::Cpu)?;
+    checked.check_sampling("sample-steps", request.sample_steps, request.guidance, &request.framing)?;
+    for (name, path) in [("lpips-weights", &request.lpips), ("inception-weights", &request.inception)] {
+        if let Some(path) = path.as_ref().filter(|p| !p.is_file()) {
+            return Err(Error::InvalidArgument {
+                name: name.to_string(),
+                reason: format!("{}: no such file", path.display()),
+            });
+        }
+    }
+    if let Reconstruction::Folder(dir) = &request.reconstruction
+        && !dir.is_dir()
+    {
+        return Err(Error::InvalidArgument {
+            name: "reconstruction".to_string(),
+            reason: format!(
+                "{}: not a folder (give `dataset` or a folder of per-scene reconstructions)",
+                dir.display()
+            ),
+        });
+    }
+    let names = scene_names(request)?;
+    let digest = checkpoint_digest(&request.model)?;
+    let settings = settings(request, &digest);
+    check_settings(&request.out, &settings)?;
+    let _lock = crate::training::RunLock::acquire_on(&request.out, "trainer benchmark", None)?;
+    let commit = toolkit_commit();
+    let size = request.eval_size.unwrap_or(request.dataset.protocol().size());
+
+    let (mut done, mut failed) = (Vec::new(), Vec::new());
+    for (index, name) in names.iter().enumerate() {
+        let result_path = request.out.join(RESULTS_DIR).join(format!("{name}.json"));
+        if let Some(result) = read_result(&result_path)? {
+            progress(Progress::Skipped(name));
+            done.push(result);
+            continue;
+        }
+        progress(Progress::Scene(name, index, names.len()));
+        match run_scene(request, name, size, commit.clone(), progress) {
+            Ok(SceneOutcome::Done(result)) => {
+                let results = request.out.join(RESULTS_DIR);
+                std::fs::create_dir_all(&results).map_err(|error| Error::Io { path: results, error })?;
+                write_atomic(&result_path, &serde_json::to_vec_pretty(&result).expect("json"))?;
+                progress(Progress::Done(name, &scene_line(&result)));
+                done.push(*result);
+            }
+            Ok(SceneOutcome::Preempted) => return Ok(Outcome { report: None, preempted: true }),
+            Err(error) => {
+                let reason = error.to_string();
+                progress(Progress::Failed(name, &reason));
+                failed.push(report::FailedScene { scene: name.clone(), reason });
+            }
+        }
+    }
+
+    let report = finish(request, &settings, &digest, commit, size, &done, failed)?;
+    write_atomic(&request.out.join(REPORT_JSON), &serde_json::to_vec_pretty(&report).expect("json"))?;
+    write_atomic(&request.out.join(REPORT_MD), report::markdown(&report).as_bytes())?;
+    Ok(Outcome { report: Some(report), preempted: false })
+}
+
+fn read_result(path: &Path) -> Result<Option<SceneResult>> {
+    match std::fs::read_to_string(path) {
+        Ok(text) => serde_json::from_str(&text).map(Some).map_err(|e| Error::InvalidInput {
+            path: path.to_path_buf(),
+            what: "scene result".to_string(),
+            reason: format!("{e}; delete it to evaluate the scene again"),
+        }),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
+        Err(error) => Err(Error::Io { path: path.to_path_buf(), error }),
+    }
+}
+
+fn scene_line(result: &SceneResult) -> report::SceneLine {
+    report::SceneLine {
+        scene: result.scene.clone(),
+        frames: result.frames,
+        metrics: result.metrics.clone(),
+        render_psnr: result.render_psnr(),
+    }
+}
+
+/// How one scene ended: scored, or stopped by a preemption signal (run again to continue).
+enum SceneOutcome {
+    Done(Box<SceneResult>),
+    Preempted,
+}
+
+/// One scene: prepare, `nvs`, bring the results to the held-out cameras, score.
+fn run_scene(
+    request: &Request,
+    name: &str,
+    size: (u32, u32),
+    commit: Option<String>,
+    progress: &mut dyn FnMut(Progress),
+) -> Result<SceneOutcome> {
+    let started = Instant::now();
+    let dir = request.root.join(name);
+    if !dir.is_dir() {
+        return Err(Error::InvalidInput {
+            path: dir,
+            what: "scene".to_string(),
+            reason: "no such scene folder".to_string(),
+        });
+    }
+    let scene = read_scene(&dir, request.layout)?;
+    let work = request.out.join(SCENES_DIR).join(name);
+    let prepared = scene::prepare(&scene, &request.split, &request.reconstruction, request.framing.frames, &work)?;
+    let nvs_out = work.join("nvs");
+    let nvs = crate::pipelines::nvs::NvsRequest {
+        model: request.model.clone(),
+        sequence: prepared.source.clone(),
+        trajectories: prepared.trajectories.clone(),
+        out: nvs_out.clone(),
+        steps: request.steps,
+        finetune_trajectories: request.finetune_trajectories,
+        config: request.config.clone(),
+        sample_steps: request.sample_steps,
+        guidance: request.guidance,
+        seed: request.seed,
+        load: request.load,
+        framing: request.framing.clone(),
+        stack_background: request.stack_background,
+    };
+    let outcome =
+        crate::pipelines::nvs::run(&nvs, request.load.device, None, &mut |event| progress(Progress::Nvs(event)))?;
+    if outcome.preempted {
+        return Ok(SceneOutcome::Preempted);
+    }
+    let record = outcome.record.expect("rank 0 has the record");
+    let (input, _) = scene::cameras(&scene, &request.split)?;
+    let mut cameras = Vec::new();
+    for (view, output) in prepared.views.iter().zip(&record.outputs) {
+        let camera = scene.camera(&view.camera).expect("prepared from the scene");
+        let sampled = crate::eval::metrics::read_frames(&nvs_out.join(output.frames.as_deref().unwrap_or(&view.name)))?;
+        let render_dir = nvs_out.join(&output.render);
+        let render = crate::eval::metrics::read_frames(&render_dir.join("frames"))?;
+        let holes = crate::eval::metrics::read_masks(&render_dir.join("holes"))?;
+        let folders = scene::write_view(&work, view, camera, &prepared.source_cameras, &sampled, &render, &holes)?;
+        if folders.matches.is_empty() {
+            continue;
+        }
+        resize_folder(&folders.pred, size, false)?;
+        resize_folder(&folders.target, size, false)?;
+        if let Some(mask) = &folders.mask {
+            resize_folder(mask, size, true)?;
+        }
+        let pair = (view.camera.clone(), folders.pred.clone(), folders.target.clone(), folders.mask.clone());
+        let scored = crate::eval::benchmark::run_pairs(&eval_request(request, false), &[pair], |_, _| {})?;
+        cameras.push(CameraResult {
+            camera: view.camera.clone(),
+            time_ids: folders.matches.iter().map(|&(_, j)| camera.time_ids[j]).collect(),
+            metrics: Metrics::from_row(&scored.videos[0]),
+            render_mse: folders.render_mse,
+            render_coverage: folders.render_coverage,
+        });
+    }
+    if cameras.is_empty() {
+        return Err(Error::InvalidInput {
+            path: dir,
+            what: "held-out frames".to_string(),
+            reason: "no held-out camera films an instant of the sampled window".to_string(),
+        });
+    }
+    let frames = cameras.iter().map(|c| c.time_ids.len()).sum();
+    let metrics = Metrics::weighted_mean(cameras.iter().map(|c| (&c.metrics, c.time_ids.len() as f64)));
+    let sample_seconds: Vec<f64> = record.outputs.iter().filter_map(|o| o.sample_seconds).collect();
+    Ok(SceneOutcome::Done(Box::new(SceneResult {
+        scene: name.to_string(),
+        input_camera: input.id.clone(),
+        window_start: prepared.window_start,
+        reconstruction_scale: prepared.scale,
+        cameras,
+        frames,
+        metrics,
+        checkpoint: record.checkpoint.clone(),
+        seconds: SceneSeconds {
+            finetune: record.finetune_seconds,
+            sample: (!sample_seconds.is_empty()).then(|| sample_seconds.iter().sum()),
+            total: started.elapsed().as_secs_f64(),
+        },
+        toolkit_commit: commit,
+    })))
+}
+
+/// The report over the scored scenes: means, pooled FID/KID, the paper's rows, the summary.
+fn finish(
+    request: &Request,
+    settings: &serde_json::Value,
+    digest: &str,
+    commit: Option<String>,
+    size: (u32, u32),
+    done: &[SceneResult],
+    failed: Vec<report::FailedScene>,
+) -> Result<Report> {
+    let lines: Vec<report::SceneLine> = done.iter().map(scene_line).collect();
+    let mean = Metrics::weighted_mean(lines.iter().map(|l| (&l.metrics, 1.0)));
+    let pairs: Vec<crate::eval::benchmark::Pair> = done
+        .iter()
+        .flat_map(|r| {
+            let work = request.out.join(SCENES_DIR).join(&r.scene);
+            r.cameras.iter().map(move |c| {
+                (
+                    format!("{}/{}", r.scene, c.camera),
+                    work.join("pred").join(&c.camera),
+                    work.join("target").join(&c.camera),
+                    None,
+                )
+            })
+        })
+        .collect();
+    let frames: usize = done.iter().map(|r| r.frames).sum();
+    let (mut fid, mut kid, mut kid_subset_size) = (None, None, None);
+    if request.inception.is_some() && frames >= 2 {
+        let mut eval = eval_request(request, true);
+        eval.kid_subset_size = request.kid_subset_size.min(frames);
+        let pooled = crate::eval::benchmark::run_pairs(&eval, &pairs, |_, _| {})?;
+        (fid, kid, kid_subset_size) = (pooled.fid, pooled.kid, Some(eval.kid_subset_size));
+    }
+    let mut report = Report {
+        dataset: request.dataset,
+        protocol: match request.dataset.protocol() {
+            Protocol::Gcd => "gcd".to_string(),
+            Protocol::Dycheck => "dycheck".to_string(),
+        },
+        eval_size: size,
+        protocol_size: size == request.dataset.protocol().size(),
+        settings: settings.clone(),
+        checkpoint_digest: digest.to_string(),
+        toolkit_commit: commit,
+        seed: request.seed,
+        scenes: lines,
+        failed,
+        mean,
+        fid,
+        kid,
+        kid_subset_size,
+        paper: report::paper_rows(request.dataset),
+        summary: String::new(),
+    };
+    report.summary = report::summary(&report);
+    Ok(report)
+}

@@ -106,8 +106,8 @@ fn training_toml_values_out_of_range_name_key_and_value() {
         ("width = 80", "width = 160", "data.width", &["160", "80 pixels"]),
         ("height = 64", "height = 4000000", "data.height", &["4000000"]),
         ("batch_size = 1", "batch_size = 0", "data.batch_size", &["0"]),
-        ("seed = 0\n\n[optim]", "seed = 0\nrank = 2\n\n[optim]", "data.rank", &["2", "world_size 1"]),
-        ("seed = 0\n\n[optim]", "seed = 0\nprefetch_batches = 0\n\n[optim]", "data.prefetch_batches", &["0"]),
+        ("\n\n[optim]", "\nrank = 2\n\n[optim]", "data.rank", &["2", "world_size 1"]),
+        ("\n\n[optim]", "\nprefetch_batches = 0\n\n[optim]", "data.prefetch_batches", &["0"]),
         ("transformer = \"tiny\"", "transformer = \"huge\"", "model.transformer", &["huge"]),
         ("vae = \"tiny\"", "vae = \"/no/such/vae\"", "model.vae", &["/no/such/vae"]),
         (

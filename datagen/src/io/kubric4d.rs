@@ -27,7 +27,7 @@
 
 use std::path::{Path, PathBuf};
 
-use glam::{DMat3, DQuat, DVec3};
+use glam::{DMat3, DMat4, DQuat, DVec3};
 use image::GrayImage;
 use rayon::prelude::*;
 
@@ -36,7 +36,9 @@ use crate::io::json_fields::{JsonFile, list, numbers};
 use crate::io::multiview::{CameraView, EvalSplit, MultiViewScene};
 use crate::io::npy::MAX_SIDE_PX;
 use crate::io::sequence::Sequence;
-use foundation::camera::{PinholeCamera, ROTATION_TOLERANCE, checked_intrinsics, checked_pose, json_matrix};
+use foundation::camera::{
+    PinholeCamera, ROTATION_TOLERANCE, checked_intrinsics, checked_pose, json_matrix, mat4_to_row_major,
+};
 use foundation::depth::DepthMap;
 use foundation::frames::read_frames;
 
@@ -270,14 +272,10 @@ fn read_poses(metadata: &JsonFile, frames: usize) -> Result<Vec<glam::DMat4>> {
         let blender = DMat3::from_quat(DQuat::from_xyzw(q[1], q[2], q[3], q[0]));
         // Blender camera axes (x right, y up, z backward) to OpenCV's (x right, y down, z forward).
         let rotation = DMat3::from_cols(blender.x_axis, -blender.y_axis, -blender.z_axis);
-        let mut row_major = [0.0; 16];
-        for r in 0..3 {
-            for c in 0..3 {
-                row_major[r * 4 + c] = rotation.col(c)[r];
-            }
-            row_major[r * 4 + 3] = position[r];
-        }
-        row_major[15] = 1.0;
+        let row_major = mat4_to_row_major(&DMat4::from_mat3_translation(
+            rotation,
+            DVec3::new(position[0], position[1], position[2]),
+        ));
         poses.push(checked_pose(path, &label, &row_major)?);
     }
     Ok(poses)

@@ -22,7 +22,7 @@
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 
-use glam::{DMat3, DQuat};
+use glam::{DMat3, DMat4, DQuat, DVec3};
 use rayon::prelude::*;
 
 use crate::error::{Error, Result};
@@ -31,7 +31,7 @@ use crate::io::multiview::{CameraView, EvalSplit, MultiViewScene};
 use crate::io::npy::{Axis, NpzReader};
 use crate::io::sequence::Sequence;
 use crate::io::tool_output::check_depth_sign;
-use foundation::camera::{PinholeCamera, ROTATION_TOLERANCE, checked_intrinsics, checked_pose};
+use foundation::camera::{PinholeCamera, ROTATION_TOLERANCE, checked_intrinsics, checked_pose, mat4_to_row_major};
 use foundation::depth::DepthMap;
 use foundation::frames::read_frames;
 
@@ -183,14 +183,10 @@ impl Calibration {
             component(translation, "z", "translation")?,
         ];
         let rotation = DMat3::from_quat(DQuat::from_xyzw(x, y, z, w));
-        let mut row_major = [0.0; 16];
-        for r in 0..3 {
-            for c in 0..3 {
-                row_major[r * 4 + c] = rotation.col(c)[r];
-            }
-            row_major[r * 4 + 3] = position[r];
-        }
-        row_major[15] = 1.0;
+        let row_major = mat4_to_row_major(&DMat4::from_mat3_translation(
+            rotation,
+            DVec3::new(position[0], position[1], position[2]),
+        ));
         let pose = checked_pose(path, &format!("extrinsics[{i}]"), &row_major)?;
         Ok((intrinsics, pose))
     }

@@ -113,8 +113,11 @@ pub fn trajectory_request(sequence: &Sequence, files: &[PathBuf], count: Option<
 /// PNG bytes of an image, fast deflate and one fixed filter instead of the default per-row choice
 /// among all five: on the benchmark clip's frames and masks (png 0.18, fast deflate), Paeth encodes
 /// colour frames faster than the adaptive choice and no larger, and Up encodes masks several times
-/// faster for slightly larger files.
-fn png<P: image::PixelWithColorType>(image: &image::ImageBuffer<P, Vec<P::Subpixel>>, filter: FilterType) -> Vec<u8>
+/// faster for slightly larger files. Shared by the multi-view pairs.
+pub(crate) fn png<P: image::PixelWithColorType>(
+    image: &image::ImageBuffer<P, Vec<P::Subpixel>>,
+    filter: FilterType,
+) -> Vec<u8>
 where
     [P::Subpixel]: image::EncodableLayout,
 {

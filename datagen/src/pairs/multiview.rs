@@ -20,8 +20,8 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 
-use image::codecs::png::{CompressionType, FilterType, PngEncoder};
-use image::{EncodableLayout, GrayImage, ImageEncoder, RgbImage};
+use image::codecs::png::FilterType;
+use image::{GrayImage, RgbImage};
 use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
@@ -35,6 +35,7 @@ use crate::geometry::depth_mesh::{DepthMesh, MeshConfig};
 use crate::io::depth_exr::encode_depth_exr;
 use crate::io::multiview::{CameraView, MultiViewScene};
 use crate::pairs::clip::ClipConfig;
+use crate::pairs::generator::png;
 use foundation::camera::{mat3_to_row_major, mat4_to_row_major};
 
 /// Which multi-view pairs a multi-camera scene gives (the `[multiview]` table of a pairs config,
@@ -305,16 +306,4 @@ pub fn render_into_target(
         pixel.0[0] = 255 - pixel.0[0];
     }
     (image, holes)
-}
-
-/// PNG bytes as the monocular generator writes them (fast deflate, one fixed filter).
-fn png<P: image::PixelWithColorType>(image: &image::ImageBuffer<P, Vec<P::Subpixel>>, filter: FilterType) -> Vec<u8>
-where
-    [P::Subpixel]: image::EncodableLayout,
-{
-    let mut bytes = Vec::new();
-    PngEncoder::new_with_quality(&mut bytes, CompressionType::Fast, filter)
-        .write_image(image.as_raw().as_bytes(), image.width(), image.height(), P::COLOR_TYPE)
-        .expect("PNG encoding to memory");
-    bytes
 }

@@ -7,8 +7,8 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use glam::DMat4;
-use image::codecs::png::{CompressionType, FilterType, PngEncoder};
-use image::{EncodableLayout, GrayImage, ImageEncoder, RgbImage};
+use image::codecs::png::FilterType;
+use image::{GrayImage, RgbImage};
 use rayon::prelude::*;
 use schemas::{
     ClipRecord, InputDigest, PairKind, ShardStats, ShardWriter, ShardWriterOptions, TrajectoryKind, TrajectoryRecord,
@@ -22,6 +22,7 @@ use crate::io::depth_exr::encode_depth_exr;
 use crate::io::sequence::Sequence;
 use crate::pairs::clip::ClipConfig;
 use crate::pairs::depth_noise::{DepthNoiseConfig, NoiseKey, SourceFrame};
+use crate::pairs::encode::{mask_png, png};
 use crate::pairs::static_background::{StackingConfig, StaticBackground};
 use crate::pairs::trajectory::{NovelTrajectory, Sampler, TrajectoryConfig};
 use crate::pairs::trajectory_bank::TrajectoryBank;
@@ -110,24 +111,6 @@ pub fn trajectory_request(sequence: &Sequence, files: &[PathBuf], count: Option<
     Ok(TrajectoryRequest { sampled, explicit })
 }
 
-/// PNG bytes of an image, fast deflate and one fixed filter instead of the default per-row choice
-/// among all five: on the benchmark clip's frames and masks (png 0.18, fast deflate), Paeth encodes
-/// colour frames faster than the adaptive choice and no larger, and Up encodes masks several times
-/// faster for slightly larger files. Shared by the multi-view pairs.
-pub(crate) fn png<P: image::PixelWithColorType>(
-    image: &image::ImageBuffer<P, Vec<P::Subpixel>>,
-    filter: FilterType,
-) -> Vec<u8>
-where
-    [P::Subpixel]: image::EncodableLayout,
-{
-    let mut bytes = Vec::new();
-    PngEncoder::new_with_quality(&mut bytes, CompressionType::Fast, filter)
-        .write_image(image.as_raw().as_bytes(), image.width(), image.height(), P::COLOR_TYPE)
-        .expect("PNG encoding to memory");
-    bytes
-}
-
 /// `frame` with the pixels outside `mask` black: the conditioning without depth noise.
 fn masked_frame(frame: &RgbImage, mask: &[bool]) -> RgbImage {
     let mut out = frame.clone();
@@ -137,11 +120,6 @@ fn masked_frame(frame: &RgbImage, mask: &[bool]) -> RgbImage {
         }
     }
     out
-}
-
-fn mask_png(mask: &[bool], width: u32, height: u32) -> Vec<u8> {
-    let pixels = mask.iter().map(|&m| if m { 255 } else { 0 }).collect();
-    png(&GrayImage::from_raw(width, height, pixels).expect("mask sized to the frame"), FilterType::Up)
 }
 
 /// One trajectory's data for one frame: mask PNG, co-visible pixel count, and under depth noise
@@ -533,7 +511,7 @@ pub fn render_frame(
     i: usize,
     novel: &PinholeCamera,
     config: &CovisibilityConfig,
-) -> (RgbImage, image::GrayImage) {
+) -> (RgbImage, GrayImage) {
     let source = &sequence.cameras[i];
     let mesh = crate::geometry::depth_mesh::DepthMesh::new(&sequence.depth[i], source, &config.mesh);
     crate::geometry::render::render_novel_view(&mesh, &sequence.frames[i], source, novel)

@@ -9,6 +9,7 @@
 
 pub mod clip;
 pub mod depth_noise;
+mod encode;
 pub mod generator;
 pub mod job;
 pub mod multiview;

@@ -35,7 +35,7 @@ use crate::geometry::depth_mesh::{DepthMesh, MeshConfig};
 use crate::io::depth_exr::encode_depth_exr;
 use crate::io::multiview::{CameraView, MultiViewScene};
 use crate::pairs::clip::ClipConfig;
-use crate::pairs::generator::png;
+use crate::pairs::encode::png;
 use foundation::camera::{mat3_to_row_major, mat4_to_row_major};
 
 /// Which multi-view pairs a multi-camera scene gives (the `[multiview]` table of a pairs config,

@@ -1022,7 +1022,7 @@ fn run_plan(args: PlanArgs) -> anyhow::Result<()> {
 }
 
 fn run_eval(args: EvalArgs) -> anyhow::Result<()> {
-    use trainer::eval::{benchmark, inception, lpips};
+    use trainer::eval::{inception, lpips, score};
     let write = |path: &Option<PathBuf>, text: &str| -> anyhow::Result<()> {
         if let Some(out) = path {
             std::fs::write(out, text).with_context(|| format!("writing {}", out.display()))?;
@@ -1047,14 +1047,14 @@ fn run_eval(args: EvalArgs) -> anyhow::Result<()> {
         anyhow::bail!("--metrics fid/kid needs --inception-weights FILE: {}", inception::HOW_TO_GET);
     }
     let fid_requested = args.metrics.is_empty() || wants(MetricArg::Fid) || wants(MetricArg::Kid);
-    let request = benchmark::BenchmarkRequest {
+    let request = score::ScoreRequest {
         pred: args.pred,
         target: args.target,
         mask: args.mask,
         single,
         protocol: args.protocol.map(|p| match p {
-            ProtocolArg::Gcd => benchmark::Protocol::Gcd,
-            ProtocolArg::Dycheck => benchmark::Protocol::Dycheck,
+            ProtocolArg::Gcd => score::Protocol::Gcd,
+            ProtocolArg::Dycheck => score::Protocol::Dycheck,
         }),
         top_k: args.top_k.map(|k| k as usize),
         lpips: args.lpips_weights.filter(|_| args.metrics.is_empty() || wants(MetricArg::Lpips)),
@@ -1073,13 +1073,13 @@ fn run_eval(args: EvalArgs) -> anyhow::Result<()> {
         indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} videos [{elapsed_precise}, eta {eta}]")
             .expect("valid template"),
     );
-    let report = benchmark::run(&request, |done, total| {
+    let report = score::run(&request, |done, total| {
         bar.set_length(total as u64);
         bar.set_position(done as u64);
     })?;
     bar.finish_and_clear();
     let json = serde_json::to_string_pretty(&report)?;
-    let table = benchmark::markdown(&report);
+    let table = score::markdown(&report);
     write(&args.out, &json)?;
     write(&args.markdown, &table)?;
     println!("{table}\n{json}");

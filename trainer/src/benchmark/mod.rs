@@ -10,7 +10,7 @@
 //! a trajectory; [`crate::pipelines::nvs::run`] (the `trainer nvs` job) finetunes on the source and samples
 //! every trajectory; each result is brought to the held-out camera's intrinsics and size
 //! ([`scene::write_view`]) and scored against its frames at the same instants by `trainer eval`'s
-//! code ([`crate::eval::benchmark::run_pairs`]) at the protocol's size, over the co-visibility
+//! code ([`crate::eval::score::run_pairs`]) at the protocol's size, over the co-visibility
 //! masks the dataset ships where it ships them (DyCheck). FID/KID pool every frame of every
 //! scene, as GCD and the paper do.
 //!
@@ -33,8 +33,8 @@ use serde::{Deserialize, Serialize};
 use tch::Device;
 
 use crate::error::{Error, Result};
-use crate::eval::benchmark::{BenchmarkRequest as EvalRequest, Protocol};
 use crate::eval::lpips::LpipsNet;
+use crate::eval::score::{Protocol, ScoreRequest};
 use crate::loaders::ModelSource;
 use crate::pipelines::sampling::{Framing, LoadOptions};
 pub use report::{Comparison, Metrics, Report, compare};
@@ -402,8 +402,8 @@ fn read_scene(dir: &Path, layout: Option<MultiViewLayoutName>) -> Result<datagen
 }
 
 /// The eval request of one scene's cameras (LPIPS, no FID) or of the pooled frames (FID/KID only).
-fn eval_request(request: &Request, pooled: bool) -> EvalRequest {
-    EvalRequest {
+fn eval_request(request: &Request, pooled: bool) -> ScoreRequest {
+    ScoreRequest {
         pred: PathBuf::new(),
         target: PathBuf::new(),
         mask: None,
@@ -611,7 +611,7 @@ fn run_scene(
             resize_folder(mask, size, true)?;
         }
         let pair = (view.camera.clone(), folders.pred.clone(), folders.target.clone(), folders.mask.clone());
-        let scored = crate::eval::benchmark::run_pairs(&eval_request(request, false), &[pair], |_, _| {})?;
+        let scored = crate::eval::score::run_pairs(&eval_request(request, false), &[pair], |_, _| {})?;
         cameras.push(CameraResult {
             camera: view.camera.clone(),
             time_ids: folders.matches.iter().map(|&(_, j)| camera.time_ids[j]).collect(),
@@ -660,7 +660,7 @@ fn finish(
 ) -> Result<Report> {
     let lines: Vec<report::SceneLine> = done.iter().map(scene_line).collect();
     let mean = Metrics::weighted_mean(lines.iter().map(|l| (&l.metrics, 1.0)));
-    let pairs: Vec<crate::eval::benchmark::Pair> = done
+    let pairs: Vec<crate::eval::score::Pair> = done
         .iter()
         .flat_map(|r| {
             let work = request.out.join(SCENES_DIR).join(&r.scene);
@@ -679,7 +679,7 @@ fn finish(
     if request.inception.is_some() && frames >= 2 {
         let mut eval = eval_request(request, true);
         eval.kid_subset_size = request.kid_subset_size.min(frames);
-        let pooled = crate::eval::benchmark::run_pairs(&eval, &pairs, |_, _| {})?;
+        let pooled = crate::eval::score::run_pairs(&eval, &pairs, |_, _| {})?;
         (fid, kid, kid_subset_size) = (pooled.fid, pooled.kid, Some(eval.kid_subset_size));
     }
     let mut report = Report {

@@ -29,7 +29,7 @@ pub struct Metrics {
 
 impl Metrics {
     /// From `trainer eval`'s row, non-finite values dropped.
-    pub fn from_row(row: &crate::eval::benchmark::VideoRow) -> Self {
+    pub fn from_row(row: &crate::eval::score::VideoRow) -> Self {
         let finite = |v: Option<f64>| v.filter(|v| v.is_finite());
         Self {
             psnr: finite(Some(row.psnr)),

@@ -1,17 +1,17 @@
 //! Evaluation as the paper reports it (CogNVS §5, its Tables 1–3 and the appendix's top-k
 //! ablation): LPIPS as the `lpips` package computes it, FID and KID as `clean-fid` computes
-//! them, and the benchmark table over folders of videos. PSNR/SSIM live in
+//! them, and `score`: the table over folders of predicted and target videos. PSNR/SSIM live in
 //! [`crate::eval::metrics`] (scikit-image conventions).
 //!
 //! Network weights come from files users already have, converted once by
 //! `scripts/convert_eval_weights.py`; nothing is downloaded.
 
-pub mod benchmark;
 pub mod fid;
 pub mod inception;
 pub mod lpips;
 pub mod metrics;
 pub mod resize;
+pub mod score;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};

@@ -1,4 +1,4 @@
-//! `trainer eval` over a benchmark: folders of predicted and target videos matched by name,
+//! `trainer eval` over folders: predicted and target videos matched by name,
 //! resized as the protocol says, scored per video (PSNR, SSIM, LPIPS and, with masks, mPSNR,
 //! mSSIM, mLPIPS) and as a set (FID, KID over every frame of every video, as the GCD and CogNVS
 //! evaluations pool frames), printed as Markdown and JSON.
@@ -47,7 +47,7 @@ impl Protocol {
 
 /// What to evaluate and with which weights.
 #[derive(Debug, Clone)]
-pub struct BenchmarkRequest {
+pub struct ScoreRequest {
     /// Predictions: a folder of videos, or (single pair) one video.
     pub pred: PathBuf,
     /// Targets, laid out like `pred`.
@@ -103,7 +103,7 @@ pub struct VideoRow {
 
 /// The whole table.
 #[derive(Debug, Clone, Serialize)]
-pub struct BenchmarkReport {
+pub struct ScoreReport {
     /// The protocol used.
     pub protocol: Option<Protocol>,
     /// Per video.
@@ -137,7 +137,7 @@ fn entries(dir: &Path) -> Result<BTreeMap<String, PathBuf>> {
 pub type Pair = (String, PathBuf, PathBuf, Option<PathBuf>);
 
 /// Every video's [`Pair`], or an error naming what does not match.
-fn pairs(req: &BenchmarkRequest) -> Result<Vec<Pair>> {
+fn pairs(req: &ScoreRequest) -> Result<Vec<Pair>> {
     if req.single {
         let name = req.target.file_stem().map_or("video".to_string(), |n| n.to_string_lossy().to_string());
         return Ok(vec![(name, req.pred.clone(), req.target.clone(), req.mask.clone())]);
@@ -270,17 +270,13 @@ fn features(model: &FidInception, frames: &[RgbImage]) -> Result<Tensor> {
 }
 
 /// Runs the evaluation; `progress(done, total)` after each video.
-pub fn run(req: &BenchmarkRequest, progress: impl FnMut(usize, usize)) -> Result<BenchmarkReport> {
+pub fn run(req: &ScoreRequest, progress: impl FnMut(usize, usize)) -> Result<ScoreReport> {
     run_pairs(req, &pairs(req)?, progress)
 }
 
 /// [`run`] on videos listed by the caller instead of found in `req.pred`/`req.target` (whose
 /// paths are then not read): the dataset benchmark scores its own folders this way.
-pub fn run_pairs(
-    req: &BenchmarkRequest,
-    pairs: &[Pair],
-    mut progress: impl FnMut(usize, usize),
-) -> Result<BenchmarkReport> {
+pub fn run_pairs(req: &ScoreRequest, pairs: &[Pair], mut progress: impl FnMut(usize, usize)) -> Result<ScoreReport> {
     let lpips = req.lpips.as_deref().map(|p| Lpips::load(p, req.lpips_net, req.device)).transpose()?;
     let inception = req.inception.as_deref().map(|p| FidInception::load(p, req.device)).transpose()?;
     let (mut rows, mut pred_feats, mut target_feats) = (Vec::new(), Vec::new(), Vec::new());
@@ -381,11 +377,11 @@ pub fn run_pairs(
         masked_ssim: column(|r| r.masked_ssim),
         masked_lpips: column(|r| r.masked_lpips),
     };
-    Ok(BenchmarkReport { protocol: req.protocol, videos: rows, mean: mean_row, fid, kid })
+    Ok(ScoreReport { protocol: req.protocol, videos: rows, mean: mean_row, fid, kid })
 }
 
 /// The report as a Markdown table (columns only for what was computed), FID/KID below it.
-pub fn markdown(report: &BenchmarkReport) -> String {
+pub fn markdown(report: &ScoreReport) -> String {
     type Column = (&'static str, fn(&VideoRow) -> Option<f64>);
     let all: [Column; 6] = [
         ("PSNR ↑", |r| Some(r.psnr)),

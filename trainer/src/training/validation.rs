@@ -305,7 +305,7 @@ impl Sums {
         let (lpips, lpips_covisible) = match lpips {
             Some(model) => {
                 let (plain, masked) =
-                    crate::eval::benchmark::lpips_frames(model, &s.sample, &s.target, Some(&s.masks), device)?;
+                    crate::eval::score::lpips_frames(model, &s.sample, &s.target, Some(&s.masks), device)?;
                 (mean(plain.into_iter()), mean(masked.into_iter().flatten()))
             }
             None => (None, None),

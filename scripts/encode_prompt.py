@@ -29,10 +29,6 @@ import json
 import sys
 from pathlib import Path
 
-import torch
-from safetensors.torch import save_file
-from transformers import T5EncoderModel, T5Tokenizer
-
 # CogVideoX's text length (`max_text_seq_length` of its transformers).
 MAX_LENGTH = 226
 # The vocabulary files T5Tokenizer reads (SentencePiece's model, or the fast tokenizer's JSON): a
@@ -94,6 +90,8 @@ def refuse(problems):
 
 def encode(tokenizer, text_encoder, prompt, max_length, device):
     """The prompt's T5 encoding [max_length, d_model], as CogVideoX pipelines compute it."""
+    import torch
+
     tokens = tokenizer(prompt, padding="max_length", max_length=max_length, truncation=True,
                        add_special_tokens=True, return_tensors="pt")
     with torch.no_grad():
@@ -110,7 +108,7 @@ def main():
     parser.add_argument("--prompt", default="", help="the prompt [default: the empty prompt, as CogNVS]")
     parser.add_argument("--max-length", type=int, default=MAX_LENGTH)
     parser.add_argument("--dtype", choices=["bf16", "fp32"], default="bf16")
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--device", help="cpu, cuda or cuda:N [default: cuda when available]")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     encoder_dir = args.text_encoder or (args.model / "text_encoder" if args.model else None)
@@ -125,6 +123,12 @@ def main():
     problems = missing_files(encoder_dir, tokenizer_dir)
     if problems:
         refuse(problems)
+    # Loaded only now, so that missing files are named within a second, not after torch's import.
+    import torch
+    from safetensors.torch import save_file
+    from transformers import T5EncoderModel, T5Tokenizer
+
+    device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
     dtype = torch.bfloat16 if args.dtype == "bf16" else torch.float32
     tokenizer = T5Tokenizer.from_pretrained(tokenizer_dir)
     text_encoder, loading_info = T5EncoderModel.from_pretrained(encoder_dir, torch_dtype=dtype,
@@ -132,8 +136,8 @@ def main():
     problems = mismatches(tokenizer, text_encoder, loading_info, encoder_dir, tokenizer_dir)
     if problems:
         refuse(problems)
-    text_encoder = text_encoder.to(args.device).eval()
-    hidden = encode(tokenizer, text_encoder, args.prompt, args.max_length, args.device)
+    text_encoder = text_encoder.to(device).eval()
+    hidden = encode(tokenizer, text_encoder, args.prompt, args.max_length, device)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     metadata = {"prompt": args.prompt, "max_length": str(args.max_length), "dtype": args.dtype,
                 "text_encoder": str(encoder_dir), "tokenizer": str(tokenizer_dir)}

@@ -279,10 +279,15 @@ fn ranks_that_disagree_or_bad_launcher_variables_fail_at_start_writing_nothing()
     }
     assert!(!out.exists(), "nothing may be written");
 
+    // The rendezvous gives up after the config's timeout: 2 s here, so that the unreachable
+    // store below fails fast (the other runs fail before any rendezvous).
+    let short = dir.path().join("short.toml");
+    let text = std::fs::read_to_string(&a).unwrap().replace("timeout_seconds = 20", "timeout_seconds = 2");
+    std::fs::write(&short, text).unwrap();
     let run = |vars: &[(&str, &str)]| -> String {
         let out = dir.path().join("bad");
         let output = Command::new(env!("CARGO_BIN_EXE_trainer"))
-            .args(pretrain_args(&a, &shards, &out, false))
+            .args(pretrain_args(&short, &shards, &out, false))
             .envs(vars.iter().copied())
             .output()
             .unwrap();
@@ -295,7 +300,12 @@ fn ranks_that_disagree_or_bad_launcher_variables_fail_at_start_writing_nothing()
     // Nobody listens on the master port: the client gives up within the timeout, naming it.
     let unreachable =
         run(&[("RANK", "1"), ("WORLD_SIZE", "2"), ("MASTER_ADDR", "127.0.0.1"), ("MASTER_PORT", "29559")]);
-    assert!(unreachable.contains("could not reach") && unreachable.contains("127.0.0.1:29559"), "{unreachable}");
+    assert!(
+        unreachable.contains("could not reach")
+            && unreachable.contains("127.0.0.1:29559")
+            && unreachable.contains("2 s"),
+        "{unreachable}"
+    );
     // The port is taken: rank 0 cannot host the store.
     let taken = std::net::TcpListener::bind("0.0.0.0:0").unwrap();
     let port = taken.local_addr().unwrap().port().to_string();

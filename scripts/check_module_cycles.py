@@ -3,14 +3,18 @@
 document states: exits 1 listing them, 0 when none.
 
 Usage: check_module_cycles.py [--layers DOC.md] CRATE_SRC_DIR...   (e.g. datagen/src trainer/src)
+       check_module_cycles.py --layers DOC.md --workspace Cargo.toml   (every member crate's src/)
        check_module_cycles.py --self-test          (the checker on small crates it writes)
 
 Layers (`--layers`): the document's fenced ```layers blocks. A line naming a source folder
 starts a crate; each indented line under it is one layer, bottom first, listing module paths
 (`io`, `pipelines::nvs`); a module belongs to the layer of its longest listed prefix, and may use
-modules of its own layer and those below, never one above. A line `CRATE_SRC uses CRATE: PATH...`
-lists the only paths into another workspace crate its code may name (`uses datagen: io::sequence
-pairs`); `uses CRATE: -` forbids that crate.
+modules of its own layer and those below, never one above. A module that belongs to no layer is
+refused, except a folder's `mod.rs` that only declares and re-exports listed children. A line
+`CRATE_SRC uses CRATE: PATH...` lists the only paths into another workspace crate its code may name
+(`uses datagen: io::sequence pairs`); `uses CRATE: -` forbids that crate. With `--workspace`, every
+member crate of the workspace manifest is checked and each must have a block (a crate without one
+is refused), so a new crate cannot slip past the rules.
 
 A module is a source file (`a/b.rs` or `a/b/mod.rs` is module `a::b`; `lib.rs` and `main.rs` are
 the crate root). Module A depends on module B when A's code (comments and tests excluded) names a
@@ -210,6 +214,11 @@ def check_layers(src: Path, key: str, layers: list, uses: dict) -> list[str]:
     for module, targets in sorted(graph.items()):
         own = layer_of(module, layers)
         if own is None:
+            # The crate root, and a folder's `mod.rs` that only declares or re-exports its children
+            # (containment, no edges of its own), are not modules of any one layer.
+            container = not targets and any(m[: len(module)] == module and m != module for m in graph)
+            if module and not container:
+                problems.append(f"{src}: {'::'.join(module)} belongs to no layer of the document's block for {key}")
             continue
         for target in sorted(targets):
             other = layer_of(target, layers)
@@ -230,6 +239,15 @@ def check_layers(src: Path, key: str, layers: list, uses: dict) -> list[str]:
                         f"{other} ({' '.join(allowed) or 'nothing'})"
                     )
     return problems
+
+
+def workspace_members(manifest: Path) -> list[str]:
+    """The `src` folders of a Cargo workspace manifest's `[workspace] members`, relative to the
+    current folder as the manifest's folder is."""
+    import tomllib
+    members = tomllib.loads(manifest.read_text()).get("workspace", {}).get("members", [])
+    base = manifest.parent
+    return [str(Path(base, m, "src")) if str(base) != "." else f"{m}/src" for m in members]
 
 
 def self_test() -> None:
@@ -265,13 +283,17 @@ def self_test() -> None:
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(text)
         doc = Path(root, "doc.md")
+        Path(root, "c", "stray.rs").write_text("use crate::low::a;")
+        Path(root, "c", "lib.rs").write_text("pub mod low;\npub mod high;\npub mod stray;")
         doc.write_text("```layers\nc\n  low\n  high\nc uses other: api\n```\n")
         layers, uses = read_layers(doc)
         problems = check_layers(Path(root, "c"), "c", layers["c"], uses)
     assert any("low::a" in p and "higher layer" in p for p in problems), problems
     assert any("other::inner::x" in p for p in problems) and not any("other::api" in p for p in problems), problems
+    assert any("stray belongs to no layer" in p for p in problems), problems
+    assert not any(p.split(": ")[1].startswith(("low belongs", "high belongs")) for p in problems), problems
     print("self-test: cycles through re-exports, direct ones and ones after literals found, none where there is none;"
-          " a use of a higher layer and a path outside another crate's allowed API found")
+          " a use of a higher layer, a module in no layer and a path outside another crate's allowed API found")
 
 
 def main() -> None:
@@ -289,6 +311,16 @@ def main() -> None:
             sys.exit(2)
         layers, uses = read_layers(Path(args[1]))
         args = args[2:]
+    if args[:1] == ["--workspace"]:
+        if len(args) != 2 or not Path(args[1]).is_file() or not layers:
+            print("check_module_cycles.py: --workspace needs --layers first and a Cargo.toml (see --help)", file=sys.stderr)
+            sys.exit(2)
+        args = workspace_members(Path(args[1]))
+        without = [a for a in args if a not in layers]
+        if without:
+            print(f"check_module_cycles.py: no ```layers block for {', '.join(without)}: every workspace crate needs one",
+                  file=sys.stderr)
+            sys.exit(1)
     unknown = [a for a in args if a.startswith("-")]
     missing = [a for a in args if not a.startswith("-") and not Path(a).is_dir()]
     if unknown or missing:

@@ -11,7 +11,7 @@ echo "==> cargo fmt --check"
 cargo fmt --all --check
 echo "==> no module imports one that imports it back"
 python3 scripts/check_module_cycles.py --self-test
-python3 scripts/check_module_cycles.py --layers docs/ARCHITECTURE.md foundation/src schemas/src trainer/src datagen/src
+python3 scripts/check_module_cycles.py --layers docs/ARCHITECTURE.md --workspace Cargo.toml
 # Clippy runs as the compiler of the workspace's own crates during the test build (what `cargo
 # clippy` does inside a `cargo check`), so it lints every target the tests compile (libraries,
 # binaries, tests, examples) without `cargo clippy`'s second, check-mode build of every dependency

@@ -40,13 +40,13 @@ from pathlib import Path
 import cv2
 import lpips
 import numpy as np
-import scipy.signal
 import torch
 from cleanfid import fid as cfid
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import goldens_eval  # noqa: E402  (the random LPIPS / Inception weights)
+from goldens_metrics import dycheck_psnr, dycheck_ssim, masked_mean  # noqa: E402
 
 SEED = 20261207
 # (width, height) of the official protocols: GCD 384x576, DyCheck 360p 480x360 (HxW).
@@ -213,51 +213,6 @@ def official_table(pairs, size, lpips_fn, feature_model, dycheck_dir=None):
         table["kid_float64"] = float(cfid.kernel_distance(t, p))
     shutil.rmtree(work)
     return {k: (v if np.isfinite(v) else None) for k, v in table.items()}
-
-
-# --- DyCheck's masked metrics (dycheck/core/metrics/image.py) -------------------------------
-
-def masked_mean(x, mask):
-    mask = np.broadcast_to(mask, x.shape)
-    return (x * mask).sum() / np.clip(mask.sum(), 1e-6, None)
-
-
-def dycheck_psnr(img0, img1, mask):
-    with np.errstate(divide="ignore"):
-        return float(-10.0 / np.log(10.0) * np.log(masked_mean((img0 - img1) ** 2, mask)))
-
-
-def dycheck_ssim(img0, img1, mask, max_val=1.0, filter_size=11, filter_sigma=1.5, k1=0.01, k2=0.03):
-    mask = mask[..., 0]
-    hw = filter_size // 2
-    shift = (2 * hw - filter_size + 1) / 2
-    f_i = ((np.arange(filter_size) - hw + shift) / filter_sigma) ** 2
-    filt = np.exp(-0.5 * f_i)
-    filt /= np.sum(filt)
-
-    def convolve2d(z, m, f):
-        z_ = scipy.signal.convolve2d(z * m, f, mode="valid")
-        m_ = scipy.signal.convolve2d(m, np.ones_like(f), mode="valid")
-        safe = np.where(m_ != 0, m_, 1)
-        return np.where(m_ != 0, z_ * np.ones_like(f).sum() / safe, 0), (m_ != 0).astype(z.dtype)
-
-    def filt_fn(z, m):
-        # filt_fn2 (the row filter) first, then filt_fn1 (the column filter), per channel.
-        rows = [convolve2d(z[..., c], m, filt[None, :]) for c in range(z.shape[-1])]
-        m2 = rows[0][1]
-        cols = [convolve2d(r[0], m2, filt[:, None]) for r in rows]
-        return np.stack([c[0] for c in cols], -1)
-
-    mu0, mu1 = filt_fn(img0, mask), filt_fn(img1, mask)
-    mu00, mu11, mu01 = mu0 * mu0, mu1 * mu1, mu0 * mu1
-    sigma00 = np.maximum(0.0, filt_fn(img0**2, mask) - mu00)
-    sigma11 = np.maximum(0.0, filt_fn(img1**2, mask) - mu11)
-    sigma01 = filt_fn(img0 * img1, mask) - mu01
-    sigma01 = np.sign(sigma01) * np.minimum(np.sqrt(sigma00 * sigma11), np.abs(sigma01))
-    c1, c2 = (k1 * max_val) ** 2, (k2 * max_val) ** 2
-    numer = (2 * mu01 + c1) * (2 * sigma01 + c2)
-    denom = (mu00 + mu11 + c1) * (sigma00 + sigma11 + c2)
-    return float((numer / denom).mean())
 
 
 def masked_goldens(out, rng, lpips_fn, spatial_fn):

@@ -259,9 +259,10 @@ const PARDOM_SCENES: [&str; 20] = [
     "scene_000651",
     "scene_000663",
 ];
-/// Kubric-4D's scenes are `scn02900` … `scn02919`.
+/// Kubric-4D's scenes are `scn02900` … `scn02919` (the official list): the prefix and count.
 const KUBRIC_SCENE_PREFIX: &str = "scn029";
 const KUBRIC_SCENES: usize = 20;
+/// DyCheck's scenes in the official list.
 const DYCHECK_SCENES: [&str; 5] = ["apple", "block", "paper-windmill", "spin", "teddy"];
 /// The methods whose DyCheck predictions the official script selects frames of through the
 /// correspondence files (`load_correspondence`); others are scored frame for frame.

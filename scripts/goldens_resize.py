@@ -19,10 +19,13 @@ import numpy as np
 
 # (source width, height) -> target sizes: shrinking by integer and fractional factors (1280x720
 # and 960x540 to the model's 720x480 among them), growing, and mixed.
+# Exact doublings and halvings (DyCheck's 360p <-> 720p) and odd widths whose rows end outside
+# OpenCV's SIMD blocks are among them.
 CASES = {
     (160, 90): [(72, 48), (80, 45), (40, 30), (200, 120), (96, 60), (160, 48)],
-    (96, 54): [(72, 48), (48, 27), (150, 100), (60, 80)],
-    (64, 48): [(72, 48), (32, 24), (50, 30)],
+    (96, 54): [(72, 48), (48, 27), (150, 100), (60, 80), (192, 108)],
+    (64, 48): [(72, 48), (32, 24), (50, 30), (128, 96), (23, 71)],
+    (37, 29): [(74, 58), (11, 13), (101, 5)],
 }
 
 

@@ -502,12 +502,27 @@ struct PretrainArgs {
 
 #[derive(Debug, Args)]
 struct EvalArgs {
-    /// Predicted video: a video file or a folder of PNG/JPEG frames.
-    #[arg(long)]
-    pred: PathBuf,
-    /// Target video: a video file or a folder of PNG/JPEG frames.
-    #[arg(long)]
-    target: PathBuf,
+    /// Predicted video: a video file or a folder of PNG/JPEG frames (or a folder of such videos).
+    #[arg(long, required_unless_present = "bundle", conflicts_with = "bundle")]
+    pred: Option<PathBuf>,
+    /// Target video: a video file or a folder of PNG/JPEG frames (or a folder of such videos).
+    #[arg(long, required_unless_present = "bundle", conflicts_with = "bundle")]
+    target: Option<PathBuf>,
+    /// Score one method of the paper's evaluation bundle as the official eval_metrics.py does:
+    /// ROOT/<dataset>/<method>/*<scene>_<method>[_cam<k>].mp4 against target_gt[_1x]/, DyCheck
+    /// frames selected by ROOT/dycheck/dycheck_<scene>_source_target_correspondence.txt.
+    #[arg(long, requires_all = ["dataset", "method"], conflicts_with_all = ["mask", "protocol", "top_k"])]
+    bundle: Option<PathBuf>,
+    /// The bundle's dataset folder.
+    #[arg(long, value_enum, requires = "bundle")]
+    dataset: Option<BundleDatasetArg>,
+    /// The bundle's method (its folder and file-name key: cognvs, gcd, trajcrafter, megasam_render,
+    /// shape_of_motion, mosca, gt_render).
+    #[arg(long, requires = "bundle")]
+    method: Option<String>,
+    /// DyCheck's resolution in the bundle: 720p (target_gt_1x/, 960x720) or 360p (target_gt/, 480x360).
+    #[arg(long, value_enum, default_value = "720p", requires = "bundle")]
+    dycheck_resolution: DycheckResolutionArg,
     /// Folder of per-frame mask PNGs (non-zero = co-visible), e.g. an export's mask/ folder;
     /// for folders of videos, a folder with one such folder per video name.
     #[arg(long)]
@@ -515,8 +530,9 @@ struct EvalArgs {
     /// Also write the JSON to this file.
     #[arg(long)]
     out: Option<PathBuf>,
-    /// Resize predictions, targets and masks to the protocol's size first: gcd 384x576, dycheck
-    /// 960x720 (HxW). Without it, sizes must agree.
+    /// Resize predictions and targets to the protocol's size first (cv2.resize, as the official
+    /// script; masks nearest): gcd 384x576, dycheck 960x720, dycheck360 480x360 (HxW). Without
+    /// it, sizes must agree.
     #[arg(long, value_enum)]
     protocol: Option<ProtocolArg>,
     /// Each prediction PRED/NAME/ holds K samples; the best by PSNR (mPSNR with masks) is scored.
@@ -535,7 +551,7 @@ struct EvalArgs {
     /// Inception weights for FID/KID (safetensors from `scripts/convert_eval_weights.py inception`).
     #[arg(long)]
     inception_weights: Option<PathBuf>,
-    /// KID subset size (clean-fid's default 1000; every set needs at least this many frames).
+    /// Largest KID subset (clean-fid's max_subset_size: subsets of min(frames, this)).
     #[arg(long, default_value_t = trainer::eval::fid::KID_SUBSET_SIZE)]
     kid_subset_size: usize,
     /// KID subsets (clean-fid's default).
@@ -556,8 +572,32 @@ struct EvalArgs {
 enum ProtocolArg {
     /// Kubric-4D / ParallelDomain-4D (GCD): 384x576.
     Gcd,
-    /// DyCheck iPhone: 960x720.
+    /// DyCheck iPhone at 720p: 960x720.
     Dycheck,
+    /// DyCheck iPhone at 360p: 480x360.
+    Dycheck360,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum BundleDatasetArg {
+    /// kubric_4d/ (GCD protocol).
+    #[value(name = "kubric_4d")]
+    Kubric4d,
+    /// pardom_4d/ (GCD protocol).
+    #[value(name = "pardom_4d")]
+    Pardom4d,
+    /// dycheck/.
+    Dycheck,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum DycheckResolutionArg {
+    /// 480x360 (HxW), targets in target_gt/.
+    #[value(name = "360p")]
+    P360,
+    /// 960x720 (HxW), targets in target_gt_1x/.
+    #[value(name = "720p")]
+    P720,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -1029,12 +1069,28 @@ fn run_eval(args: EvalArgs) -> anyhow::Result<()> {
         }
         Ok(())
     };
+    let bundle = match (&args.bundle, args.dataset, &args.method) {
+        (Some(root), Some(dataset), Some(method)) => Some(score::Bundle {
+            root: root.clone(),
+            dataset: match dataset {
+                BundleDatasetArg::Kubric4d => score::BundleDataset::Kubric4d,
+                BundleDatasetArg::Pardom4d => score::BundleDataset::Pardom4d,
+                BundleDatasetArg::Dycheck => score::BundleDataset::Dycheck,
+            },
+            method: method.clone(),
+            dycheck_720p: args.dycheck_resolution == DycheckResolutionArg::P720,
+        }),
+        _ => None,
+    };
+    // clap requires --pred and --target without --bundle.
+    let (pred, target) = (args.pred.clone().unwrap_or_default(), args.target.clone().unwrap_or_default());
     // One pair: a video file, or a folder holding frames itself (not videos).
-    let single = args.pred.is_file() || trainer::eval::metrics::read_frames(&args.pred).is_ok_and(|f| !f.is_empty());
+    let single =
+        bundle.is_none() && (pred.is_file() || trainer::eval::metrics::read_frames(&pred).is_ok_and(|f| !f.is_empty()));
     let wants = |m: MetricArg| args.metrics.contains(&m);
     let networks = args.lpips_weights.is_some() || args.inception_weights.is_some() || !args.metrics.is_empty();
     if single && !networks && args.protocol.is_none() && args.top_k.is_none() {
-        let result = trainer::eval::metrics::evaluate(&args.pred, &args.target, args.mask.as_deref())?;
+        let result = trainer::eval::metrics::evaluate(&pred, &target, args.mask.as_deref())?;
         let json = serde_json::to_string_pretty(&result)?;
         write(&args.out, &json)?;
         println!("{json}");
@@ -1047,15 +1103,23 @@ fn run_eval(args: EvalArgs) -> anyhow::Result<()> {
         anyhow::bail!("--metrics fid/kid needs --inception-weights FILE: {}", inception::HOW_TO_GET);
     }
     let fid_requested = args.metrics.is_empty() || wants(MetricArg::Fid) || wants(MetricArg::Kid);
+    let (bundle_protocol, bundle_pairs, bundle_notes) = match &bundle {
+        Some(b) => {
+            let (protocol, pairs, notes) = score::bundle_pairs(b)?;
+            (Some(protocol), Some(pairs), notes)
+        }
+        None => (None, None, Vec::new()),
+    };
     let request = score::ScoreRequest {
-        pred: args.pred,
-        target: args.target,
+        pred,
+        target,
         mask: args.mask,
         single,
-        protocol: args.protocol.map(|p| match p {
+        protocol: bundle_protocol.or(args.protocol.map(|p| match p {
             ProtocolArg::Gcd => score::Protocol::Gcd,
             ProtocolArg::Dycheck => score::Protocol::Dycheck,
-        }),
+            ProtocolArg::Dycheck360 => score::Protocol::Dycheck360,
+        })),
         top_k: args.top_k.map(|k| k as usize),
         lpips: args.lpips_weights.filter(|_| args.metrics.is_empty() || wants(MetricArg::Lpips)),
         lpips_net: match args.lpips_net {
@@ -1073,10 +1137,15 @@ fn run_eval(args: EvalArgs) -> anyhow::Result<()> {
         indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} videos [{elapsed_precise}, eta {eta}]")
             .expect("valid template"),
     );
-    let report = score::run(&request, |done, total| {
+    let progress = |done: usize, total: usize| {
         bar.set_length(total as u64);
         bar.set_position(done as u64);
-    })?;
+    };
+    let mut report = match &bundle_pairs {
+        Some(pairs) => score::run_pairs(&request, pairs, progress)?,
+        None => score::run(&request, progress)?,
+    };
+    report.notes.splice(0..0, bundle_notes);
     bar.finish_and_clear();
     let json = serde_json::to_string_pretty(&report)?;
     let table = score::markdown(&report);

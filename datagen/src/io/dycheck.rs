@@ -544,9 +544,86 @@ fn read_mask(path: &Path, width: usize, height: usize) -> Result<GrayImage> {
     Ok(mask)
 }
 
+/// The CogNVS evaluation bundle's frame correspondence of a DyCheck scene
+/// (`dycheck_<scene>_source_target_correspondence.txt`, read by the official
+/// `eval/eval_metrics.py`, `load_correspondence`): one frame name per line, `<camera>_<frame>.png`
+/// with camera `0` the source camera and any other a held-out camera, `<frame>` its frame index
+/// (e.g. `0_00042.png`, `1_00042.png`). Blank lines are skipped, as the official reader skips them.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct FrameCorrespondence {
+    /// Per line with a name, in file order: (camera, frame index).
+    pub entries: Vec<(u32, usize)>,
+}
+
+/// The source camera's id in a [`FrameCorrespondence`].
+pub const CORRESPONDENCE_SOURCE_CAMERA: u32 = 0;
+
+impl FrameCorrespondence {
+    /// The frame indices of `camera`, in file order (the official reader's `source_indices` for
+    /// camera 0, its `target_indices` for a held-out camera).
+    pub fn frames(&self, camera: u32) -> Vec<usize> {
+        self.entries.iter().filter(|(c, _)| *c == camera).map(|&(_, f)| f).collect()
+    }
+}
+
+/// The correspondence file name of `scene` in a CogNVS evaluation bundle's `dycheck/` folder.
+pub fn correspondence_file_name(scene: &str) -> String {
+    format!("dycheck_{scene}_source_target_correspondence.txt")
+}
+
+/// Reads a [`FrameCorrespondence`]. A line that is not `<camera>_<frame>.png` (decimal numbers,
+/// the camera without leading zeros, since the official reader matches it as the text of the
+/// camera number) is refused naming the file and the line.
+pub fn read_correspondence(path: &Path) -> Result<FrameCorrespondence> {
+    let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
+    let mut entries = Vec::new();
+    for (number, line) in text.lines().enumerate() {
+        let line = line.trim();
+        if line.is_empty() {
+            continue;
+        }
+        let field = format!("line {}", number + 1);
+        let bad = |why: &str| Error::invalid(path, &field, format!("`{line}`: {why}; expected `<camera>_<frame>.png`"));
+        let stem = line.strip_suffix(".png").ok_or_else(|| bad("not a .png frame name"))?;
+        let (camera, frame) = stem.split_once('_').ok_or_else(|| bad("no `_` between camera and frame"))?;
+        let decimal = |t: &str| !t.is_empty() && t.bytes().all(|b| b.is_ascii_digit());
+        if !decimal(camera) || (camera.len() > 1 && camera.starts_with('0')) {
+            return Err(bad("the camera is not a number without leading zeros"));
+        }
+        if !decimal(frame) {
+            return Err(bad("the frame index is not a number"));
+        }
+        let camera: u32 = camera.parse().map_err(|_| bad("the camera number is too large"))?;
+        let frame: usize = frame.parse().map_err(|_| bad("the frame index is too large"))?;
+        entries.push((camera, frame));
+    }
+    Ok(FrameCorrespondence { entries })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn correspondence_lines_are_read_and_bad_ones_named() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join(correspondence_file_name("apple"));
+        std::fs::write(&path, "0_00000.png\n1_00003.png\n\n0_00001.png\n2_00010.png\n1_00004.png\n").unwrap();
+        let read = read_correspondence(&path).unwrap();
+        assert_eq!(read.frames(CORRESPONDENCE_SOURCE_CAMERA), [0, 1]);
+        assert_eq!(read.frames(1), [3, 4]);
+        assert_eq!(read.frames(2), [10]);
+        for (bad, why) in [
+            ("1_00003.jpg", "not a .png"),
+            ("100003.png", "no `_`"),
+            ("01_00003.png", "leading zeros"),
+            ("1_x3.png", "frame index"),
+        ] {
+            std::fs::write(&path, format!("0_00000.png\n{bad}\n")).unwrap();
+            let message = read_correspondence(&path).unwrap_err().to_string();
+            assert!(message.contains("line 2") && message.contains(why) && message.contains("apple"), "{message}");
+        }
+    }
 
     #[test]
     fn area_downsampling_averages_blocks_and_drops_partly_invalid_ones() {

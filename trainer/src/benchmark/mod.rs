@@ -421,7 +421,8 @@ fn eval_request(request: &Request, pooled: bool) -> ScoreRequest {
     }
 }
 
-/// Every frame of `frames` at `size` (the protocol's), as `trainer eval --protocol` resizes.
+/// Every frame of `frames` at `size` (the protocol's), as `trainer eval --protocol` resizes
+/// (`cv2.resize` for frames, nearest for masks).
 fn resize_folder(dir: &Path, size: (u32, u32), nearest: bool) -> Result<()> {
     let mut paths: Vec<PathBuf> = std::fs::read_dir(dir)
         .map_err(|error| Error::Io { path: dir.to_path_buf(), error })?
@@ -437,12 +438,11 @@ fn resize_folder(dir: &Path, size: (u32, u32), nearest: bool) -> Result<()> {
         if (image.width(), image.height()) == size {
             continue;
         }
-        let filter = if nearest { image::imageops::FilterType::Nearest } else { image::imageops::FilterType::Triangle };
-        let resized = image.resize_exact(size.0, size.1, filter);
         let resized = if nearest {
+            let resized = image.resize_exact(size.0, size.1, image::imageops::FilterType::Nearest);
             image::DynamicImage::ImageLuma8(resized.to_luma8())
         } else {
-            image::DynamicImage::ImageRgb8(resized.to_rgb8())
+            image::DynamicImage::ImageRgb8(crate::eval::score::resize_to(&image.to_rgb8(), size))
         };
         resized.save(&path).map_err(|e| Error::InvalidInput {
             path: path.clone(),
@@ -610,7 +610,12 @@ fn run_scene(
         if let Some(mask) = &folders.mask {
             resize_folder(mask, size, true)?;
         }
-        let pair = (view.camera.clone(), folders.pred.clone(), folders.target.clone(), folders.mask.clone());
+        let pair = crate::eval::score::Pair::new(
+            view.camera.clone(),
+            folders.pred.clone(),
+            folders.target.clone(),
+            folders.mask.clone(),
+        );
         let scored = crate::eval::score::run_pairs(&eval_request(request, false), &[pair], |_, _| {})?;
         cameras.push(CameraResult {
             camera: view.camera.clone(),
@@ -659,13 +664,15 @@ fn finish(
     failed: Vec<report::FailedScene>,
 ) -> Result<Report> {
     let lines: Vec<report::SceneLine> = done.iter().map(scene_line).collect();
-    let mean = Metrics::weighted_mean(lines.iter().map(|l| (&l.metrics, 1.0)));
+    // Every frame of every scene weighs the same, as the official script pools its frames
+    // (`np.mean` over all frames; a scene's metrics are already its frames' mean).
+    let mean = Metrics::weighted_mean(lines.iter().map(|l| (&l.metrics, l.frames as f64)));
     let pairs: Vec<crate::eval::score::Pair> = done
         .iter()
         .flat_map(|r| {
             let work = request.out.join(SCENES_DIR).join(&r.scene);
             r.cameras.iter().map(move |c| {
-                (
+                crate::eval::score::Pair::new(
                     format!("{}/{}", r.scene, c.camera),
                     work.join("pred").join(&c.camera),
                     work.join("target").join(&c.camera),
@@ -680,13 +687,14 @@ fn finish(
         let mut eval = eval_request(request, true);
         eval.kid_subset_size = request.kid_subset_size.min(frames);
         let pooled = crate::eval::score::run_pairs(&eval, &pairs, |_, _| {})?;
-        (fid, kid, kid_subset_size) = (pooled.fid, pooled.kid, Some(eval.kid_subset_size));
+        (fid, kid, kid_subset_size) = (pooled.fid, pooled.kid, pooled.kid_subset_size);
     }
     let mut report = Report {
         dataset: request.dataset,
         protocol: match request.dataset.protocol() {
             Protocol::Gcd => "gcd".to_string(),
             Protocol::Dycheck => "dycheck".to_string(),
+            Protocol::Dycheck360 => "dycheck360".to_string(),
         },
         eval_size: size,
         protocol_size: size == request.dataset.protocol().size(),

@@ -2,7 +2,7 @@
 //! (`cleanfid/fid.py`): FID is the Fréchet distance of Gaussians fitted to the sets
 //! (`|μ₁ − μ₂|² + tr Σ₁ + tr Σ₂ − 2 tr √(Σ₁Σ₂)`, sample covariances as `np.cov`), KID the
 //! unbiased MMD² with the cubic polynomial kernel `k(x, y) = (xᵀy / d + 1)³`, averaged over
-//! random subsets (`kernel_distance`: 100 subsets of 1000 by default).
+//! random subsets (`kernel_distance`: 100 subsets of `min(n₁, n₂, 1000)` by default).
 //!
 //! `tr √(Σ₁Σ₂)` is computed exactly from the eigenvalues instead of with scipy's `sqrtm`: with
 //! fewer samples than dimensions (every small evaluation) it is the nuclear norm of
@@ -10,9 +10,11 @@
 //! the product is singular scipy's `sqrtm` is itself only approximate, which bounds the
 //! agreement of the two.
 //!
-//! KID's subsets are drawn with a seeded ChaCha generator, not numpy's global one, so values
-//! match clean-fid exactly only when a subset is the whole set (subset size = set size); with
-//! smaller subsets both are estimates of the same expectation.
+//! KID's subsets are drawn with a seeded ChaCha generator, not numpy's unseeded global one, so
+//! values match clean-fid exactly when a subset is the whole set (every evaluation of at most
+//! 1000 frame pairs: each subset is then a permutation of the set, and the estimator does not
+//! depend on the order); with larger sets both are estimates of the same expectation, and
+//! clean-fid's own value changes from run to run.
 
 use rand::SeedableRng;
 use tch::{Kind, Tensor};
@@ -21,7 +23,7 @@ use crate::error::{Error, Result};
 
 /// clean-fid's `kernel_distance` defaults.
 pub const KID_SUBSETS: usize = 100;
-/// clean-fid's `max_subset_size`.
+/// clean-fid's `max_subset_size`: subsets hold `min(n₁, n₂, KID_SUBSET_SIZE)` features.
 pub const KID_SUBSET_SIZE: usize = 1000;
 /// Polynomial degree of KID's kernel (Bińkowski et al. 2018; clean-fid).
 const KID_DEGREE: f64 = 3.0;
@@ -80,24 +82,24 @@ fn trace_sqrt_product(c1: &Tensor, c2: &Tensor, s1: f64, s2: f64, gram: bool) ->
     Ok(inner.f_linalg_eigvalsh("L")?.clamp_min(0.0).sqrt().sum(Kind::Double).double_value(&[]))
 }
 
-/// KID between feature sets (clean-fid's argument order: `feats1` the first folder). Every set
-/// must hold at least `subset_size` features: a clear error otherwise (clean-fid silently
-/// shrinks the subsets to the smaller set, which changes the estimator's variance unnoticed).
-pub fn kernel_distance(feats1: &Tensor, feats2: &Tensor, subsets: usize, subset_size: usize, seed: u64) -> Result<f64> {
-    for (name, f) in [("kid features 1", feats1), ("kid features 2", feats2)] {
-        check_features(name, f, 2)?;
-        let n = f.size()[0] as usize;
-        if n < subset_size {
-            return Err(Error::InvalidArgument {
-                name: "kid-subset-size".to_string(),
-                reason: format!(
-                    "KID subsets of {subset_size} need at least {subset_size} frames per set, but {} has {n}; \
-                     pass --kid-subset-size {n} or less (clean-fid would shrink the subsets silently)",
-                    if name.ends_with('1') { "the prediction set" } else { "the target set" }
-                ),
-            });
-        }
-    }
+/// The subset size clean-fid's `kernel_distance` uses for sets of `n1` and `n2` features:
+/// `min(n1, n2, max_subset_size)`.
+pub fn kid_subset_size(n1: usize, n2: usize, max_subset_size: usize) -> usize {
+    n1.min(n2).min(max_subset_size)
+}
+
+/// KID between feature sets (clean-fid's argument order: `feats1` the first folder) over
+/// `subsets` subsets of [`kid_subset_size`] features each.
+pub fn kernel_distance(
+    feats1: &Tensor,
+    feats2: &Tensor,
+    subsets: usize,
+    max_subset_size: usize,
+    seed: u64,
+) -> Result<f64> {
+    check_features("kid features 1", feats1, 2)?;
+    check_features("kid features 2", feats2, 2)?;
+    let subset_size = kid_subset_size(feats1.size()[0] as usize, feats2.size()[0] as usize, max_subset_size);
     if subset_size < 2 || subsets == 0 {
         return Err(Error::InvalidArgument {
             name: "kid-subset-size".to_string(),

@@ -1,9 +1,20 @@
-//! Image-quality metrics of `trainer eval`, with scikit-image's conventions (the numbers papers
-//! report): PSNR `10·log10(1 / MSE)` and SSIM as `skimage.metrics.structural_similarity(…,
-//! data_range=1, channel_axis=-1)` (7×7 uniform window, K1 = 0.01, K2 = 0.03, sample covariance,
-//! the mean over the image less a 3-pixel border, averaged over channels), on RGB values scaled to
-//! [0, 1]. The masked variants restrict the mean to co-visible pixels: PSNR from the MSE over
-//! them, SSIM as the mean of the SSIM map over them (inside the same border).
+//! Image-quality metrics of `trainer eval`, on RGB values scaled to [0, 1]:
+//!
+//! - PSNR and SSIM as the official CogNVS evaluation calls scikit-image (`eval/eval_metrics.py`,
+//!   `peak_signal_noise_ratio(pred, gt, data_range=1.0)` and `structural_similarity(pred, gt,
+//!   data_range=1.0, channel_axis=0)`): `10·log10(1 / MSE)`, infinite for identical frames, and
+//!   SSIM with a 7×7 uniform window, K1 = 0.01, K2 = 0.03, sample covariance, the mean over the
+//!   image less a 3-pixel border, averaged over channels;
+//! - the masked mPSNR and mSSIM of DyCheck's appendix table as DyCheck's own code computes them
+//!   (KAIR-BAIR/dycheck `dycheck/core/metrics/image.py`, `compute_psnr` and `compute_ssim`, with
+//!   `masked_mean` of `dycheck/nn/functional/common.py`): mPSNR from the mask-weighted MSE whose
+//!   weight sum is floored at 1e-6 (a frame with no co-visible pixel: MSE 0, mPSNR infinite), and
+//!   mSSIM with an 11×11 Gaussian (σ 1.5) applied as a partial convolution that ignores masked
+//!   pixels, averaged over every valid window and channel, a window with no co-visible pixel
+//!   counting as 1 (so an empty mask gives 1).
+//!
+//! Means over frames are plain means as `np.mean` takes them: one infinite frame makes the mean
+//! infinite, as in both official codes; the callers count and flag such frames.
 
 use std::path::{Path, PathBuf};
 
@@ -18,6 +29,12 @@ const WIN_SIZE: usize = 7;
 const K1: f64 = 0.01;
 const K2: f64 = 0.03;
 
+/// DyCheck's SSIM Gaussian: `filter_size` 11 and `filter_sigma` 1.5 (`compute_ssim` defaults).
+const DYCHECK_FILTER_SIZE: usize = 11;
+const DYCHECK_FILTER_SIGMA: f64 = 1.5;
+/// The floor of `masked_mean`'s weight sum (`eps` in dycheck's `masked_mean`).
+pub const DYCHECK_MASK_EPS: f64 = 1e-6;
+
 /// Metrics of one frame pair.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct FrameMetrics {
@@ -25,70 +42,159 @@ pub struct FrameMetrics {
     pub psnr: f64,
     /// Mean SSIM.
     pub ssim: f64,
-    /// PSNR over co-visible pixels (None without a mask or when no pixel is co-visible).
+    /// DyCheck's mPSNR (None without a mask; infinite when no pixel is co-visible).
     pub masked_psnr: Option<f64>,
-    /// Mean SSIM over co-visible pixels inside the border.
+    /// DyCheck's mSSIM (None without a mask; 1 when no pixel is co-visible).
     pub masked_ssim: Option<f64>,
+    /// Whether the mask has no co-visible pixel (false without a mask).
+    pub uncovered: bool,
 }
 
-/// Metrics of a video pair: per frame and their means.
+/// Metrics of a video pair: per frame and their means (`np.mean`: infinite if a frame is).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct VideoMetrics {
     /// Frames compared.
     pub frames: usize,
-    /// Mean over frames of the per-frame PSNR (frames with infinite PSNR are left out).
+    /// Mean over frames of the per-frame PSNR.
     pub psnr: f64,
     /// Mean SSIM over frames.
     pub ssim: f64,
-    /// Mean masked PSNR over frames that have co-visible pixels.
+    /// Mean mPSNR over frames.
     pub masked_psnr: Option<f64>,
-    /// Mean masked SSIM over frames that have co-visible pixels.
+    /// Mean mSSIM over frames.
     pub masked_ssim: Option<f64>,
     /// Per-frame values.
     pub per_frame: Vec<FrameMetrics>,
+}
+
+/// The plain mean of `values` as `np.mean` takes it (None when empty).
+pub fn plain_mean(values: impl IntoIterator<Item = f64>) -> Option<f64> {
+    let (sum, n) = values.into_iter().fold((0.0, 0usize), |(s, n), v| (s + v, n + 1));
+    (n > 0).then(|| sum / n as f64)
 }
 
 fn unit(image: &RgbImage) -> Vec<f64> {
     image.as_raw().iter().map(|&v| f64::from(v) / 255.0).collect()
 }
 
-/// Metrics of one frame pair; `mask` (non-zero: co-visible) selects the masked variants.
+/// Metrics of one frame pair; `mask` (non-zero: co-visible, binarised as DyCheck's 0/255
+/// co-visibility PNGs are) selects DyCheck's masked variants.
 pub fn frame_metrics(pred: &RgbImage, target: &RgbImage, mask: Option<&GrayImage>) -> FrameMetrics {
     let (a, b) = (unit(pred), unit(target));
     let (w, h) = target.dimensions();
     let (w, h) = (w as usize, h as usize);
-    let keep: Option<Vec<bool>> = mask.map(|m| m.as_raw().iter().map(|&v| v != 0).collect());
-    let mse = |selected: &dyn Fn(usize) -> bool| -> Option<f64> {
-        let (mut sum, mut n) = (0.0, 0usize);
-        for p in (0..w * h).filter(|&p| selected(p)) {
-            for c in 0..3 {
-                sum += (a[p * 3 + c] - b[p * 3 + c]).powi(2);
-            }
-            n += 3;
-        }
-        (n > 0).then(|| sum / n as f64)
-    };
-    let psnr = |mse: f64| 10.0 * (1.0 / mse).log10();
+    let weights: Option<Vec<f64>> = mask.map(|m| m.as_raw().iter().map(|&v| f64::from(u8::from(v != 0))).collect());
+    let mse = a.iter().zip(&b).map(|(p, q)| (p - q).powi(2)).sum::<f64>() / a.len() as f64;
     let map = ssim_map(&a, &b, w, h);
     let pad = (WIN_SIZE - 1) / 2;
     let inside = |p: usize| {
         let (x, y) = (p % w, p / w);
         x >= pad && y >= pad && x + pad < w && y + pad < h
     };
-    let mean_ssim = |selected: &dyn Fn(usize) -> bool| -> Option<f64> {
-        let (mut sum, mut n) = (0.0, 0usize);
-        for p in (0..w * h).filter(|&p| inside(p) && selected(p)) {
-            sum += map[p];
-            n += 1;
-        }
-        (n > 0).then(|| sum / n as f64)
-    };
+    let ssim = plain_mean((0..w * h).filter(|&p| inside(p)).map(|p| map[p])).unwrap_or(f64::NAN);
     FrameMetrics {
-        psnr: psnr(mse(&|_| true).unwrap_or(0.0)),
-        ssim: mean_ssim(&|_| true).unwrap_or(f64::NAN),
-        masked_psnr: keep.as_ref().and_then(|k| mse(&|p| k[p])).map(psnr),
-        masked_ssim: keep.as_ref().and_then(|k| mean_ssim(&|p| k[p])),
+        psnr: psnr(mse),
+        ssim,
+        masked_psnr: weights.as_ref().map(|m| dycheck_masked_psnr(&a, &b, m)),
+        masked_ssim: weights.as_ref().map(|m| dycheck_masked_ssim(&a, &b, m, w, h)),
+        uncovered: weights.as_ref().is_some_and(|m| m.iter().all(|&v| v == 0.0)),
     }
+}
+
+/// `10·log10(1 / mse)`; infinite for 0 (numpy's division by zero, which the official code keeps).
+fn psnr(mse: f64) -> f64 {
+    -10.0 * mse.log10()
+}
+
+/// DyCheck's `compute_psnr` with a mask: the MSE over every channel weighted by the mask
+/// (broadcast to the channels), divided by the weight sum floored at [`DYCHECK_MASK_EPS`].
+fn dycheck_masked_psnr(a: &[f64], b: &[f64], mask: &[f64]) -> f64 {
+    let (mut sum, mut weight) = (0.0, 0.0);
+    for (p, &m) in mask.iter().enumerate() {
+        for c in 0..3 {
+            sum += (a[p * 3 + c] - b[p * 3 + c]).powi(2) * m;
+        }
+        weight += 3.0 * m;
+    }
+    psnr(sum / weight.max(DYCHECK_MASK_EPS))
+}
+
+/// DyCheck's normalised 1-D Gaussian: `exp(−½((i − 5)/σ)²)` over 11 taps.
+fn dycheck_filter() -> [f64; DYCHECK_FILTER_SIZE] {
+    let half = (DYCHECK_FILTER_SIZE / 2) as f64;
+    let mut taps: [f64; DYCHECK_FILTER_SIZE] =
+        std::array::from_fn(|i| (-0.5 * ((i as f64 - half) / DYCHECK_FILTER_SIGMA).powi(2)).exp());
+    let total: f64 = taps.iter().sum();
+    taps.iter_mut().for_each(|t| *t /= total);
+    taps
+}
+
+/// One pass of DyCheck's masked blur (`convolve2d` inside `compute_ssim`): a "valid" 1-D
+/// convolution of `values · mask` along `step` (1: rows, `w`: columns), rescaled where the
+/// window holds mask weight by `taps / Σ mask` (a partial convolution), else 0; returns the
+/// blurred values and the next pass's mask (1 where the window held weight).
+fn masked_blur(
+    values: &[f64],
+    mask: &[f64],
+    (w, h): (usize, usize),
+    horizontal: bool,
+    filter: &[f64; DYCHECK_FILTER_SIZE],
+) -> (Vec<f64>, Vec<f64>, (usize, usize)) {
+    let n = DYCHECK_FILTER_SIZE;
+    let (ow, oh) = if horizontal { (w + 1 - n, h) } else { (w, h + 1 - n) };
+    let step = if horizontal { 1 } else { w };
+    let (mut out, mut out_mask) = (vec![0.0; ow * oh], vec![0.0; ow * oh]);
+    for y in 0..oh {
+        for x in 0..ow {
+            let start = y * w + x;
+            let (mut sum, mut weight) = (0.0, 0.0);
+            for (k, f) in filter.iter().enumerate() {
+                let p = start + k * step;
+                sum += f * values[p] * mask[p];
+                weight += mask[p];
+            }
+            if weight != 0.0 {
+                out[y * ow + x] = sum * n as f64 / weight;
+                out_mask[y * ow + x] = 1.0;
+            }
+        }
+    }
+    (out, out_mask, (ow, oh))
+}
+
+/// DyCheck's `compute_ssim` with a mask (K1 0.01, K2 0.03, max value 1): per channel, the
+/// masked blur along rows then columns of x, y, x², y², xy; variances clipped at 0, the
+/// covariance at ±√(σx²σy²); the SSIM map's mean over every window and channel (NaN, the mean
+/// of nothing, for frames narrower than the filter).
+fn dycheck_masked_ssim(a: &[f64], b: &[f64], mask: &[f64], w: usize, h: usize) -> f64 {
+    if w < DYCHECK_FILTER_SIZE || h < DYCHECK_FILTER_SIZE {
+        return f64::NAN;
+    }
+    let filter = dycheck_filter();
+    let blur = |values: &[f64]| -> Vec<f64> {
+        let (rows, row_mask, size) = masked_blur(values, mask, (w, h), true, &filter);
+        masked_blur(&rows, &row_mask, size, false, &filter).0
+    };
+    let (c1, c2) = (K1 * K1, K2 * K2);
+    let (mut sum, mut count) = (0.0, 0usize);
+    for c in 0..3 {
+        let x: Vec<f64> = (0..w * h).map(|p| a[p * 3 + c]).collect();
+        let y: Vec<f64> = (0..w * h).map(|p| b[p * 3 + c]).collect();
+        let product = |u: &[f64], v: &[f64]| -> Vec<f64> { u.iter().zip(v).map(|(p, q)| p * q).collect() };
+        let (mu0, mu1) = (blur(&x), blur(&y));
+        let (xx, yy, xy) = (blur(&product(&x, &x)), blur(&product(&y, &y)), blur(&product(&x, &y)));
+        for i in 0..mu0.len() {
+            let (mu00, mu11, mu01) = (mu0[i] * mu0[i], mu1[i] * mu1[i], mu0[i] * mu1[i]);
+            let s00 = (xx[i] - mu00).max(0.0);
+            let s11 = (yy[i] - mu11).max(0.0);
+            // jnp.sign(0) is 0, f64::signum(0) is 1.
+            let raw = xy[i] - mu01;
+            let s01 = if raw == 0.0 { 0.0 } else { raw.signum() * (s00 * s11).sqrt().min(raw.abs()) };
+            sum += (2.0 * mu01 + c1) * (2.0 * s01 + c2) / ((mu00 + mu11 + c1) * (s00 + s11 + c2));
+            count += 1;
+        }
+    }
+    sum / count as f64
 }
 
 /// The per-pixel SSIM of two `w × h` RGB images (values in [0, 1], interleaved), averaged over
@@ -178,13 +284,12 @@ pub fn video_metrics(pred: &[RgbImage], target: &[RgbImage], masks: Option<&[Gra
     }
     let per_frame: Vec<FrameMetrics> =
         pred.iter().zip(target).enumerate().map(|(i, (p, t))| frame_metrics(p, t, masks.map(|m| &m[i]))).collect();
-    let mean = |values: Vec<f64>| (!values.is_empty()).then(|| values.iter().sum::<f64>() / values.len() as f64);
     Ok(VideoMetrics {
         frames: per_frame.len(),
-        psnr: mean(per_frame.iter().map(|f| f.psnr).filter(|v| v.is_finite()).collect()).unwrap_or(f64::INFINITY),
-        ssim: mean(per_frame.iter().map(|f| f.ssim).collect()).unwrap_or(f64::NAN),
-        masked_psnr: mean(per_frame.iter().filter_map(|f| f.masked_psnr).filter(|v| v.is_finite()).collect()),
-        masked_ssim: mean(per_frame.iter().filter_map(|f| f.masked_ssim).collect()),
+        psnr: plain_mean(per_frame.iter().map(|f| f.psnr)).unwrap_or(f64::NAN),
+        ssim: plain_mean(per_frame.iter().map(|f| f.ssim)).unwrap_or(f64::NAN),
+        masked_psnr: plain_mean(per_frame.iter().filter_map(|f| f.masked_psnr)),
+        masked_ssim: plain_mean(per_frame.iter().filter_map(|f| f.masked_ssim)),
         per_frame,
     })
 }

@@ -6,13 +6,15 @@
 //! bring the conditioning to the model's size (an area average when shrinking, OpenCV's
 //! area-weighted linear interpolation when growing) and the default `INTER_LINEAR` (half-pixel
 //! centres, 11-bit fixed-point weights) to bring the result back to the input's size. Both are
-//! written from OpenCV's definitions, so they agree with it to within one grey level.
+//! written from OpenCV's definitions; the linear one (shared with evaluation,
+//! [`crate::eval::resize`]) equals OpenCV's bit for bit, the area shrink to within one grey level.
 
 use image::RgbImage;
 use image::imageops::FilterType;
 use tch::{Device, Kind, Tensor};
 
 use crate::error::{Error, Result};
+use crate::eval::resize::{LinearPlacement, cv_scale, resize_linear_opencv_with};
 
 /// Most frames per sample: 1 + 4·256, far beyond CogVideoX's 49 (1.5: 81); more is a typo that
 /// would allocate gigabytes per sample.
@@ -70,21 +72,13 @@ pub fn resize_area(frame: &RgbImage, width: u32, height: u32) -> RgbImage {
         }
         return area_fractional(frame, width, height, scale_x, scale_y);
     }
-    resize_linear_with(frame, width, height, true)
+    resize_linear_opencv_with(frame, width, height, LinearPlacement::Area)
 }
 
 /// OpenCV's `resize(...)` with the default `INTER_LINEAR`: bilinear weights at half-pixel
 /// centres, borders replicated, 11-bit fixed-point arithmetic as OpenCV's 8-bit path.
 pub fn resize_linear(frame: &RgbImage, width: u32, height: u32) -> RgbImage {
-    if frame.dimensions() == (width, height) {
-        return frame.clone();
-    }
-    resize_linear_with(frame, width, height, false)
-}
-
-/// OpenCV's source-per-destination scale: `1 / (dst / src)`, computed as OpenCV computes it.
-fn cv_scale(source: u32, destination: u32) -> f64 {
-    1.0 / (f64::from(destination) / f64::from(source))
+    crate::eval::resize::resize_linear_opencv(frame, width, height)
 }
 
 /// Integer shrink factors: the plain block mean, rounded as OpenCV rounds it (its 2×2 kernel
@@ -175,69 +169,6 @@ fn area_fractional(frame: &RgbImage, width: u32, height: u32, scale_x: f64, scal
     }
     for (t, s) in out[current * row_len..][..row_len].iter_mut().zip(&sum) {
         *t = round_u8(*s);
-    }
-    RgbImage::from_raw(width, height, out).expect("buffer of the output's size")
-}
-
-/// Fixed-point scale of OpenCV's 8-bit linear weights (`INTER_RESIZE_COEF_SCALE`, 2^11).
-const COEF_SCALE: f32 = 2048.0;
-
-/// One axis of OpenCV's linear resize: per destination index, the first source index and the
-/// two fixed-point weights (the second 0 at the border, where the source is replicated).
-fn linear_taps(source: u32, destination: u32, area_mode: bool) -> Vec<(usize, i32, i32)> {
-    let scale = cv_scale(source, destination);
-    let inverse = f64::from(destination) / f64::from(source);
-    (0..destination)
-        .map(|d| {
-            let d = f64::from(d);
-            let (mut s, mut f) = if area_mode {
-                let s = (d * scale).floor();
-                let f = ((d + 1.0) - (s + 1.0) * inverse) as f32;
-                (s as i64, if f <= 0.0 { 0.0 } else { f - f.floor() })
-            } else {
-                let f = ((d + 0.5) * scale - 0.5) as f32;
-                let s = f.floor();
-                (s as i64, f - s)
-            };
-            if s < 0 {
-                (s, f) = (0, 0.0);
-            }
-            if s >= i64::from(source) - 1 {
-                (s, f) = (i64::from(source) - 1, 0.0);
-            }
-            let w1 = (f * COEF_SCALE).round_ties_even() as i32;
-            let w0 = ((1.0 - f) * COEF_SCALE).round_ties_even() as i32;
-            (s as usize, w0, w1)
-        })
-        .collect()
-}
-
-/// OpenCV's 8-bit linear resize: horizontal pass in integers with 11-bit weights, vertical pass
-/// as its SIMD kernel computes it (each term pre-shifted by 4, multiplied keeping the high 16
-/// bits, then rounded by 2 bits).
-fn resize_linear_with(frame: &RgbImage, width: u32, height: u32, area_mode: bool) -> RgbImage {
-    let (sw, sh) = frame.dimensions();
-    let x_taps = linear_taps(sw, width, area_mode);
-    let y_taps = linear_taps(sh, height, area_mode);
-    let source = frame.as_raw();
-    let horizontal = |y: usize| -> Vec<i32> {
-        let line = &source[y * sw as usize * 3..][..sw as usize * 3];
-        let mut row = Vec::with_capacity(width as usize * 3);
-        for &(s, w0, w1) in &x_taps {
-            let next = (s + 1).min(sw as usize - 1);
-            for c in 0..3 {
-                row.push(i32::from(line[s * 3 + c]) * w0 + i32::from(line[next * 3 + c]) * w1);
-            }
-        }
-        row
-    };
-    let mut out = Vec::with_capacity(width as usize * height as usize * 3);
-    for &(s, b0, b1) in &y_taps {
-        let (r0, r1) = (horizontal(s), horizontal((s + 1).min(sh as usize - 1)));
-        for (a, b) in r0.iter().zip(&r1) {
-            let v = ((b0 * (a >> 4)) >> 16) + ((b1 * (b >> 4)) >> 16) + 2;
-            out.push((v >> 2).clamp(0, 255) as u8);
-        }
     }
     RgbImage::from_raw(width, height, out).expect("buffer of the output's size")
 }

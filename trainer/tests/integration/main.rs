@@ -7,6 +7,7 @@ mod distributed;
 mod eval_benchmark;
 mod eval_cli;
 mod eval_parity;
+mod eval_protocol;
 mod forward_cli;
 mod hostile_inputs;
 mod libtorch;

@@ -125,6 +125,12 @@ fn area_and_linear_resizes_match_opencv() {
             source.width(),
             source.height()
         );
-        assert!(max <= 1 && beyond == 0.0 && mean < 0.05, "{case}: mean {mean}, max {max}");
+        // The linear resize (what the official evaluation brings frames to the protocol's size
+        // with) is OpenCV's bit for bit; the area shrink within one level.
+        let exact = case["mode"] == "linear";
+        assert!(
+            if exact { max == 0 } else { max <= 1 && beyond == 0.0 && mean < 0.05 },
+            "{case}: mean {mean}, max {max}"
+        );
     }
 }

@@ -426,7 +426,7 @@ fn check(args: CheckArgs) -> anyhow::Result<()> {
         None => datagen::geometry::consistency::CheckConfig::default(),
     };
     let options = ReadOptions { vggt_confidence_percentile: args.vggt_conf_percentile };
-    let report = datagen::geometry::consistency::check_folder(&args.seq_dir, args.layout, &options, &config)?;
+    let report = datagen::geometry::consistency::check_folder_with(&args.seq_dir, args.layout, &options, &config)?;
     if args.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {

@@ -160,6 +160,10 @@ const PROBE_STARTS_PER_GAP: usize = 4;
 /// disparity (Video Depth Anything, DepthCrafter) has an arbitrary scale.
 const DISPARITY_SCALE_OCTAVES: i32 = 8;
 
+/// The disparity scale fit samples every this-many-th pixel of the check's stride in x and y: its
+/// ~30 trial scales need the level of agreement, not its last digit (a sixteenth of the points).
+const SCALE_FIT_STRIDE_FACTOR: usize = 4;
+
 /// The scale of depth declared in the poses' units when it is in millimetres or centimetres.
 const MILLIMETRES: f64 = 1e-3;
 /// See [`MILLIMETRES`].
@@ -187,10 +191,17 @@ pub struct Stretch {
     pub before: usize,
     /// The first frame after it.
     pub after: usize,
-    /// Share of the straddling pairs' compared points that agree.
+    /// Share of the compared points of the smallest-gap pairs across the boundary that agree.
     pub consistency: f64,
-    /// Points compared across the boundary.
+    /// Points those pairs compared.
     pub compared: u64,
+    /// The same over the wider-gap pairs across the boundary that involve neither `before` nor
+    /// `after` (None without such pairs): a jump spoils them too, while a single frame's fault
+    /// (a video keyframe's other compression quality, a blurred frame) does not.
+    pub wider: Option<f64>,
+    /// The same over the wider-gap pairs that do not cross the boundary (None without such
+    /// pairs): what `wider` is measured against.
+    pub wider_elsewhere: Option<f64>,
 }
 
 /// The camera path.
@@ -750,7 +761,9 @@ fn convention_probes(as_read: &Reading, median_depth: f64) -> Vec<ConventionProb
                     // Centre: the scale that keeps the median depth, `median² / median`.
                     let centre = if median_depth > 0.0 { median_depth * median_depth } else { 1.0 };
                     let scale = fit_scale(centre, |s| {
-                        as_read.with(poses.clone(), DepthReading::Inverse(s)).agreeing_share(&pairs)
+                        let mut candidate = as_read.with(poses.clone(), DepthReading::Inverse(s));
+                        candidate.stride *= SCALE_FIT_STRIDE_FACTOR;
+                        candidate.agreeing_share(&pairs)
                     });
                     as_read.with(poses.clone(), DepthReading::Inverse(scale))
                 }
@@ -787,8 +800,8 @@ pub fn check_sequence(
     let pairs = consistency_pairs(&as_read, &config.frame_gaps);
     let static_depth_consistency = overall(&pairs);
     let stretches = stretches(&pairs, sequence.len());
-    let typical_stretch =
-        median_of(stretches.iter().filter(|s| s.compared >= MIN_STRETCH_POINTS).map(|s| s.consistency).collect());
+    let judged: Vec<&Stretch> = stretches.iter().filter(|s| s.compared >= MIN_STRETCH_POINTS).collect();
+    let typical_stretch = median_of(judged.iter().map(|s| s.consistency).collect());
     let worst_stretch = stretches.into_iter().min_by(|a, b| a.consistency.total_cmp(&b.consistency));
     let convention_probes = convention_probes(&as_read, median_depth);
     let camera_path = camera_path(sequence, median_depth, config);
@@ -805,10 +818,17 @@ pub fn check_sequence(
             config.min_consistency
         ));
     }
+    // A jump: the worst stretch is low, clearly below the typical boundary, and the wider pairs
+    // across it (without its two frames) confirm it against those elsewhere, when there are any.
+    let confirmed = |stretch: &Stretch| match (stretch.wider, stretch.wider_elsewhere) {
+        (Some(wider), Some(elsewhere)) => wider < elsewhere - STRETCH_DROP,
+        _ => true,
+    };
     if let (Some(stretch), Some(typical)) = (&worst_stretch, typical_stretch)
         && stretch.compared >= MIN_STRETCH_POINTS
         && stretch.consistency < config.min_consistency
         && stretch.consistency < typical - STRETCH_DROP
+        && confirmed(stretch)
     {
         reasons.push(format!(
             "a jump between frames {} and {}: the frame pairs across it agree on {:.3} of their static points \
@@ -900,18 +920,37 @@ fn overall(pairs: &[PairConsistency]) -> f64 {
 }
 
 /// The stretch of every frame boundary with compared points: the pairs of the smallest configured
-/// gap straddling it (`from` and `to` on either side). Wider pairs straddle several boundaries
-/// and would smear a jump over its neighbours.
+/// gap straddling it (`from` and `to` on either side), which localise a jump (wider pairs
+/// straddle several boundaries and would smear it over its neighbours), and the wider ones that
+/// confirm it ([`Stretch::wider`]).
 fn stretches(pairs: &[PairConsistency], frames: usize) -> Vec<Stretch> {
     let gap = |p: &PairConsistency| p.from.abs_diff(p.to);
     let smallest = pairs.iter().map(gap).min().unwrap_or(1);
+    let pooled = |selected: &mut dyn Iterator<Item = &PairConsistency>| {
+        selected.fold((0, 0), |(c, a), p| (c + p.compared, a + p.agreeing))
+    };
     (1..frames)
         .map(|after| {
-            let (compared, agreeing) = pairs
-                .iter()
-                .filter(|p| gap(p) == smallest && p.from.min(p.to) < after && after <= p.from.max(p.to))
-                .fold((0, 0), |(c, a), p| (c + p.compared, a + p.agreeing));
-            Stretch { before: after - 1, after, consistency: share(agreeing, compared), compared }
+            let before = after - 1;
+            let across = |p: &&PairConsistency| p.from.min(p.to) < after && after <= p.from.max(p.to);
+            let (compared, agreeing) = pooled(&mut pairs.iter().filter(across).filter(|p| gap(p) == smallest));
+            let (wider_compared, wider_agreeing) = pooled(
+                &mut pairs
+                    .iter()
+                    .filter(across)
+                    .filter(|p| gap(p) > smallest && ![p.from, p.to].iter().any(|&f| f == before || f == after)),
+            );
+            let (elsewhere_compared, elsewhere_agreeing) =
+                pooled(&mut pairs.iter().filter(|p| gap(p) > smallest && !across(p)));
+            let judged = |agreeing, compared| (compared >= MIN_STRETCH_POINTS).then(|| share(agreeing, compared));
+            Stretch {
+                before,
+                after,
+                consistency: share(agreeing, compared),
+                compared,
+                wider: judged(wider_agreeing, wider_compared),
+                wider_elsewhere: judged(elsewhere_agreeing, elsewhere_compared),
+            }
         })
         .filter(|s| s.compared > 0)
         .collect()
@@ -1045,12 +1084,15 @@ impl CheckReport {
         );
         if let Some(stretch) = &self.worst_stretch {
             out += &format!(
-                "    worst stretch: frames {} | {}: {:.3} of {} points across it agree ({} across a typical boundary)\n",
+                "    worst stretch: frames {} | {}: {:.3} of {} points across it agree ({} across a typical boundary; \
+                 wider pairs across it {}, elsewhere {})\n",
                 stretch.before,
                 stretch.after,
                 stretch.consistency,
                 stretch.compared,
-                self.typical_stretch.map_or("-".to_owned(), |t| format!("{t:.3}"))
+                number(self.typical_stretch),
+                number(stretch.wider),
+                number(stretch.wider_elsewhere)
             );
         }
         let mut worst: Vec<&PairConsistency> = self.pairs.iter().filter(|p| p.compared > 0).collect();
@@ -1089,12 +1131,25 @@ impl CheckReport {
     }
 }
 
+/// A share for the text report, `-` when absent.
+fn number(value: Option<f64>) -> String {
+    value.map_or("-".to_owned(), |v| format!("{v:.3}"))
+}
+
 /// Frame pairs listed in the text report, worst first (the JSON has them all).
 const WORST_PAIRS_SHOWN: usize = 3;
 
-/// Reads the sequence folder `dir` (in `layout`, or the detected one, with `options`) and checks
-/// it.
+/// Reads the sequence folder `dir` (in `layout`, or the detected one) and checks it.
 pub fn check_folder(
+    dir: &std::path::Path,
+    layout: Option<crate::io::sequence::LayoutName>,
+    config: &CheckConfig,
+) -> crate::error::Result<CheckReport> {
+    check_folder_with(dir, layout, &crate::io::sequence::ReadOptions::default(), config)
+}
+
+/// [`check_folder`], reading the folder with `options`.
+pub fn check_folder_with(
     dir: &std::path::Path,
     layout: Option<crate::io::sequence::LayoutName>,
     options: &crate::io::sequence::ReadOptions,

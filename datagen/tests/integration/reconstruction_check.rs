@@ -5,7 +5,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use datagen::geometry::consistency::{CheckConfig, CheckReport, ProbeOutcome, Slip, check_folder};
+use datagen::geometry::consistency::{CheckConfig, CheckReport, ProbeOutcome, Slip, check_folder_with};
 use datagen::io::sequence::ReadOptions;
 use datagen::synth::SynthConfig;
 use glam::{DMat4, DQuat, DVec3, DVec4};
@@ -55,7 +55,7 @@ fn write_with_masks(truth: &Truth, dir: &Path, binary: bool) -> PathBuf {
 }
 
 fn check_dir(seq: &Path) -> CheckReport {
-    check_folder(seq, None, &ReadOptions::default(), &CheckConfig::default()).unwrap()
+    check_folder_with(seq, None, &ReadOptions::default(), &CheckConfig::default()).unwrap()
 }
 
 fn check(truth: &Truth, dir: &Path, name: &str) -> (PathBuf, CheckReport) {
@@ -326,4 +326,22 @@ fn a_pose_jump_is_suspect_with_its_frames_on_slow_and_fast_paths() {
         let before = report.pairs.iter().find(|p| (p.from, p.to) == (2, 3)).unwrap();
         assert!(across.share < before.share - 0.2, "{name}: {}", report.to_text());
     }
+}
+
+/// One frame's colours spoiled (as a video keyframe of another compression quality, or a blurred
+/// frame, does): the pairs with that frame agree less, but the wider pairs across its boundaries
+/// do not, so it is no jump.
+#[test]
+fn one_bad_frame_is_no_pose_jump() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut truth = truth();
+    for (i, value) in truth.frames[6].iter_mut().enumerate() {
+        if i % 3 == 0 {
+            *value = value.wrapping_add(64);
+        }
+    }
+    let (_, report) = check(&truth, dir.path(), "bad_frame");
+    let stretch = report.worst_stretch.as_ref().unwrap();
+    assert!([5, 6].contains(&stretch.before) && stretch.consistency < 0.8, "{}", report.to_text());
+    assert!(!report.reasons.iter().any(|r| r.contains("a jump between")), "{}", report.to_text());
 }

@@ -7,7 +7,7 @@ use clap::{Args, Parser, Subcommand};
 use datagen::config_file::Validate;
 use datagen::corpus::build::{BuildConfig, Progress};
 use datagen::corpus::partition::Worker;
-use datagen::io::sequence::LayoutName;
+use datagen::io::sequence::{LayoutName, ReadOptions};
 use datagen::pairs::generator::PairsConfig;
 use datagen::synth::{SynthConfig, write_sequence};
 use schemas::InputStatus;
@@ -139,6 +139,11 @@ struct PairsArgs {
     /// [default: detected from its files; a folder matching several is an error listing them].
     #[arg(long, value_parser = parse_layout)]
     layout: Option<LayoutName>,
+    /// VGGT output: drop depth whose depth_conf is below this percentile (0–100) of the
+    /// sequence's confidences, as VGGT's viewers filter points (its demo's default is 50)
+    /// [default: keep every finite depth].
+    #[arg(long, value_name = "PERCENTILE")]
+    vggt_conf_percentile: Option<f64>,
     /// Output folder; the shard is written as <OUT>/<sequence name>.parquet.
     #[arg(long)]
     out: PathBuf,
@@ -178,6 +183,11 @@ struct CheckArgs {
     /// Layout of the folder [default: detected from its files].
     #[arg(long, value_parser = parse_layout)]
     layout: Option<LayoutName>,
+    /// VGGT output: drop depth whose depth_conf is below this percentile (0–100) of the
+    /// sequence's confidences, as VGGT's viewers filter points (its demo's default is 50)
+    /// [default: keep every finite depth].
+    #[arg(long, value_name = "PERCENTILE")]
+    vggt_conf_percentile: Option<f64>,
     /// Print the report as JSON (verdict, reasons, static_depth_consistency, per-pair shares, ...).
     #[arg(long)]
     json: bool,
@@ -314,6 +324,7 @@ fn pairs(args: PairsArgs) -> anyhow::Result<()> {
     let job = datagen::pairs::job::PairsJob {
         seq_dir: args.seq_dir,
         layout: args.layout,
+        read_options: ReadOptions { vggt_confidence_percentile: args.vggt_conf_percentile },
         out: args.out,
         trajectories: args.trajectories,
         trajectory_files: args.trajectory_files,
@@ -414,7 +425,8 @@ fn check(args: CheckArgs) -> anyhow::Result<()> {
         Some(path) => datagen::config_file::load_toml(path)?,
         None => datagen::geometry::consistency::CheckConfig::default(),
     };
-    let report = datagen::geometry::consistency::check_folder(&args.seq_dir, args.layout, &config)?;
+    let options = ReadOptions { vggt_confidence_percentile: args.vggt_conf_percentile };
+    let report = datagen::geometry::consistency::check_folder_with(&args.seq_dir, args.layout, &options, &config)?;
     if args.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {

@@ -52,7 +52,17 @@ pub struct SynthConfig {
     pub seed: u64,
     /// Horizontal field of view in degrees. Valid: in (1, 170).
     pub fov_deg: f64,
+    /// The camera's sweep around the scene over the whole video, degrees (signed: the direction);
+    /// absent: drawn from the seed in ±[`MAX_RANDOM_SWEEP_DEG`]. A few degrees give the slow
+    /// camera paths of real hand-held videos. Valid: [−[`MAX_SWEEP_DEG`], [`MAX_SWEEP_DEG`]].
+    pub camera_sweep_deg: Option<f64>,
 }
+
+/// The largest sweep a seed draws, degrees.
+pub const MAX_RANDOM_SWEEP_DEG: f64 = 25.0;
+/// The largest sweep accepted, degrees: the camera stays on the room's near side of the look-at
+/// point (its arc radius is at most 7 m, the back wall 6.5 m behind the look-at point).
+pub const MAX_SWEEP_DEG: f64 = 90.0;
 
 /// Widest and tallest frame: 8192 is the wide side of DCI 8K, the largest frame H.264's top
 /// level (6.2) encodes; far above the CogNVS paper's 720×480.
@@ -78,6 +88,7 @@ impl Default for SynthConfig {
             static_objects: 3,
             seed: 0,
             fov_deg: 60.0,
+            camera_sweep_deg: None,
         }
     }
 }
@@ -110,6 +121,9 @@ impl Validate for SynthConfig {
         check_float("fps", self.fps, (Bound::Excluded(0.0), Bound::Included(MAX_FPS)))?;
         check_count("moving_objects", self.moving_objects, 0, MAX_MOVING_OBJECTS.into())?;
         check_count("static_objects", self.static_objects, 0, MAX_STATIC_OBJECTS.into())?;
+        if let Some(sweep) = self.camera_sweep_deg {
+            check_float("camera_sweep_deg", sweep, -MAX_SWEEP_DEG..=MAX_SWEEP_DEG)?;
+        }
         check_float("fov_deg", self.fov_deg, (Bound::Excluded(1.0), Bound::Excluded(170.0)))
     }
 }
@@ -338,7 +352,10 @@ impl SynthScene {
             config: config.clone(),
             room,
             objects,
-            camera_sweep_deg: rng.random_range(-25.0..25.0),
+            // Drawn even when the config sets it, so the rest of the scene stays the seed's.
+            camera_sweep_deg: config
+                .camera_sweep_deg
+                .unwrap_or(rng.random_range(-MAX_RANDOM_SWEEP_DEG..MAX_RANDOM_SWEEP_DEG)),
             camera_radius: rng.random_range(5.5..7.0),
             camera_height: rng.random_range(1.2..2.2),
         })

@@ -1,6 +1,7 @@
 //! The corpus build's reconstruction filter (`[check]` of a corpus TOML): each input's
 //! reconstruction is checked ([`crate::geometry::consistency`]) before pairs are made from it; an
-//! input whose static depth consistency is below `min_static_depth_consistency` is skipped with
+//! input whose static depth consistency, overall or across its worst stretch of frames
+//! ([`CheckReport::score`]), is below `min_static_depth_consistency` is skipped with
 //! the score and the reasons in the status table (never silently), and every input's report is
 //! kept under `OUT/checks/` (one JSON per input key), where the corpus report reads the
 //! distribution.
@@ -21,7 +22,8 @@ pub const CHECKS_DIR: &str = "checks";
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
 #[serde(deny_unknown_fields)]
 pub struct BuildCheckConfig {
-    /// Skip inputs whose static depth consistency is below this; absent: no input is checked.
+    /// Skip inputs whose static depth consistency (overall, or across the worst frame boundary:
+    /// a pose jump) is below this; absent: no input is checked.
     /// Valid: [0, 1].
     pub min_static_depth_consistency: Option<f64>,
     /// How the check measures (`[check.settings]`).
@@ -52,11 +54,17 @@ pub fn filter(config: &BuildCheckConfig, out: &Path, input_key: &str, sequence: 
     };
     let report = check_sequence(sequence, "corpus input", "as read by the corpus build", false, &config.settings);
     write_report(&report_path(out, input_key), &report)?;
-    if report.static_depth_consistency >= min {
+    if report.score() >= min {
         return Ok(None);
     }
+    let worst = match &report.worst_stretch {
+        Some(s) if s.consistency < report.static_depth_consistency => {
+            format!(", {:.3} across frames {} | {}", s.consistency, s.before, s.after)
+        }
+        _ => String::new(),
+    };
     Ok(Some(format!(
-        "reconstruction check: static_depth_consistency {:.3} below min_static_depth_consistency {min} ({})",
+        "reconstruction check: static_depth_consistency {:.3}{worst} below min_static_depth_consistency {min} ({})",
         report.static_depth_consistency,
         report.reasons.join("; ")
     )))

@@ -8,7 +8,7 @@
 //!   missing poses: identity (the public code's fallbacks).
 //! - **MegaSAM native**: `*_sgd_cvd_hr.npz` with `images` (N,H,W,3) u8, `depths` (N,H,W),
 //!   `intrinsic` (3,3) and `cam_c2w` (N,4,4).
-//! - **generic**: `frames/*.png|jpg` (or a single video file in the folder), `depth/*.exr` (one
+//! - **generic**: `frames/*.png|jpg` (or the folder's one input video, [`frames_video`]), `depth/*.exr` (one
 //!   float channel), `cameras.json`: `{"intrinsics": K or [K per frame], "world_from_camera":
 //!   [4×4 per frame]}` with matrices as nested row lists or 9/16 row-major values.
 //!
@@ -258,7 +258,7 @@ impl Layout {
                 "OpenCV axes; poses world_from_camera (ViPE cam2world), read as is; K from [fx, fy, cx, cy]; metric z-depth (metres)"
             }
             Self::Vggt(_) => {
-                "OpenCV axes; extrinsic camera_from_world, inverted; z-depth in VGGT's normalised scene scale (not metric), masked below the median depth_conf"
+                "OpenCV axes; extrinsic camera_from_world, inverted; z-depth in VGGT's normalised scene scale (not metric), all finite depth kept unless a depth_conf percentile is given"
             }
             Self::Colmap => {
                 "OpenCV axes; qvec/tvec camera_from_world, inverted; pixel centres moved by -0.5; z-depth in the SfM model's units (not metric)"
@@ -435,8 +435,24 @@ pub fn read_sequence(dir: &Path) -> Result<Sequence> {
     read_sequence_as(dir, None)
 }
 
-/// Reads the sequence folder `dir` in layout `layout`, or the detected one when `None`.
+/// Reads the sequence folder `dir` in layout `layout`, or the detected one when `None`, with the
+/// default [`ReadOptions`].
 pub fn read_sequence_as(dir: &Path, layout: Option<LayoutName>) -> Result<Sequence> {
+    read_sequence_with(dir, layout, &ReadOptions::default())
+}
+
+/// Choices a user makes about how a tool's output is read; the defaults keep everything the
+/// tool gives.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ReadOptions {
+    /// VGGT: drop depth whose `depth_conf` is below this percentile (0–100) of the sequence's
+    /// confidences, as VGGT's demo viewers filter their point clouds (`--vggt-conf-percentile`;
+    /// [`crate::io::vggt::confidence_threshold`]). `None`: every finite depth is kept.
+    pub vggt_confidence_percentile: Option<f64>,
+}
+
+/// Reads the sequence folder `dir` in layout `layout` (or the detected one) with `options`.
+pub fn read_sequence_with(dir: &Path, layout: Option<LayoutName>, options: &ReadOptions) -> Result<Sequence> {
     let layout = match layout {
         Some(name) => layout_named(dir, name)?,
         None => detect_layout(dir)?,
@@ -451,7 +467,7 @@ pub fn read_sequence_as(dir: &Path, layout: Option<LayoutName>) -> Result<Sequen
         Layout::MegaSam(npz) => read_megasam(&npz)?,
         Layout::Generic => read_generic(dir)?,
         Layout::Vipe(artifact) => assemble_tool(crate::io::vipe::read_vipe(&artifact)?)?,
-        Layout::Vggt(path) => assemble_tool(crate::io::vggt::read_vggt(&path)?)?,
+        Layout::Vggt(path) => assemble_tool(crate::io::vggt::read_vggt(&path, options.vggt_confidence_percentile)?)?,
         Layout::Colmap => assemble_tool(crate::io::colmap::read_colmap(dir)?)?,
         Layout::Gen3c => assemble_tool(crate::io::gen3c::read_gen3c(dir)?)?,
         Layout::DepthOnly(path) => read_depth_only_folder(dir, &path)?,
@@ -530,7 +546,7 @@ pub fn read_with_frames(
             Layout::MegaSam(npz) => megasam_reconstruction(&npz, false)?.1,
             Layout::Generic => generic_reconstruction(reconstruction)?,
             Layout::Vipe(artifact) => tool_reconstruction(crate::io::vipe::read_vipe_reconstruction(&artifact)?).1,
-            Layout::Vggt(path) => tool_reconstruction(crate::io::vggt::read_vggt(&path)?).1,
+            Layout::Vggt(path) => tool_reconstruction(crate::io::vggt::read_vggt(&path, None)?).1,
             Layout::Colmap => tool_reconstruction(crate::io::colmap::read_colmap_reconstruction(reconstruction)?).1,
             Layout::Gen3c => tool_reconstruction(crate::io::gen3c::read_gen3c_reconstruction(reconstruction)?).1,
             Layout::DepthOnly(path) => depth_only_reconstruction(reconstruction, &path)?,
@@ -700,19 +716,86 @@ fn json_poses(path: &Path, value: &serde_json::Value) -> Result<NdArray<f64>> {
     Ok(NdArray { shape: vec![items.len(), 4, 4], data })
 }
 
-/// The frames of `dir`: `frames/*.png|jpg`, else its (first) video file.
+/// The frames of `dir`: `frames/*.png|jpg`, else its one input video ([`frames_video`]).
 fn read_frames_or_video(dir: &Path) -> Result<(f64, Vec<RgbImage>, PathBuf)> {
     let frames_dir = dir.join("frames");
     if frames_dir.is_dir() {
         let files = with_extension(&frames_dir, &["png", "jpg", "jpeg"])?;
         return Ok((0.0, read_frames(&files)?, frames_dir));
     }
-    let video = with_extension(dir, &["mp4", "mov", "mkv", "avi", "webm"])?
-        .into_iter()
-        .next()
-        .ok_or_else(|| Error::invalid(dir, "frames", "no frames/ folder and no video file"))?;
+    let video = frames_video(dir)?;
     let decoded = foundation::video::decode_video(&video)?;
     Ok((decoded.fps, decoded.frames, video))
+}
+
+/// Video file extensions a folder's frames may come in.
+const VIDEO_EXTENSIONS: [&str; 5] = ["mp4", "mov", "mkv", "avi", "webm"];
+
+/// Stem suffixes of the videos depth-only tools write *beside* their input, never frames:
+/// DepthCrafter's `run.py` writes `NAME_depth.mp4` (the depth as grey video) and `NAME_vis.mp4`
+/// (coloured); Video Depth Anything's `run.py` writes `NAME_vis.mp4` (Tencent/DepthCrafter and
+/// DepthAnything/Video-Depth-Anything, `run.py`). `_depths` is Video Depth Anything's name for
+/// its depth files, taken for a depth video too.
+const TOOL_OUTPUT_VIDEO_SUFFIXES: [&str; 3] = ["_depth", "_depths", "_vis"];
+
+/// Stem suffixes of the input video those tools save with their output, the frames their depth
+/// belongs to (resized to the tool's working resolution): DepthCrafter's `NAME_input.mp4`, Video
+/// Depth Anything's `NAME_src.mp4`.
+const TOOL_INPUT_VIDEO_SUFFIXES: [&str; 2] = ["_input", "_src"];
+
+/// The one video of `dir` that holds the frames. Videos a depth tool writes beside its input
+/// (depth and visualisation videos, [`TOOL_OUTPUT_VIDEO_SUFFIXES`]) are never frames. Among the
+/// rest, the tool's saved input `NAME_input`/`NAME_src` ([`TOOL_INPUT_VIDEO_SUFFIXES`]) wins over
+/// the original `NAME` video it was made from: the depth belongs to the saved input's frames
+/// (DepthCrafter's `--target-fps` drops frames, both tools resize). Any other choice between
+/// several videos (or none) is an error naming them: a video is never picked by its sort order.
+pub fn frames_video(dir: &Path) -> Result<PathBuf> {
+    let videos = with_extension(dir, &VIDEO_EXTENSIONS)?;
+    let stem = |p: &Path| p.file_stem().and_then(|s| s.to_str()).unwrap_or("").to_owned();
+    let name = |p: &PathBuf| p.file_name().unwrap_or_default().to_string_lossy().into_owned();
+    let (outputs, candidates): (Vec<PathBuf>, Vec<PathBuf>) =
+        videos.into_iter().partition(|p| TOOL_OUTPUT_VIDEO_SUFFIXES.iter().any(|s| stem(p).ends_with(s)));
+    let names = |paths: &[PathBuf]| paths.iter().map(name).collect::<Vec<_>>().join(", ");
+    // The tool's saved input, when the other candidates are only the original it was made from.
+    let original_of = |p: &Path| {
+        let stem = stem(p);
+        TOOL_INPUT_VIDEO_SUFFIXES.iter().find_map(|s| stem.strip_suffix(s).map(str::to_owned))
+    };
+    let tool_inputs: Vec<(&PathBuf, String)> =
+        candidates.iter().filter_map(|p| original_of(p).map(|original| (p, original))).collect();
+    if let [(input, original)] = tool_inputs.as_slice()
+        && candidates.iter().all(|p| p == *input || stem(p) == *original)
+    {
+        return Ok((*input).clone());
+    }
+    match candidates.as_slice() {
+        [one] => Ok(one.clone()),
+        [] if outputs.is_empty() => Err(Error::invalid(dir, "frames", "no frames/ folder and no video file")),
+        [] => Err(Error::invalid(
+            dir,
+            "frames",
+            format!(
+                "no input video: {} are a depth tool's depth or visualisation videos (names ending in {}), not frames; \
+                 add the tool's input video (DepthCrafter's NAME_input.mp4, Video Depth Anything's NAME_src.mp4) or frames/",
+                names(&outputs),
+                TOOL_OUTPUT_VIDEO_SUFFIXES.join(", ")
+            ),
+        )),
+        several => Err(Error::invalid(
+            dir,
+            "frames",
+            format!(
+                "ambiguous: several videos could be the frames ({}){}; keep only the one the depth was computed from \
+                 (DepthCrafter's NAME_input.mp4, Video Depth Anything's NAME_src.mp4) or put the frames in frames/",
+                names(several),
+                if outputs.is_empty() {
+                    String::new()
+                } else {
+                    format!(" besides the tool outputs {}", names(&outputs))
+                }
+            ),
+        )),
+    }
 }
 
 fn read_generic(dir: &Path) -> Result<Parts> {

@@ -6,8 +6,11 @@
 //! - `intrinsic` (S, 3, 3): K in pixels of the model's input images (principal point at W/2, H/2;
 //!   VGGT unprojects with integer pixel coordinates, as here, so K is taken as is).
 //! - `depth` (S, H, W, 1) or (S, H, W): z-depth in VGGT's normalised scene scale (not metric).
-//! - `depth_conf` (S, H, W): confidence ≥ 1; depth whose confidence is below the
-//!   [`CONFIDENCE_PERCENTILE`] of the sequence's values is masked (invalid). NaN is an error.
+//! - `depth_conf` (S, H, W): confidence ≥ 1. Every finite depth is kept by default: VGGT
+//!   filters by confidence only to display its point cloud. Given a percentile p, depth is
+//!   dropped as VGGT's demo viewers drop points ([`confidence_threshold`]): kept where the
+//!   confidence is ≥ the p-th percentile of all the sequence's confidences (NumPy's linear
+//!   interpolation, p = 0 keeping all) and above [`MIN_CONFIDENCE`]. NaN is an error.
 //! - `images` (S, 3, H, W) or (S, H, W, 3): the preprocessed input frames as floats in 0–1 (the
 //!   frames the depth belongs to; the originals on disk were resized and cropped).
 //!
@@ -26,12 +29,22 @@ use crate::io::tool_output::{ToolFrames, ToolOutput, check_depth_sign, invert_ca
 /// The file VGGT's demo writes into its output folder.
 pub const PREDICTIONS_FILE: &str = "predictions.npz";
 
-/// Depth whose `depth_conf` lies below this percentile of the sequence's confidences is masked:
-/// the default `conf_thres` (50) of VGGT's own demo viewers, which drop that share of points.
-pub const CONFIDENCE_PERCENTILE: f64 = 50.0;
+/// Confidence at or below which VGGT's viewers drop a point whatever the percentile (their
+/// `conf > 1e-5`).
+pub const MIN_CONFIDENCE: f32 = 1e-5;
 
-/// Reads `predictions.npz` at `path`, with its frames.
-pub fn read_vggt(path: &Path) -> Result<ToolOutput> {
+/// The default `conf_thres` (50) of VGGT's Gradio demo: a starting value for the percentile
+/// option, never applied unless asked for.
+pub const DEMO_CONFIDENCE_PERCENTILE: f64 = 50.0;
+
+/// Reads `predictions.npz` at `path`, with its frames; with `confidence_percentile` (0–100),
+/// depth below that percentile of `depth_conf` is dropped ([`confidence_threshold`]).
+pub fn read_vggt(path: &Path, confidence_percentile: Option<f64>) -> Result<ToolOutput> {
+    if let Some(p) = confidence_percentile
+        && !(0.0..=100.0).contains(&p)
+    {
+        return Err(Error::invalid(path, "depth_conf", format!("confidence percentile {p} is outside 0–100")));
+    }
     let mut archive = NpzReader::open(path)?;
     let extrinsic_header = archive.header("extrinsic", None)?;
     let frames = *extrinsic_header.shape.first().unwrap_or(&0);
@@ -72,9 +85,12 @@ pub fn read_vggt(path: &Path) -> Result<ToolOutput> {
     for (i, plane) in planes.iter().enumerate() {
         check_depth_sign(path, "depth", i, plane)?;
     }
-    if archive.contains("depth_conf") {
+    if let Some(p) = confidence_percentile {
+        if !archive.contains("depth_conf") {
+            return Err(Error::array(path, Some("depth_conf.npy"), "missing: a confidence percentile was given"));
+        }
         let confidence = archive.read_f32("depth_conf", &plane_spec)?;
-        let threshold = percentile(&confidence.data, CONFIDENCE_PERCENTILE);
+        let threshold = confidence_threshold(&confidence.data, p);
         for (i, (plane, conf)) in planes.iter_mut().zip(confidence.into_planes()).enumerate() {
             mask_by_confidence(path, "depth_conf", i, width, plane, &conf, threshold)?;
         }
@@ -155,16 +171,23 @@ fn read_images(
         .collect())
 }
 
-/// The `p`-th percentile (0–100) of the finite `values`, nearest rank; 0 if there are none (a
-/// NaN is reported by the confidence check that follows, naming its pixel).
-fn percentile(values: &[f32], p: f64) -> f32 {
+/// The confidence below which VGGT's viewers drop points at percentile `p` (0–100): 0 for p = 0,
+/// else `np.percentile(conf, p)` (linear interpolation between the two nearest ranks of the
+/// finite values), raised to just above [`MIN_CONFIDENCE`] so that `conf ≥ threshold` also
+/// means `conf > MIN_CONFIDENCE`. A NaN is reported by the confidence check that follows,
+/// naming its pixel.
+pub fn confidence_threshold(values: &[f32], p: f64) -> f32 {
     let mut finite: Vec<f32> = values.iter().copied().filter(|v| v.is_finite()).collect();
-    if finite.is_empty() {
-        return 0.0;
+    let floor = MIN_CONFIDENCE.next_up();
+    if p == 0.0 || finite.is_empty() {
+        return floor;
     }
-    let rank = ((p / 100.0) * (finite.len() - 1) as f64).round() as usize;
-    let (_, value, _) = finite.select_nth_unstable_by(rank, f32::total_cmp);
-    *value
+    finite.sort_unstable_by(f32::total_cmp);
+    let rank = (p / 100.0) * (finite.len() - 1) as f64;
+    let (below, above) = (rank.floor() as usize, rank.ceil() as usize);
+    let (low, high) = (f64::from(finite[below]), f64::from(finite[above]));
+    let value = (low + (high - low) * (rank - below as f64)) as f32;
+    value.max(floor)
 }
 
 #[cfg(test)]
@@ -172,10 +195,13 @@ mod tests {
     use super::*;
 
     #[test]
-    fn percentile_is_the_nearest_rank() {
+    fn threshold_interpolates_like_numpy_percentile() {
+        // np.percentile([5, 1, 3, 2, 4], p) for p = 50, 0, 100, 30: 3.0, 1.0, 5.0, 2.2.
         let values = [5.0, 1.0, 3.0, 2.0, 4.0];
-        assert_eq!(percentile(&values, 50.0), 3.0);
-        assert_eq!(percentile(&values, 0.0), 1.0);
-        assert_eq!(percentile(&values, 100.0), 5.0);
+        assert_eq!(confidence_threshold(&values, 50.0), 3.0);
+        assert_eq!(confidence_threshold(&values, 100.0), 5.0);
+        assert!((confidence_threshold(&values, 30.0) - 2.2).abs() < 1e-6);
+        // p = 0 keeps everything above VGGT's 1e-5 floor.
+        assert!(confidence_threshold(&values, 0.0) > MIN_CONFIDENCE && confidence_threshold(&values, 0.0) < 1e-4);
     }
 }

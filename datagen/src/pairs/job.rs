@@ -9,7 +9,7 @@ use std::time::Instant;
 use schemas::{InputDigest, ShardStats};
 
 use crate::error::{Error, Result};
-use crate::io::sequence::{LayoutName, read_sequence_as};
+use crate::io::sequence::{LayoutName, ReadOptions, read_sequence_with};
 use crate::pairs::generator::{PairsConfig, PhaseTimes, generate_clips_timed, trajectory_request, write_shard};
 
 /// What to make pairs from and where to write them.
@@ -19,6 +19,8 @@ pub struct PairsJob {
     pub seq_dir: PathBuf,
     /// Its layout (None: detected from its files).
     pub layout: Option<LayoutName>,
+    /// How a tool's output is read (VGGT's confidence filter).
+    pub read_options: ReadOptions,
     /// The output folder; the shard is `out/{source id}.parquet`.
     pub out: PathBuf,
     /// Sampled trajectories per clip (None: 2, or 0 when trajectory files are given).
@@ -74,8 +76,10 @@ pub struct PairsReport {
 pub fn make_pairs(job: &PairsJob) -> Result<PairsReport> {
     let started = Instant::now();
     // The input's content hash (for the stats marker) is taken while the sequence is read.
-    let (sequence, content_hash) =
-        rayon::join(|| read_sequence_as(&job.seq_dir, job.layout), || foundation::hashing::hash_tree(&job.seq_dir));
+    let (sequence, content_hash) = rayon::join(
+        || read_sequence_with(&job.seq_dir, job.layout, &job.read_options),
+        || foundation::hashing::hash_tree(&job.seq_dir),
+    );
     let mut sequence = sequence?;
     let input = InputDigest { source_path: job.seq_dir.display().to_string(), content_hash: content_hash? };
     let noise = &job.config.depth_noise;

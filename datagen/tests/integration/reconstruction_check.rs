@@ -1,14 +1,19 @@
-//! `datagen check`: an exact synthetic reconstruction scores ok; the same scene with perturbed
-//! poses, per-frame depth scales, inverted poses or a camera jump scores suspect with the reason.
+//! `datagen check`: exact synthetic reconstructions score ok on slow and fast camera paths; the
+//! same scenes with perturbed poses, per-frame depth scales, a pose jump or each convention slip
+//! users make (written in the tool's own format) score suspect with the reason naming it.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use datagen::geometry::consistency::{CheckConfig, CheckReport, check_folder};
+use datagen::geometry::consistency::{CheckConfig, CheckReport, ProbeOutcome, Slip, check_folder_with};
+use datagen::io::sequence::ReadOptions;
 use datagen::synth::SynthConfig;
-use glam::{DMat4, DQuat, DVec3};
+use glam::{DMat4, DQuat, DVec3, DVec4};
 
-use crate::tool_layouts::{Truth, write_colmap};
+use crate::tool_layouts::{
+    QuaternionOrder, Truth, write_colmap, write_colmap_ordered, write_depth_only_values, write_gen3c_w2c,
+    write_vggt_extrinsics,
+};
 
 /// A scene whose camera sweeps ~25° over its 12 frames (seed 3), enough for both configured
 /// frame gaps (1 and 5), written losslessly (a COLMAP workspace: PNG frames, float32 depth):
@@ -17,20 +22,45 @@ fn truth() -> Truth {
     Truth::of(SynthConfig { width: 96, height: 64, frames: 12, seed: 3, ..SynthConfig::default() })
 }
 
-/// The COLMAP workspace with the moving objects' masks beside it (`masks/`, read in any layout),
-/// as a user adds a segmenter's masks to a tool's output.
-fn write_with_masks(truth: &Truth, dir: &Path, binary: bool) -> PathBuf {
-    let seq = write_colmap(truth, dir, binary);
+/// The sweep of the slow path, degrees over the 12 frames: ~0.4° and ~0.04 m a frame, where
+/// neighbouring frames barely tell conventions apart.
+const SLOW_SWEEP_DEG: f64 = 4.0;
+
+/// The seed-3 scene on a slow camera path.
+fn slow_truth() -> Truth {
+    Truth::of(SynthConfig {
+        width: 96,
+        height: 64,
+        frames: 12,
+        seed: 3,
+        camera_sweep_deg: Some(SLOW_SWEEP_DEG),
+        ..SynthConfig::default()
+    })
+}
+
+/// Adds the moving objects' masks beside a tool's output (`masks/`, read in any layout), as a
+/// user adds a segmenter's masks.
+fn add_masks(truth: &Truth, seq: &Path) {
     std::fs::create_dir_all(seq.join("masks")).unwrap();
     for (i, mask) in truth.masks.iter().enumerate() {
         mask.save(seq.join(format!("masks/{i:05}.png"))).unwrap();
     }
+}
+
+/// The COLMAP workspace with the moving objects' masks beside it.
+fn write_with_masks(truth: &Truth, dir: &Path, binary: bool) -> PathBuf {
+    let seq = write_colmap(truth, dir, binary);
+    add_masks(truth, &seq);
     seq
+}
+
+fn check_dir(seq: &Path) -> CheckReport {
+    check_folder_with(seq, None, &ReadOptions::default(), &CheckConfig::default()).unwrap()
 }
 
 fn check(truth: &Truth, dir: &Path, name: &str) -> (PathBuf, CheckReport) {
     let seq = write_with_masks(truth, &dir.join(name), true);
-    let report = check_folder(&seq, None, &CheckConfig::default()).unwrap();
+    let report = check_dir(&seq);
     (seq, report)
 }
 
@@ -75,8 +105,9 @@ fn inverted_poses_are_named_as_a_convention_mix_up() {
     }
     let (_, report) = check(&inverted, dir.path(), "inverted");
     assert_eq!(report.verdict, "suspect", "{}", report.to_text());
-    assert!(report.convention_probe.inverted > 0.9, "{}", report.to_text());
-    assert!(report.reasons.iter().any(|r| r.contains("inverted poses")), "{:?}", report.reasons);
+    let probe = report.convention_probes.iter().find(|p| p.slip == Slip::CameraFromWorld).unwrap();
+    assert_eq!(probe.outcome, ProbeOutcome::FitsBetter, "{}", report.to_text());
+    assert!(report.reasons.iter().any(|r| r.contains("camera-from-world")), "{:?}", report.reasons);
 }
 
 #[test]
@@ -170,7 +201,7 @@ fn blender_fixtures_are_ok_and_suspect_with_perturbed_poses() {
     let dir = tempfile::tempdir().unwrap();
     for scene in ["scene_101", "scene_102"] {
         let fixture = crate::sequence::fixtures().join(scene);
-        let report = check_folder(&fixture, None, &CheckConfig::default()).unwrap();
+        let report = check_dir(&fixture);
         assert_eq!(report.verdict, "ok", "{}", report.to_text());
 
         let copy = dir.path().join(scene);
@@ -192,8 +223,125 @@ fn blender_fixtures_are_ok_and_suspect_with_perturbed_poses() {
             })
             .collect();
         write_npy(&copy.join("cam_info/megasam_c2ws.npy"), &poses.shape, &perturbed).unwrap();
-        let report = check_folder(&copy, None, &CheckConfig::default()).unwrap();
+        let report = check_dir(&copy);
         assert_eq!(report.verdict, "suspect", "{}", report.to_text());
         assert!(report.static_depth_consistency < 0.75, "{}", report.to_text());
     }
+}
+
+/// Writes the `truth` scene in each tool format the slips below use, exactly.
+fn write_exact(truth: &Truth, dir: &Path) -> Vec<PathBuf> {
+    let camera_from_world: Vec<DMat4> = (0..truth.n()).map(|i| truth.camera_from_world(i)).collect();
+    let vggt = write_vggt_extrinsics(truth, &dir.join("vggt"), &camera_from_world);
+    let colmap = write_colmap(truth, &dir.join("colmap"), false);
+    let depth_only = write_depth_only_values(truth, &dir.join("depth_only"), &truth.depth);
+    let seqs = vec![vggt, colmap, depth_only];
+    for seq in &seqs {
+        add_masks(truth, seq);
+    }
+    seqs
+}
+
+#[test]
+fn exact_reconstructions_are_ok_and_the_probes_decide_on_slow_and_fast_paths() {
+    let dir = tempfile::tempdir().unwrap();
+    for (name, truth) in [("fast", truth()), ("slow", slow_truth())] {
+        for seq in write_exact(&truth, &dir.path().join(name)) {
+            let report = check_dir(&seq);
+            assert_eq!(report.verdict, "ok", "{name}: {}", report.to_text());
+            // The pose and axis probes tell the conventions apart even on the slow path: the
+            // right one is known, not merely not contradicted.
+            for probe in &report.convention_probes {
+                assert_ne!(probe.outcome, ProbeOutcome::FitsBetter, "{name}: {}", report.to_text());
+                if matches!(probe.slip, Slip::CameraFromWorld | Slip::OpenGlAxes | Slip::QuaternionOrder) {
+                    assert_eq!(probe.outcome, ProbeOutcome::Rejected, "{name}: {}", report.to_text());
+                }
+            }
+        }
+    }
+}
+
+/// Each slip applied to files in the tool's own format, on the slow and the fast path: suspect,
+/// with the reason naming the slip (and no other convention named).
+#[test]
+fn convention_slips_are_suspect_and_named_on_slow_and_fast_paths() {
+    let dir = tempfile::tempdir().unwrap();
+    let flip = DMat4::from_diagonal(DVec4::new(1.0, -1.0, -1.0, 1.0));
+    for (name, truth) in [("fast", truth()), ("slow", slow_truth())] {
+        let root = dir.path().join(name);
+        let camera_from_world: Vec<DMat4> = (0..truth.n()).map(|i| truth.camera_from_world(i)).collect();
+        // VGGT's `extrinsic` holding camera-to-world matrices.
+        let vggt = write_vggt_extrinsics(&truth, &root.join("vggt_c2w"), &truth.world_from_camera);
+        // GEN3C's `w2c` in OpenGL camera axes (y up, z backwards).
+        let opengl: Vec<DMat4> = camera_from_world.iter().map(|m| flip * *m).collect();
+        let gen3c = write_gen3c_w2c(&truth, &root.join("gen3c_opengl"), &opengl);
+        // COLMAP's qvec written x, y, z, w.
+        let colmap = write_colmap_ordered(&truth, &root.join("colmap_xyzw"), true, QuaternionOrder::Xyzw);
+        // Video Depth Anything's relative output (disparity, scale 3) declared as z-depth.
+        let disparity: Vec<Vec<f32>> =
+            truth.depth.iter().map(|d| d.iter().map(|&v| if v > 0.0 { 3.0 / v } else { 0.0 }).collect()).collect();
+        let vda = write_depth_only_values(&truth, &root.join("vda_disparity"), &disparity);
+        // Depth in millimetres with the poses in metres.
+        let millimetres: Vec<Vec<f32>> = truth.depth.iter().map(|d| d.iter().map(|&v| 1000.0 * v).collect()).collect();
+        let mm = write_depth_only_values(&truth, &root.join("millimetres"), &millimetres);
+        for (seq, slip) in [
+            (vggt, Slip::CameraFromWorld),
+            (gen3c, Slip::OpenGlAxes),
+            (colmap, Slip::QuaternionOrder),
+            (vda, Slip::Disparity),
+            (mm, Slip::Millimetres),
+        ] {
+            add_masks(&truth, &seq);
+            let report = check_dir(&seq);
+            let context = format!("{name} {}: {}", seq.display(), report.to_text());
+            assert_eq!(report.verdict, "suspect", "{context}");
+            let named: Vec<Slip> =
+                Slip::ALL.into_iter().filter(|s| report.reasons.iter().any(|r| r.contains(s.describe()))).collect();
+            assert_eq!(named, vec![slip], "{context}");
+        }
+    }
+}
+
+/// A 4° turn of every pose from frame 7 on (a re-initialised tracker) on the slow and the fast
+/// path: the mean hides it, the stretch across frames 6 | 7 and the rotation steps do not.
+#[test]
+fn a_pose_jump_is_suspect_with_its_frames_on_slow_and_fast_paths() {
+    let dir = tempfile::tempdir().unwrap();
+    for (name, mut truth) in [("fast", truth()), ("slow", slow_truth())] {
+        for pose in &mut truth.world_from_camera[7..] {
+            *pose *= DMat4::from_quat(DQuat::from_rotation_y(4f64.to_radians()));
+        }
+        let (_, report) = check(&truth, dir.path(), name);
+        assert_eq!(report.verdict, "suspect", "{name}: {}", report.to_text());
+        let stretch = report.worst_stretch.as_ref().unwrap();
+        assert_eq!((stretch.before, stretch.after), (6, 7), "{name}: {}", report.to_text());
+        assert!(
+            report.reasons.iter().any(|r| r.contains("a jump between frames 6 and 7")),
+            "{name}: {:?}",
+            report.reasons
+        );
+        assert_eq!(report.camera_path.rotation_jumps, vec![7], "{name}: {}", report.to_text());
+        // The per-pair scores are kept: the pair across the jump is among the worst.
+        let across = report.pairs.iter().find(|p| (p.from, p.to) == (6, 7)).unwrap();
+        let before = report.pairs.iter().find(|p| (p.from, p.to) == (2, 3)).unwrap();
+        assert!(across.share < before.share - 0.2, "{name}: {}", report.to_text());
+    }
+}
+
+/// One frame's colours spoiled (as a video keyframe of another compression quality, or a blurred
+/// frame, does): the pairs with that frame agree less, but the wider pairs across its boundaries
+/// do not, so it is no jump.
+#[test]
+fn one_bad_frame_is_no_pose_jump() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut truth = truth();
+    for (i, value) in truth.frames[6].iter_mut().enumerate() {
+        if i % 3 == 0 {
+            *value = value.wrapping_add(64);
+        }
+    }
+    let (_, report) = check(&truth, dir.path(), "bad_frame");
+    let stretch = report.worst_stretch.as_ref().unwrap();
+    assert!([5, 6].contains(&stretch.before) && stretch.consistency < 0.8, "{}", report.to_text());
+    assert!(!report.reasons.iter().any(|r| r.contains("a jump between")), "{}", report.to_text());
 }

@@ -6,7 +6,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use datagen::io::sequence::{LayoutName, read_sequence, read_sequence_as};
+use datagen::io::sequence::{LayoutName, ReadOptions, read_sequence, read_sequence_as, read_sequence_with};
 use datagen::synth::{SynthConfig, SynthScene};
 use glam::{DMat3, DMat4, DQuat};
 use image::RgbImage;
@@ -47,7 +47,7 @@ impl Truth {
         self.frames.len()
     }
 
-    fn camera_from_world(&self, i: usize) -> DMat4 {
+    pub fn camera_from_world(&self, i: usize) -> DMat4 {
         self.world_from_camera[i].inverse()
     }
 
@@ -136,10 +136,15 @@ fn row_major3(m: &DMat3) -> Vec<f64> {
 /// VGGT's `predictions.npz` (float32, as the model computes): camera_from_world 3×4 extrinsics,
 /// K, depth (S, H, W, 1), confidence, images (S, 3, H, W) in 0–1.
 pub fn write_vggt(truth: &Truth, dir: &Path) -> PathBuf {
+    let extrinsics: Vec<DMat4> = (0..truth.n()).map(|i| truth.camera_from_world(i)).collect();
+    write_vggt_extrinsics(truth, dir, &extrinsics)
+}
+
+/// [`write_vggt`] with the given `extrinsic` matrices (a user's slip: camera-to-world saved).
+pub fn write_vggt_extrinsics(truth: &Truth, dir: &Path, extrinsics: &[DMat4]) -> PathBuf {
     std::fs::create_dir_all(dir).unwrap();
     let (n, h, w) = (truth.n() as u64, truth.height as u64, truth.width as u64);
-    let extrinsic: Vec<f32> =
-        (0..truth.n()).flat_map(|i| row_major4(&truth.camera_from_world(i))[..12].to_vec()).map(|v| v as f32).collect();
+    let extrinsic: Vec<f32> = extrinsics.iter().flat_map(|m| row_major4(m)[..12].to_vec()).map(|v| v as f32).collect();
     let intrinsic: Vec<f32> = (0..truth.n()).flat_map(|_| row_major3(&truth.k)).map(|v| v as f32).collect();
     let depth: Vec<f32> = truth.depth.concat();
     let plane = truth.width * truth.height;
@@ -163,6 +168,12 @@ pub fn write_vggt(truth: &Truth, dir: &Path) -> PathBuf {
 
 /// GEN3C's archive: rgb.mp4, depth.npz (float16), mask.npz (bool), camera.npz (w2c, intrinsics).
 pub fn write_gen3c(truth: &Truth, dir: &Path) -> PathBuf {
+    let w2c: Vec<DMat4> = (0..truth.n()).map(|i| truth.camera_from_world(i)).collect();
+    write_gen3c_w2c(truth, dir, &w2c)
+}
+
+/// [`write_gen3c`] with the given `w2c` matrices (a user's slip: OpenGL axes).
+pub fn write_gen3c_w2c(truth: &Truth, dir: &Path, w2c: &[DMat4]) -> PathBuf {
     std::fs::create_dir_all(dir).unwrap();
     let (n, h, w) = (truth.n() as u64, truth.height as u64, truth.width as u64);
     foundation::video::encode_video(&dir.join("rgb.mp4"), &truth.frames, 24.0).unwrap();
@@ -175,7 +186,7 @@ pub fn write_gen3c(truth: &Truth, dir: &Path) -> PathBuf {
         &dir.join("mask.npz"),
         vec![("mask", vec![n, h, w], Values::Bool(depth.iter().map(|&d| d > 0.0).collect()))],
     );
-    let w2c: Vec<f64> = (0..truth.n()).flat_map(|i| row_major4(&truth.camera_from_world(i))).collect();
+    let w2c: Vec<f64> = w2c.iter().flat_map(row_major4).collect();
     let k: Vec<f64> = (0..truth.n()).flat_map(|_| row_major3(&truth.k)).collect();
     write_npz(
         &dir.join("camera.npz"),
@@ -234,10 +245,23 @@ pub fn write_vipe(truth: &Truth, root: &Path, name: &str) -> PathBuf {
     root.to_owned()
 }
 
-/// COLMAP's (w, x, y, z) quaternion and translation of a camera_from_world.
-fn qvec_tvec(camera_from_world: &DMat4) -> ([f64; 4], [f64; 3]) {
+/// The order a quaternion's components are written in.
+#[derive(Clone, Copy, PartialEq)]
+pub enum QuaternionOrder {
+    /// COLMAP's (w, x, y, z).
+    Wxyz,
+    /// (x, y, z, w) (SciPy's, Eigen's storage): a user's slip when written as COLMAP's qvec.
+    Xyzw,
+}
+
+/// The qvec (in `order`) and tvec of a camera_from_world.
+fn qvec_tvec(camera_from_world: &DMat4, order: QuaternionOrder) -> ([f64; 4], [f64; 3]) {
     let q = DQuat::from_mat3(&DMat3::from_mat4(*camera_from_world)).normalize();
-    ([q.w, q.x, q.y, q.z], camera_from_world.w_axis.truncate().to_array())
+    let qvec = match order {
+        QuaternionOrder::Wxyz => [q.w, q.x, q.y, q.z],
+        QuaternionOrder::Xyzw => [q.x, q.y, q.z, q.w],
+    };
+    (qvec, camera_from_world.w_axis.truncate().to_array())
 }
 
 fn colmap_depth_map(values: &[f32], width: usize, height: usize) -> Vec<u8> {
@@ -249,6 +273,11 @@ fn colmap_depth_map(values: &[f32], width: usize, height: usize) -> Vec<u8> {
 /// A COLMAP workspace: images/, sparse/0/ (text or binary, one PINHOLE camera with COLMAP's +0.5
 /// pixel centres) and stereo/depth_maps/*.geometric.bin.
 pub fn write_colmap(truth: &Truth, dir: &Path, binary: bool) -> PathBuf {
+    write_colmap_ordered(truth, dir, binary, QuaternionOrder::Wxyz)
+}
+
+/// [`write_colmap`] with the qvecs written in `order`.
+pub fn write_colmap_ordered(truth: &Truth, dir: &Path, binary: bool, order: QuaternionOrder) -> PathBuf {
     for sub in ["images", "sparse/0", "stereo/depth_maps"] {
         std::fs::create_dir_all(dir.join(sub)).unwrap();
     }
@@ -274,7 +303,7 @@ pub fn write_colmap(truth: &Truth, dir: &Path, binary: bool) -> PathBuf {
         std::fs::write(model.join("cameras.bin"), cameras).unwrap();
         let mut images = (truth.n() as u64).to_le_bytes().to_vec();
         for (i, name) in names.iter().enumerate() {
-            let (q, t) = qvec_tvec(&truth.camera_from_world(i));
+            let (q, t) = qvec_tvec(&truth.camera_from_world(i), order);
             images.extend((i as i32 + 1).to_le_bytes());
             images.extend(q.iter().chain(&t).flat_map(|v| v.to_le_bytes()));
             images.extend(1i32.to_le_bytes());
@@ -294,7 +323,7 @@ pub fn write_colmap(truth: &Truth, dir: &Path, binary: bool) -> PathBuf {
         std::fs::write(model.join("cameras.txt"), cameras).unwrap();
         let mut images = String::from("# Image list with two lines of data per image:\n");
         for (i, name) in names.iter().enumerate() {
-            let (q, t) = qvec_tvec(&truth.camera_from_world(i));
+            let (q, t) = qvec_tvec(&truth.camera_from_world(i), order);
             images += &format!("{} {} {} {} {} {} {} {} 1 {name}\n", i + 1, q[0], q[1], q[2], q[3], t[0], t[1], t[2]);
             images += if i == 0 { "\n" } else { "10.0 12.0 -1\n" };
         }
@@ -306,17 +335,28 @@ pub fn write_colmap(truth: &Truth, dir: &Path, binary: bool) -> PathBuf {
 /// A depth-only tool's output (Video Depth Anything's `NAME_depths.npz`) with PNG frames and a
 /// `cameras.json` from another tool declaring z-depth.
 pub fn write_depth_only(truth: &Truth, dir: &Path) -> PathBuf {
+    write_depth_only_values(truth, dir, &truth.depth)
+}
+
+/// [`write_depth_only`] with the given depth file values (a user's slip: disparity or millimetres
+/// declared as z-depth in the poses' units).
+pub fn write_depth_only_values(truth: &Truth, dir: &Path, depth: &[Vec<f32>]) -> PathBuf {
     std::fs::create_dir_all(dir.join("frames")).unwrap();
     for (i, frame) in truth.frames.iter().enumerate() {
         frame.save(dir.join(format!("frames/{i:05}.png"))).unwrap();
     }
     let (n, h, w) = (truth.n() as u64, truth.height as u64, truth.width as u64);
-    write_npz(&dir.join("clip_depths.npz"), vec![("depths", vec![n, h, w], Values::F32(truth.depth.concat()))]);
+    write_npz(&dir.join("clip_depths.npz"), vec![("depths", vec![n, h, w], Values::F32(depth.concat()))]);
+    write_cameras_json(truth, dir);
+    dir.to_owned()
+}
+
+/// `cameras.json` with the truth's cameras, declaring z-depth.
+fn write_cameras_json(truth: &Truth, dir: &Path) {
     let poses: Vec<Vec<f64>> = truth.world_from_camera.iter().map(row_major4).collect();
     let json =
         serde_json::json!({"intrinsics": row_major3(&truth.k), "world_from_camera": poses, "depth_kind": "z_depth"});
     std::fs::write(dir.join("cameras.json"), json.to_string()).unwrap();
-    dir.to_owned()
 }
 
 fn error_of(dir: &Path, layout: Option<LayoutName>) -> String {
@@ -331,7 +371,9 @@ fn vggt_predictions_read_to_the_scene() {
     // float32 extrinsics inverted in f64: ~1e-6 of the scene's few-unit translations.
     truth.assert_read(&seq, None, 1e-6, true);
 
-    // Depth whose confidence is below the median is masked: every third pixel here.
+    // Every finite depth is kept by default, whatever its confidence (VGGT filters by confidence
+    // only to display points); the percentile option drops depth below that percentile of the
+    // confidences, as VGGT's viewers do: every third pixel here at the median.
     let (n, h, w) = (truth.n() as u64, truth.height as u64, truth.width as u64);
     let plane = (h * w) as usize;
     let conf: Vec<f32> =
@@ -355,9 +397,23 @@ fn vggt_predictions_read_to_the_scene() {
         ],
     );
     let read = read_sequence(&seq).unwrap();
+    assert!(read.depth.iter().all(|d| d.values.iter().all(|v| v.is_finite())), "no depth dropped by default");
+    let with = |p: f64| ReadOptions { vggt_confidence_percentile: Some(p) };
+    let read = read_sequence_with(&seq, None, &with(50.0)).unwrap();
     for (i, value) in read.depth[2].values.iter().enumerate() {
         assert_eq!(value.is_nan(), i.is_multiple_of(3), "pixel {i}: {value}");
     }
+    // Percentile 0 keeps everything (VGGT's conf_thres 0); ≥ keeps the values at the threshold:
+    // at the 80th percentile (3.0) the 3.0s stay.
+    for p in [0.0, 80.0] {
+        let read = read_sequence_with(&seq, None, &with(p)).unwrap();
+        assert_eq!(
+            read.depth[2].values.iter().filter(|v| v.is_nan()).count(),
+            if p == 0.0 { 0 } else { plane.div_ceil(3) }
+        );
+    }
+    let error = read_sequence_with(&seq, None, &with(101.0)).unwrap_err().to_string();
+    assert!(error.contains("predictions.npz") && error.contains("101"), "{error}");
 }
 
 #[test]
@@ -431,6 +487,79 @@ fn depth_only_output_reads_with_poses_from_cameras_json() {
     assert!(error.contains("cameras.json") && error.contains("depth_kind") && error.contains("disparity"), "{error}");
 }
 
+/// A depth video as the depth tools save it beside their input: grey levels of the depth.
+fn grey_depth_video(truth: &Truth) -> Vec<RgbImage> {
+    let max = truth.depth.iter().flatten().copied().fold(0.0f32, f32::max);
+    truth
+        .depth
+        .iter()
+        .map(|d| {
+            let grey: Vec<u8> = d.iter().flat_map(|&v| [(255.0 * v / max) as u8; 3]).collect();
+            RgbImage::from_raw(truth.width as u32, truth.height as u32, grey).unwrap()
+        })
+        .collect()
+}
+
+/// Mean absolute difference of two frame lists' channels (0–255).
+fn mean_difference(a: &[RgbImage], b: &[RgbImage]) -> f64 {
+    let (sum, count) = a.iter().zip(b).fold((0u64, 0u64), |(sum, count), (x, y)| {
+        let d: u64 = x.as_raw().iter().zip(y.as_raw()).map(|(p, q)| u64::from(p.abs_diff(*q))).sum();
+        (sum + d, count + x.as_raw().len() as u64)
+    });
+    sum as f64 / count as f64
+}
+
+/// DepthCrafter's `run.py` output for `clip.mp4`: `clip.npz` (member `depth`), `clip_depth.mp4`,
+/// `clip_vis.mp4` and `clip_input.mp4` (the frames it processed); Video Depth Anything's:
+/// `clip_depths.npz` (member `depths`), `clip_src.mp4`, `clip_vis.mp4`. Both train on their
+/// input video, whatever sorts first; the original video beside the tool's saved input (with
+/// another frame count, as DepthCrafter's `--target-fps` makes) yields to the saved input.
+#[test]
+fn depth_tools_folders_train_on_their_input_video() {
+    let truth = Truth::new(3);
+    let dir = tempfile::tempdir().unwrap();
+    let grey = grey_depth_video(&truth);
+    let doubled: Vec<RgbImage> = truth.frames.iter().flat_map(|f| [f.clone(), f.clone()]).collect();
+    let (n, h, w) = (truth.n() as u64, truth.height as u64, truth.width as u64);
+    let video = |path: PathBuf, frames: &[RgbImage]| foundation::video::encode_video(&path, frames, 24.0).unwrap();
+
+    let crafter = dir.path().join("depthcrafter");
+    std::fs::create_dir_all(&crafter).unwrap();
+    write_npz(&crafter.join("clip.npz"), vec![("depth", vec![n, h, w], Values::F32(truth.depth.concat()))]);
+    write_cameras_json(&truth, &crafter);
+    video(crafter.join("clip_depth.mp4"), &grey);
+    video(crafter.join("clip_vis.mp4"), &grey);
+    video(crafter.join("clip_input.mp4"), &truth.frames);
+    video(crafter.join("clip.mp4"), &doubled);
+
+    let vda = dir.path().join("vda");
+    std::fs::create_dir_all(&vda).unwrap();
+    write_npz(&vda.join("clip_depths.npz"), vec![("depths", vec![n, h, w], Values::F32(truth.depth.concat()))]);
+    write_cameras_json(&truth, &vda);
+    video(vda.join("clip_vis.mp4"), &grey);
+    video(vda.join("clip_src.mp4"), &truth.frames);
+    video(vda.join("clip.mp4"), &doubled);
+
+    for (seq, input) in [(&crafter, "clip_input.mp4"), (&vda, "clip_src.mp4")] {
+        let read = read_sequence(seq).unwrap_or_else(|e| panic!("{}: {e}", seq.display()));
+        let expected = foundation::video::decode_video(&seq.join(input)).unwrap().frames;
+        assert!(read.frames == expected, "{}: the frames are not {input}'s", seq.display());
+        // What sorting would have picked instead: the depth video, far off the frames.
+        assert!(mean_difference(&grey, &truth.frames) > 30.0);
+    }
+
+    // Two videos that could each be the frames: refused, naming both, never picked by sort order.
+    std::fs::rename(crafter.join("clip.mp4"), crafter.join("other.mp4")).unwrap();
+    let error = error_of(&crafter, None);
+    assert!(error.contains("ambiguous") && error.contains("clip_input.mp4") && error.contains("other.mp4"), "{error}");
+    // Only the tool's depth and visualisation videos: no frames, said so.
+    for name in ["clip_input.mp4", "other.mp4"] {
+        std::fs::remove_file(crafter.join(name)).unwrap();
+    }
+    let error = error_of(&crafter, None);
+    assert!(error.contains("no input video") && error.contains("clip_depth.mp4"), "{error}");
+}
+
 #[test]
 fn a_folder_with_two_tools_files_is_ambiguous_and_lists_them() {
     let truth = Truth::new(2);
@@ -482,7 +611,8 @@ fn tool_files_with_bad_content_fail_naming_file_and_field() {
     let mut conf = vec![2.0; depth.len()];
     conf[(h * w) as usize + 5] = f32::NAN;
     predictions(good, conf);
-    let error = error_of(&vggt, None);
+    let filtered = ReadOptions { vggt_confidence_percentile: Some(50.0) };
+    let error = read_sequence_with(&vggt, None, &filtered).unwrap_err().to_string();
     assert!(error.contains("depth_conf[1]") && error.contains("non-finite confidence"), "{error}");
 
     // GEN3C: OpenGL-style depth (negative z); a mask of another resolution than the depth.

@@ -575,6 +575,7 @@ mod tests {
                 condition: None,
                 covisible_fraction: 0.5,
                 bank_entry: None,
+                mask_rule: crate::MaskRule::Exact,
             }],
             pair_kind: PairKind::Monocular,
             source_camera: None,
@@ -591,7 +592,7 @@ mod tests {
     }
 
     #[test]
-    fn version_2_shards_read_as_monocular_single_camera_pairs() {
+    fn version_2_and_3_shards_read_with_the_rules_they_used() {
         let dir = tempfile::tempdir().unwrap();
         let mut record = ClipRecord {
             clip_id: "synth/a/0".into(),
@@ -622,6 +623,7 @@ mod tests {
                 condition: Some(vec![vec![6]]),
                 covisible_fraction: 0.5,
                 bank_entry: None,
+                mask_rule: crate::MaskRule::Dataset,
             }],
             // Written with the v3 fields set: the v2 layout must drop them, and reading must not
             // invent them.
@@ -636,8 +638,17 @@ mod tests {
         assert_eq!(read_shard(&current).unwrap(), vec![record.clone()]);
         assert_eq!(pair_kinds(&current).unwrap(), [PairKind::Multiview]);
 
+        // v3 kept the pair kind but not the mask rule: every multi-view mask was the render's
+        // coverage.
+        let v3 = dir.path().join("v3-layout.parquet");
+        write_old(&v3, std::slice::from_ref(&record), 3, "3");
+        let mut as_v3 = record.clone();
+        as_v3.trajectories[0].mask_rule = crate::MaskRule::Coverage;
+        assert_eq!(read_shard(&v3).unwrap(), vec![as_v3]);
+
         let old = dir.path().join("v2.parquet");
         write_old(&old, std::slice::from_ref(&record), 2, "2");
+        record.trajectories[0].mask_rule = crate::MaskRule::Exact;
         record.pair_kind = PairKind::Monocular;
         record.source_camera = None;
         record.target_camera = None;

@@ -732,6 +732,9 @@ struct SynthArgs {
     /// Number of static boxes [default: 3].
     #[arg(long)]
     static_objects: Option<u32>,
+    /// Number of thin static objects: poles and plates a few centimetres thick [default: 0].
+    #[arg(long)]
+    thin_objects: Option<u32>,
     /// Seed of every random choice [default: 0].
     #[arg(long)]
     seed: Option<u64>,
@@ -760,6 +763,7 @@ fn synth(args: SynthArgs) -> anyhow::Result<()> {
         (args.frames, &mut config.frames),
         (args.moving_objects, &mut config.moving_objects),
         (args.static_objects, &mut config.static_objects),
+        (args.thin_objects, &mut config.thin_objects),
     ];
     for (value, field) in overrides {
         if let Some(value) = value {

@@ -48,6 +48,11 @@ pub struct SynthConfig {
     pub moving_objects: u32,
     /// Number of static boxes standing on the floor. Valid: 0 to [`MAX_STATIC_OBJECTS`].
     pub static_objects: u32,
+    /// Number of thin static objects standing on the floor: upright poles and plates
+    /// [`THIN_SIDE`] thick (a pixel or two at the default size), the thin occluders of the
+    /// visibility tests. Drawn after everything else, so a scene without them is unchanged.
+    /// Valid: 0 to [`MAX_STATIC_OBJECTS`].
+    pub thin_objects: u32,
     /// Seed of every random choice (object layout, colours, motion, camera path). Valid: any.
     pub seed: u64,
     /// Horizontal field of view in degrees. Valid: in (1, 170).
@@ -76,6 +81,9 @@ pub const MAX_FPS: f64 = 1000.0;
 /// Most static boxes: they stand in a 5 m × 7 m play area, where a few hundred already fill
 /// every spot; the cap bounds the scene's triangle count.
 pub const MAX_STATIC_OBJECTS: u32 = 256;
+/// Range of the thickness of thin objects, in world units (metres): 2 to 5 cm, one to three
+/// pixels at the default size and distance (a focal length of 277 px, objects 4 to 9 m away).
+pub const THIN_SIDE: (f64, f64) = (0.02, 0.05);
 
 impl Default for SynthConfig {
     fn default() -> Self {
@@ -86,6 +94,7 @@ impl Default for SynthConfig {
             fps: 24.0,
             moving_objects: 3,
             static_objects: 3,
+            thin_objects: 0,
             seed: 0,
             fov_deg: 60.0,
             camera_sweep_deg: None,
@@ -124,6 +133,7 @@ impl Validate for SynthConfig {
         if let Some(sweep) = self.camera_sweep_deg {
             check_float("camera_sweep_deg", sweep, -MAX_SWEEP_DEG..=MAX_SWEEP_DEG)?;
         }
+        check_count("thin_objects", self.thin_objects, 0, MAX_STATIC_OBJECTS.into())?;
         check_float("fov_deg", self.fov_deg, (Bound::Excluded(1.0), Bound::Excluded(170.0)))
     }
 }
@@ -348,17 +358,32 @@ impl SynthScene {
             let spin = rng.random_range(-1.5..1.5);
             objects.push(Object { shape, material, mask_id: (index + 1) as u8, start, velocity, spin });
         }
-        Ok(Self {
-            config: config.clone(),
-            room,
-            objects,
-            // Drawn even when the config sets it, so the rest of the scene stays the seed's.
-            camera_sweep_deg: config
-                .camera_sweep_deg
-                .unwrap_or(rng.random_range(-MAX_RANDOM_SWEEP_DEG..MAX_RANDOM_SWEEP_DEG)),
-            camera_radius: rng.random_range(5.5..7.0),
-            camera_height: rng.random_range(1.2..2.2),
-        })
+        // The sweep is drawn even when the config sets it, so the rest of the scene stays the seed's.
+        let (drawn_sweep_deg, camera_radius, camera_height) = (
+            rng.random_range(-MAX_RANDOM_SWEEP_DEG..MAX_RANDOM_SWEEP_DEG),
+            rng.random_range(5.5..7.0),
+            rng.random_range(1.2..2.2),
+        );
+        let camera_sweep_deg = config.camera_sweep_deg.unwrap_or(drawn_sweep_deg);
+        for index in 0..config.thin_objects {
+            let thin = rng.random_range(THIN_SIDE.0..THIN_SIDE.1) / 2.0;
+            let height = rng.random_range(0.4..1.2);
+            // Alternately a pole (thin both ways) and a plate (thin across z, facing the room's
+            // front, up to a metre wide).
+            let width = if index % 2 == 0 { thin } else { rng.random_range(0.2..0.5) };
+            let half = DVec3::new(width, height, thin);
+            let start = DVec3::new(rng.random_range(PLAY_X.0..PLAY_X.1), height, rng.random_range(PLAY_Z.0..PLAY_Z.1));
+            let material = material(&mut rng, 0.3);
+            objects.push(Object {
+                shape: Shape::Cuboid { half },
+                material,
+                mask_id: 0,
+                start,
+                velocity: DVec3::ZERO,
+                spin: 0.0,
+            });
+        }
+        Ok(Self { config: config.clone(), room, objects, camera_sweep_deg, camera_radius, camera_height })
     }
 
     /// The scene's configuration.

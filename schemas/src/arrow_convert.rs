@@ -15,8 +15,8 @@ use arrow_schema::{DataType, FieldRef, SchemaRef};
 
 use crate::error::{Error, Result};
 use crate::pairs::{
-    BankProvenance, ClipRecord, PairKind, TrajectoryKind, TrajectoryRecord, bank_provenance_fields, pair_schema,
-    trajectory_fields,
+    BankProvenance, ClipRecord, MaskRule, PairKind, TrajectoryKind, TrajectoryRecord, bank_provenance_fields,
+    pair_schema, trajectory_fields,
 };
 
 /// The item field of a list data type (the schema defines it; this just reads it back).
@@ -164,6 +164,7 @@ fn trajectories_column(data_type: &DataType, records: &[ClipRecord]) -> Result<L
         Arc::new(bytes_list(&dt("condition"), &condition)?),
         Arc::new(Float64Array::from_iter_values(all.iter().map(|t| t.covisible_fraction))),
         Arc::new(bank_entry_column(&all)?),
+        Arc::new(StringArray::from_iter_values(all.iter().map(|t| t.mask_rule.as_str()))),
     ];
     let structs = StructArray::try_new(fields, columns, None)?;
     ListArray::try_new(
@@ -218,6 +219,12 @@ pub fn batch_to_records(batch: &RecordBatch, path: &Path) -> Result<Vec<ClipReco
 
     let mut records = Vec::with_capacity(batch.num_rows());
     for row in 0..batch.num_rows() {
+        let pair_kind = match pair_kind {
+            Some(kinds) => PairKind::parse(kinds.value(row)).ok_or_else(|| {
+                Error::mismatch(path, "pair_kind", format!("row {row}: unknown kind `{}`", kinds.value(row)))
+            })?,
+            None => PairKind::Monocular,
+        };
         let record = ClipRecord {
             clip_id: clip_id.value(row).to_owned(),
             source_id: source_id.value(row).to_owned(),
@@ -238,13 +245,8 @@ pub fn batch_to_records(batch: &RecordBatch, path: &Path) -> Result<Vec<ClipReco
             } else {
                 Some(read_bytes(&masks.value(row), path, "dynamic_mask")?)
             },
-            trajectories: read_trajectories(&trajectories.value(row), path)?,
-            pair_kind: match pair_kind {
-                Some(kinds) => PairKind::parse(kinds.value(row)).ok_or_else(|| {
-                    Error::mismatch(path, "pair_kind", format!("row {row}: unknown kind `{}`", kinds.value(row)))
-                })?,
-                None => PairKind::Monocular,
-            },
+            trajectories: read_trajectories(&trajectories.value(row), path, MaskRule::before_v4(pair_kind))?,
+            pair_kind,
             source_camera: camera(source_camera, row),
             target_camera: camera(target_camera, row),
         };
@@ -327,7 +329,8 @@ pub(crate) fn read_matrices<const N: usize>(values: &ArrayRef, path: &Path, fiel
         .collect()
 }
 
-fn read_trajectories(values: &ArrayRef, path: &Path) -> Result<Vec<TrajectoryRecord>> {
+/// The trajectories of one row; `older_rule` is the mask rule of shards that do not record it.
+fn read_trajectories(values: &ArrayRef, path: &Path, older_rule: MaskRule) -> Result<Vec<TrajectoryRecord>> {
     let field = "trajectories";
     let structs = values
         .as_struct_opt()
@@ -354,6 +357,11 @@ fn read_trajectories(values: &ArrayRef, path: &Path) -> Result<Vec<TrajectoryRec
         Some(column) => Some(BankColumns::new(column, path)?),
         None => None,
     };
+    // Absent before v4: the rule is then the one every pair of the kind used.
+    let mask_rule = match structs.column_by_name("mask_rule") {
+        Some(column) => Some(column.as_string_opt::<i32>().ok_or_else(|| typed("mask_rule"))?),
+        None => None,
+    };
     (0..structs.len())
         .map(|i| {
             Ok(TrajectoryRecord {
@@ -375,6 +383,12 @@ fn read_trajectories(values: &ArrayRef, path: &Path) -> Result<Vec<TrajectoryRec
                 },
                 covisible_fraction: fraction.value(i),
                 bank_entry: bank.as_ref().and_then(|b| b.get(i)),
+                mask_rule: match mask_rule {
+                    Some(rules) => MaskRule::parse(rules.value(i)).ok_or_else(|| {
+                        Error::mismatch(path, "trajectories.mask_rule", format!("unknown rule `{}`", rules.value(i)))
+                    })?,
+                    None => older_rule,
+                },
             })
         })
         .collect()

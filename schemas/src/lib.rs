@@ -15,8 +15,8 @@ pub mod trajectory_bank;
 pub use arrow_convert::{batch_to_records, records_to_batch};
 pub use error::{Error, Result};
 pub use pairs::{
-    BankProvenance, ClipRecord, DOC_KEY, OLDEST_READABLE_SCHEMA_VERSION, PairKind, SCHEMA_NAME, SCHEMA_NAME_KEY,
-    SCHEMA_VERSION, SCHEMA_VERSION_KEY, TrajectoryKind, TrajectoryRecord, pair_schema,
+    BankProvenance, ClipRecord, DOC_KEY, MaskRule, OLDEST_READABLE_SCHEMA_VERSION, PairKind, SCHEMA_NAME,
+    SCHEMA_NAME_KEY, SCHEMA_VERSION, SCHEMA_VERSION_KEY, TrajectoryKind, TrajectoryRecord, pair_schema,
 };
 pub use shard::{
     InputDigest, ShardReader, ShardStats, ShardWriter, ShardWriterOptions, clip_count, clip_ids, is_finished,

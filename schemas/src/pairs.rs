@@ -19,8 +19,9 @@ pub const SCHEMA_NAME: &str = "cognvs.pairs";
 pub const SCHEMA_VERSION_KEY: &str = "cognvs.schema_version";
 /// The version this code writes. Bump on any change a reader could notice. Version 2 added
 /// `trajectories[].bank_entry` and the trajectory kind `bank`; version 3 the pair kind
-/// (`pair_kind`, `source_camera`, `target_camera`) and the trajectory kind `camera`.
-pub const SCHEMA_VERSION: u32 = 3;
+/// (`pair_kind`, `source_camera`, `target_camera`) and the trajectory kind `camera`; version 4
+/// `trajectories[].mask_rule`.
+pub const SCHEMA_VERSION: u32 = 4;
 /// The oldest version this code still reads (older shards lack the columns added since, which
 /// read as null).
 pub const OLDEST_READABLE_SCHEMA_VERSION: u32 = 1;
@@ -28,6 +29,8 @@ pub const OLDEST_READABLE_SCHEMA_VERSION: u32 = 1;
 const BANK_ENTRY_SINCE: u32 = 2;
 /// The first version with `pair_kind`, `source_camera` and `target_camera`.
 pub const PAIR_KIND_SINCE: u32 = 3;
+/// The first version with `trajectories[].mask_rule`.
+pub const MASK_RULE_SINCE: u32 = 4;
 /// Arrow field metadata key holding a field's documentation.
 pub const DOC_KEY: &str = "doc";
 
@@ -100,6 +103,52 @@ impl PairKind {
     }
 }
 
+/// Which rule made a trajectory's masks.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MaskRule {
+    /// Exact visibility against the source's depth mesh: for monocular pairs, the source pixels
+    /// whose surface point the novel camera sees; for multi-view pairs, the target pixels whose
+    /// surface point (from the target's depth) is the first surface the source camera sees.
+    Exact,
+    /// The target pixels that the source's render covers (multi-view pairs whose target has no
+    /// depth; every multi-view pair before v4).
+    Coverage,
+    /// The dataset's own co-visibility masks of the target (DyCheck's `covisible/`, for its
+    /// held-out cameras seen from its input camera).
+    Dataset,
+}
+
+impl MaskRule {
+    /// The string stored in the `mask_rule` column.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Exact => "exact",
+            Self::Coverage => "coverage",
+            Self::Dataset => "dataset",
+        }
+    }
+
+    /// Parses the `mask_rule` column's value.
+    pub fn parse(value: &str) -> Option<Self> {
+        match value {
+            "exact" => Some(Self::Exact),
+            "coverage" => Some(Self::Coverage),
+            "dataset" => Some(Self::Dataset),
+            _ => None,
+        }
+    }
+
+    /// The rule that made the masks of shards older than v4, which do not record it: the exact
+    /// kernel for monocular pairs, the render's coverage for multi-view pairs.
+    pub fn before_v4(pair_kind: PairKind) -> Self {
+        match pair_kind {
+            PairKind::Monocular => Self::Exact,
+            PairKind::Multiview => Self::Coverage,
+        }
+    }
+}
+
 /// Which trajectory bank entry a `bank` trajectory was drawn from, and how it was varied.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct BankProvenance {
@@ -144,6 +193,8 @@ pub struct TrajectoryRecord {
     pub covisible_fraction: f64,
     /// For `bank` trajectories, the bank entry they came from; `None` otherwise (and in v1 shards).
     pub bank_entry: Option<BankProvenance>,
+    /// Which rule made `covisible_mask` (in shards before v4, [`MaskRule::before_v4`]).
+    pub mask_rule: MaskRule,
 }
 
 /// One clip of a source video with everything needed to train on it.
@@ -292,6 +343,12 @@ pub fn trajectory_fields_of_version(version: u32) -> Fields {
         fields.push(doc(
             Field::new("bank_entry", DataType::Struct(bank_provenance_fields()), true),
             "For `bank` trajectories: the trajectory bank entry drawn and how it was varied; null otherwise (added in v2).",
+        ));
+    }
+    if version >= MASK_RULE_SINCE {
+        fields.push(doc(
+            Field::new("mask_rule", DataType::Utf8, false),
+            "Which rule made `covisible_mask`: `exact` (exact visibility against the source's depth mesh: monocular pairs keep the source pixels whose surface point the novel camera sees, multi-view pairs the target pixels whose surface point, from the target's depth, is the first surface the source camera sees), `coverage` (multi-view pairs whose target has no depth: the target pixels the source's render covers) or `dataset` (the dataset's own co-visibility masks, DyCheck's `covisible/`). Added in v4; older shards read as `exact` for monocular and `coverage` for multi-view pairs.",
         ));
     }
     Fields::from(fields)

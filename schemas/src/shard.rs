@@ -575,6 +575,7 @@ mod tests {
                 condition: None,
                 covisible_fraction: 0.5,
                 bank_entry: None,
+                mask_rule: crate::MaskRule::Exact,
             }],
             pair_kind: PairKind::Monocular,
             source_camera: None,
@@ -591,7 +592,81 @@ mod tests {
     }
 
     #[test]
-    fn version_2_shards_read_as_monocular_single_camera_pairs() {
+    fn an_unknown_mask_rule_is_an_error_naming_the_field() {
+        use arrow_array::cast::AsArray;
+        use arrow_array::{Array, ArrayRef, ListArray, RecordBatch, StringArray, StructArray};
+        use std::sync::Arc;
+        let dir = tempfile::tempdir().unwrap();
+        let record = crate::ClipRecord {
+            clip_id: "synth/a/0".into(),
+            source_id: "a".into(),
+            dataset: "synth".into(),
+            source_path: "/a".into(),
+            clip_start: 0,
+            fps: 24.0,
+            width: 2,
+            height: 2,
+            seed: 1,
+            tool_version: "datagen 0.1.0".into(),
+            frames: vec![vec![1, 2, 3]],
+            depth: vec![vec![4]],
+            intrinsics: vec![[1.0; 9]],
+            world_from_camera: vec![[2.0; 16]],
+            dynamic_mask: None,
+            trajectories: vec![crate::TrajectoryRecord {
+                index: 0,
+                kind: crate::TrajectoryKind::Camera,
+                pivot_distance: 0.0,
+                azimuth_deg: Vec::new(),
+                elevation_deg: Vec::new(),
+                radius_frac: Vec::new(),
+                rejected_samples: 0,
+                world_from_camera: vec![[3.0; 16]],
+                covisible_mask: vec![vec![5]],
+                condition: Some(vec![vec![6]]),
+                covisible_fraction: 0.5,
+                bank_entry: None,
+                mask_rule: crate::MaskRule::Exact,
+            }],
+            pair_kind: PairKind::Multiview,
+            source_camera: Some("cam0".into()),
+            target_camera: Some("cam1".into()),
+        };
+        // This version's layout with the rule's value replaced by one no version knows.
+        let batch = records_to_batch(std::slice::from_ref(&record)).unwrap();
+        let index = batch.schema().index_of("trajectories").unwrap();
+        let list = batch.column(index).as_list::<i32>();
+        let structs = list.values().as_struct();
+        let mut children: Vec<ArrayRef> = structs.columns().to_vec();
+        let rule = structs.column_names().iter().position(|name| *name == "mask_rule").unwrap();
+        children[rule] = Arc::new(StringArray::from(vec!["guessed"]));
+        let structs = StructArray::try_new(structs.fields().clone(), children, None).unwrap();
+        let arrow_schema::DataType::List(item) = batch.schema().field(index).data_type().clone() else {
+            unreachable!()
+        };
+        let list = ListArray::try_new(item, list.offsets().clone(), Arc::new(structs), list.nulls().cloned()).unwrap();
+        let mut columns = batch.columns().to_vec();
+        columns[index] = Arc::new(list);
+        let batch = RecordBatch::try_new(batch.schema(), columns).unwrap();
+        let path = dir.path().join("bad-rule.parquet");
+        let properties = WriterProperties::builder()
+            .set_key_value_metadata(Some(vec![
+                KeyValue::new(SCHEMA_NAME_KEY.to_owned(), SCHEMA_NAME.to_owned()),
+                KeyValue::new(SCHEMA_VERSION_KEY.to_owned(), SCHEMA_VERSION.to_string()),
+            ]))
+            .build();
+        let mut writer = ArrowWriter::try_new(File::create(&path).unwrap(), batch.schema(), Some(properties)).unwrap();
+        writer.write(&batch).unwrap();
+        writer.close().unwrap();
+        let error = read_shard(&path).err().unwrap().to_string();
+        assert!(
+            error.contains("bad-rule.parquet") && error.contains("trajectories.mask_rule") && error.contains("guessed"),
+            "{error}"
+        );
+    }
+
+    #[test]
+    fn version_2_and_3_shards_read_with_the_rules_they_used() {
         let dir = tempfile::tempdir().unwrap();
         let mut record = ClipRecord {
             clip_id: "synth/a/0".into(),
@@ -622,6 +697,7 @@ mod tests {
                 condition: Some(vec![vec![6]]),
                 covisible_fraction: 0.5,
                 bank_entry: None,
+                mask_rule: crate::MaskRule::Dataset,
             }],
             // Written with the v3 fields set: the v2 layout must drop them, and reading must not
             // invent them.
@@ -636,8 +712,17 @@ mod tests {
         assert_eq!(read_shard(&current).unwrap(), vec![record.clone()]);
         assert_eq!(pair_kinds(&current).unwrap(), [PairKind::Multiview]);
 
+        // v3 kept the pair kind but not the mask rule: every multi-view mask was the render's
+        // coverage.
+        let v3 = dir.path().join("v3-layout.parquet");
+        write_old(&v3, std::slice::from_ref(&record), 3, "3");
+        let mut as_v3 = record.clone();
+        as_v3.trajectories[0].mask_rule = crate::MaskRule::Coverage;
+        assert_eq!(read_shard(&v3).unwrap(), vec![as_v3]);
+
         let old = dir.path().join("v2.parquet");
         write_old(&old, std::slice::from_ref(&record), 2, "2");
+        record.trajectories[0].mask_rule = crate::MaskRule::Exact;
         record.pair_kind = PairKind::Monocular;
         record.source_camera = None;
         record.target_camera = None;

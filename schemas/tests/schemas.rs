@@ -47,6 +47,7 @@ fn sample_record(clip_start: u32, frames: usize, trajectories: usize) -> ClipRec
                     mirrored: clip_start % 2 == 1,
                     roll_deg: -12.5,
                 }),
+                mask_rule: [schemas::MaskRule::Exact, schemas::MaskRule::Coverage, schemas::MaskRule::Dataset][t % 3],
             })
             .collect(),
         pair_kind: if clip_start % 3 == 1 { PairKind::Multiview } else { PairKind::Monocular },

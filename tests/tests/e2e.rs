@@ -64,6 +64,7 @@ mod shards_in_python {
                 condition: None,
                 covisible_fraction: 1.0,
                 bank_entry: None,
+                mask_rule: schemas::MaskRule::Exact,
             }],
             pair_kind: schemas::PairKind::Monocular,
             source_camera: None,

@@ -17,9 +17,10 @@
 //! the rays leaving one novel camera in a batch, is [`super::mesh_view::MeshView`]; it must equal
 //! those answers exactly (integration tests).
 
+use std::sync::OnceLock;
 use std::time::Duration;
 
-use glam::{DVec3, Vec3A};
+use glam::{DMat3, DVec3, Vec3A};
 use obvhs::BvhBuildParams;
 use obvhs::cwbvh::CwBvh;
 use obvhs::cwbvh::builder::build_cwbvh_from_tris;
@@ -110,6 +111,29 @@ pub const MAX_SIDE: usize = u16::MAX as usize;
 /// The two triangles of a quad, as corner indices (see [`Quad`]).
 pub(crate) const SPLIT: [[usize; 3]; 2] = [[0, 1, 2], [1, 3, 2]];
 
+/// A pixel's eight neighbours, as offsets.
+const NEIGHBOURS: [(isize, isize); 8] = [(-1, -1), (0, -1), (1, -1), (-1, 0), (1, 0), (-1, 1), (0, 1), (1, 1)];
+
+/// Where a point from another camera lies against a mesh's surface ([`DepthMesh::footprint_of`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Footprint {
+    /// It is the surface of this pixel (row-major index): the pixel's triangles never hide it.
+    Own(u32),
+    /// It lies behind the pixel's sample where no triangle says what is between the samples: the
+    /// pixel's surface hides it.
+    Behind,
+    /// Neither (in front of the pixel's surface, behind it where triangles are, or outside the
+    /// image or its valid depth): the triangles decide.
+    Elsewhere,
+}
+
+/// The four quarters of a pixel's footprint, as the signs of their directions in (x, y).
+const QUARTERS: [(isize, isize); 4] = [(-1, -1), (1, -1), (-1, 1), (1, 1)];
+
+/// A footprint fragment's side in pixels: half a pixel, from the pixel's centre to the edge of
+/// its footprint (pixel k covers [k − 0.5, k + 0.5)).
+const FRAGMENT_SIDE: f64 = 0.5;
+
 /// Finite and positive: `depth > 0.0 && depth < f32::INFINITY` (false for NaN) by one integer
 /// comparison, for the per-pixel passes. The bit patterns of the positive finite floats are
 /// exactly 1..=0x7f7f_ffff; zero wraps to the top, and negative values, infinities and NaNs all
@@ -122,6 +146,15 @@ fn valid(depth: f32) -> bool {
 pub struct DepthMesh {
     width: usize,
     height: usize,
+    /// The depth map it was lifted from (its footprint fragments are lifted at these depths).
+    depth: Vec<f32>,
+    /// The camera it was lifted from, and its K inverted.
+    camera: PinholeCamera,
+    camera_from_pixel: DMat3,
+    /// Two depths within this ratio are one surface (`MeshConfig::discontinuity_ratio`).
+    discontinuity_ratio: f64,
+    /// Every footprint fragment, listed once for the single-ray queries that test them all.
+    all_fragments: OnceLock<Vec<[DVec3; 4]>>,
     /// World-space surface point of each pixel (row-major), NaN where depth is invalid (24 bytes
     /// a pixel, where an `Option` takes 32: the per-view passes read them all). The triangles'
     /// corners are these points in f32.
@@ -216,7 +249,22 @@ impl DepthMesh {
                 skirts.push(triangles);
             }
         }
-        let mut mesh = Self { width, height, points, quads, skirts, nearest_depth, bvh: None };
+        let depth = depth.values.clone();
+        let camera = *camera;
+        let mut mesh = Self {
+            width,
+            height,
+            depth,
+            camera,
+            camera_from_pixel,
+            points,
+            quads,
+            skirts,
+            nearest_depth,
+            bvh: None,
+            discontinuity_ratio: config.discontinuity_ratio,
+            all_fragments: OnceLock::new(),
+        };
         if config.accelerator == Accelerator::Cwbvh {
             mesh.bvh = Some(mesh.build_bvh());
         }
@@ -287,6 +335,128 @@ impl DepthMesh {
             || (!self.has_corner(quad, 1, exclude) && second.intersect(ray) < ray.tmax)
     }
 
+    /// The *footprint fragments* of pixel `p`: the quarters of its footprint (the square of
+    /// side 1 about its centre in the source image) that no surface quad covers, because the quad
+    /// on that side is cut at a depth discontinuity, has a corner without valid depth, or lies
+    /// beyond the image's border. Each is the quarter lifted at the pixel's own depth (corners in
+    /// [`Quad`] order, corner 0 the pixel's point); none for a pixel without valid depth.
+    ///
+    /// Why: seen from the source camera's centre, the surface quads and the fragments together
+    /// cover the footprint of every valid pixel, so a camera turned about that centre, which
+    /// reveals nothing new, sees no crack where the cut mesh has one. Fragments are rendered
+    /// ([`RenderRay::triangle_hit`] on their [`SPLIT`] triangles) and never block a visibility
+    /// segment.
+    pub(crate) fn fragments(&self, p: usize) -> impl Iterator<Item = [DVec3; 4]> + '_ {
+        let (u, v) = (p % self.width.max(1), p / self.width.max(1));
+        let point = self.point(p);
+        QUARTERS.into_iter().filter_map(move |(sx, sy)| {
+            let point = point?;
+            // The quad on that side, if the image has one there: its corner 0 is the pixel or the
+            // neighbour before it on each axis.
+            let neighbour = (u.checked_add_signed(sx), v.checked_add_signed(sy));
+            if let (Some(nu), Some(nv)) = neighbour
+                && nu < self.width
+                && nv < self.height
+                && self.quads[nv.min(v) * self.width + nu.min(u)] == Quad::Surface
+            {
+                return None;
+            }
+            let depth = f64::from(self.depth[p]);
+            let center = self.camera.center();
+            let lift = |x: f64, y: f64| {
+                center
+                    + depth
+                        * self
+                            .camera
+                            .world_from_camera
+                            .transform_vector3(self.camera_from_pixel * DVec3::new(x, y, 1.0))
+            };
+            let (x0, y0) = (u as f64, v as f64);
+            let (x1, y1) = (x0 + sx as f64 * FRAGMENT_SIDE, y0 + sy as f64 * FRAGMENT_SIDE);
+            Some([point, lift(x1, y0), lift(x0, y1), lift(x1, y1)])
+        })
+    }
+
+    /// Where a point (from another camera's depth) meets this mesh's surface, as the mesh's own
+    /// camera sees it: the pixel whose footprint holds the point's image, and whether the point is
+    /// that pixel's surface ([`Footprint`]). The surface of a pixel spans the depths halfway to
+    /// each of its eight neighbours on the same surface (depths within `discontinuity_ratio`;
+    /// none: its own depth), widened by `epsilon` (relative) for round-off: a point at such a
+    /// depth is the surface the pixel samples, whatever the flat triangles between the samples
+    /// say (a concave crease, the bend of a curved surface, or a cut quad beside a foreground
+    /// edge, half of which is the background's).
+    pub fn footprint_of(&self, point: DVec3, epsilon: f64) -> Footprint {
+        let Some((at, z)) = self.camera.project(point) else { return Footprint::Elsewhere };
+        let (u, v) = (at.x.round(), at.y.round());
+        if !(u >= 0.0 && v >= 0.0 && u < self.width as f64 && v < self.height as f64) {
+            return Footprint::Elsewhere;
+        }
+        let (u, v) = (u as usize, v as usize);
+        let p = v * self.width + u;
+        let depth = self.depth[p];
+        if !valid(depth) {
+            return Footprint::Elsewhere;
+        }
+        let own = f64::from(depth);
+        let (mut low, mut high) = (own, own);
+        for (du, dv) in NEIGHBOURS {
+            let (Some(nu), Some(nv)) = (u.checked_add_signed(du), v.checked_add_signed(dv)) else { continue };
+            if nu >= self.width || nv >= self.height || !valid(self.depth[nv * self.width + nu]) {
+                continue;
+            }
+            let neighbour = f64::from(self.depth[nv * self.width + nu]);
+            if own.max(neighbour) <= own.min(neighbour) * self.discontinuity_ratio {
+                low = low.min((own + neighbour) / 2.0);
+                high = high.max((own + neighbour) / 2.0);
+            }
+        }
+        if z < low * (1.0 - epsilon) {
+            Footprint::Elsewhere
+        } else if z <= high * (1.0 + epsilon) {
+            Footprint::Own(p as u32)
+        } else if self.quarter_is_bare(p, at) {
+            Footprint::Behind
+        } else {
+            Footprint::Elsewhere
+        }
+    }
+
+    /// Whether the quarter of pixel `p`'s footprint that holds the image point `at` has no
+    /// triangles under it (the quad on that side has none, or the image ends there), so that only
+    /// the pixel's own sample says what is there.
+    fn quarter_is_bare(&self, p: usize, at: glam::DVec2) -> bool {
+        let (u, v) = (p % self.width, p / self.width);
+        let (sx, sy) = (if at.x < u as f64 { -1 } else { 1 }, if at.y < v as f64 { -1 } else { 1 });
+        match (u.checked_add_signed(sx), v.checked_add_signed(sy)) {
+            (Some(nu), Some(nv)) if nu < self.width && nv < self.height => {
+                self.quads[nv.min(v) * self.width + nu.min(u)] == Quad::Empty
+            }
+            _ => true,
+        }
+    }
+
+    /// Whether the source image point `at` (pixel coordinates) lies in a surface quad, whose four
+    /// samples are one surface (on its closed border included).
+    pub fn joined_at(&self, at: glam::DVec2) -> bool {
+        let (u, v) = (at.x.floor(), at.y.floor());
+        if !(u >= 0.0 && v >= 0.0 && u + 1.0 < self.width as f64 && v + 1.0 < self.height as f64) {
+            return false;
+        }
+        self.quads[v as usize * self.width + u as usize] == Quad::Surface
+    }
+
+    /// The nearest hit of `ray` on a fragment's closed triangles (see [`Self::fragments`]).
+    pub(crate) fn fragment_hit(fragment: &[DVec3; 4], ray: &RenderRay) -> Option<f64> {
+        let [first, second] = SPLIT.map(|[a, b, c]| ray.triangle_hit([fragment[a], fragment[b], fragment[c]]));
+        nearest(first, second)
+    }
+
+    /// The nearest fragment that `ray` hits, testing every one.
+    fn fragment_hit_brute_force(&self, ray: &RenderRay) -> Option<f64> {
+        let all = self.all_fragments.get_or_init(|| (0..self.points.len()).flat_map(|p| self.fragments(p)).collect());
+        all.iter().map(|fragment| Self::fragment_hit(fragment, ray)).fold(None, nearest)
+    }
+
     /// The nearest hit distance of `ray` on a surface quad's closed triangles
     /// ([`RenderRay::triangle_hit`]); None for a miss, a skirt or an empty quad.
     pub(crate) fn surface_hit(&self, quad: usize, ray: &RenderRay) -> Option<f64> {
@@ -317,10 +487,12 @@ impl DepthMesh {
     }
 
     /// The first surface hit of the ray from `origin` along the unit `direction` (skirts ignored;
-    /// triangles and vertices as in [`super::ray_triangle`]): its distance.
+    /// triangles and vertices as in [`super::ray_triangle`], footprint fragments as in
+    /// [`Self::fragments`]): its distance.
     pub fn first_surface_hit(&self, origin: DVec3, direction: DVec3) -> Option<f64> {
         let ray = RenderRay::new(origin, direction);
-        nearest(self.first_triangle_hit(&ray), self.vertex_hit_brute_force(&ray))
+        let fragments = self.fragment_hit_brute_force(&ray);
+        nearest(nearest(self.first_triangle_hit(&ray), self.vertex_hit_brute_force(&ray)), fragments)
     }
 
     /// The nearest surface triangle that `ray` hits: through the BVH if the mesh has one, else
@@ -352,7 +524,7 @@ impl DepthMesh {
     pub fn first_surface_hit_brute_force(&self, origin: DVec3, direction: DVec3) -> Option<f64> {
         let ray = RenderRay::new(origin, direction);
         let triangles = (0..self.quads.len()).map(|quad| self.surface_hit(quad, &ray)).fold(None, nearest);
-        nearest(triangles, self.vertex_hit_brute_force(&ray))
+        nearest(nearest(triangles, self.vertex_hit_brute_force(&ray)), self.fragment_hit_brute_force(&ray))
     }
 
     /// The nearest vertex that `ray` hits ([`RenderRay::vertex_hit`]), testing every one.

@@ -22,7 +22,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use glam::{DMat4, DVec2, DVec3, Vec4};
 use rayon::prelude::*;
 
-use crate::geometry::depth_mesh::{DepthMesh, Quad, corner_indices, segment_ray};
+use crate::geometry::depth_mesh::{DepthMesh, MAX_SIDE, Quad, corner_indices, segment_ray};
 use crate::geometry::ray_triangle::RenderRay;
 use foundation::camera::{PinholeCamera, pixel_of};
 
@@ -128,13 +128,19 @@ struct PointBins {
 }
 
 impl PointBins {
-    /// Bins the points of `grids` on a novel image of `size`; `width` is the source image's.
-    fn new(grids: &Grids, width: usize, (novel_width, novel_height): (usize, usize)) -> Self {
+    /// Bins points on a novel image of `size`: per point (row-major on a grid `width` wide: the
+    /// source image's for the mesh's vertices), its projection and the novel pixel it is seen at.
+    fn new(
+        projected: &[DVec3],
+        seen_at: &[Option<u32>],
+        width: usize,
+        (novel_width, novel_height): (usize, usize),
+    ) -> Self {
         // A counting sort: each pixel's count summed into its bin's end, then every point written
         // at its bin's decremented end (in reverse), which leaves each end at its bin's start.
         let pixels = novel_width * novel_height;
         let mut starts = vec![0u32; pixels + 1];
-        for &pixel in grids.seen_at.iter().flatten() {
+        for &pixel in seen_at.iter().flatten() {
             starts[pixel as usize] += 1;
         }
         let mut sum = 0;
@@ -143,7 +149,7 @@ impl PointBins {
             *end = sum;
         }
         let mut points = vec![BinnedPoint::default(); starts[pixels] as usize];
-        let rows = grids.seen_at.chunks(width.max(1)).zip(grids.projected.chunks(width.max(1))).enumerate();
+        let rows = seen_at.chunks(width.max(1)).zip(projected.chunks(width.max(1))).enumerate();
         for (row, (seen_at, projected)) in rows.rev() {
             for (column, (seen_at, q)) in seen_at.iter().zip(projected).enumerate().rev() {
                 if let Some(pixel) = seen_at {
@@ -238,16 +244,11 @@ impl MeshView<'_> {
     /// integral image, summed down the columns afterwards.
     fn grids(&self) -> Grids {
         let (width, height) = (self.mesh.width(), self.mesh.height());
-        let (novel_width, novel_height) = (self.novel.width as usize, self.novel.height as usize);
         let project_row = |v: usize, projected: &mut [DVec3], seen_at: &mut [Option<u32>]| {
             for (u, (q, seen_at)) in projected.iter_mut().zip(seen_at).enumerate() {
                 let Some(point) = self.mesh.point(v * width + u) else { continue };
                 *q = self.project(point);
-                *seen_at = (q.z > 0.0 && self.novel.contains(q.truncate())).then(|| {
-                    // Clamped: rounding must not move a point out of the image.
-                    let (x, y) = (pixel_index(q.x + 0.5), pixel_index(q.y + 0.5));
-                    (y.min(novel_height - 1) * novel_width + x.min(novel_width - 1)) as u32
-                });
+                *seen_at = self.seen_at(*q);
             }
         };
         let (mut projected, mut seen_at) = (vec![DVec3::ZERO; width * height], vec![None; width * height]);
@@ -291,6 +292,17 @@ impl MeshView<'_> {
     fn project(&self, point: DVec3) -> DVec3 {
         let in_novel = self.novel_from_world.transform_point3(point);
         pixel_of(&self.novel.intrinsics, in_novel).extend(in_novel.z)
+    }
+
+    /// The novel pixel at which a point projected to `q` ([`Self::project`]) is seen: in front of
+    /// the camera and inside its image, binned by the nearest pixel centre; None otherwise.
+    fn seen_at(&self, q: DVec3) -> Option<u32> {
+        let (novel_width, novel_height) = (self.novel.width as usize, self.novel.height as usize);
+        (q.z > 0.0 && self.novel.contains(q.truncate())).then(|| {
+            // Clamped: rounding must not move a point out of the image.
+            let (x, y) = (pixel_index(q.x + 0.5), pixel_index(q.y + 0.5));
+            (y.min(novel_height - 1) * novel_width + x.min(novel_width - 1)) as u32
+        })
     }
 
     /// [`DepthMesh::segment_blocked`] from the camera's centre to `to`.
@@ -375,32 +387,55 @@ impl MeshView<'_> {
     /// surface point lies in front of the camera, projects inside its image, and the segment to
     /// it is not blocked ([`DepthMesh::segment_blocked`], the pixel's own triangles excluded).
     pub fn covisibility(&self, epsilon: f64) -> Vec<bool> {
+        self.visibility(None, epsilon)
+    }
+
+    /// Visibility from the view's camera of points that are not the mesh's vertices (another
+    /// camera's surface points, row-major on a grid `width` wide, None where it has none), each
+    /// with the source pixel whose surface it is, if any ([`DepthMesh::footprint_of`]): whether
+    /// each lies in front of the camera, projects inside its image, and the segment to it crosses
+    /// no triangle of the mesh ([`DepthMesh::segment_blocked`]) but those having that pixel as a
+    /// corner, its own surface, as a vertex's own triangles never hide the vertex. The same batch
+    /// and the same exactness as [`Self::covisibility`].
+    pub fn visibility_of(&self, points: &[Option<(DVec3, Option<u32>)>], width: usize, epsilon: f64) -> Vec<bool> {
+        assert!(width.max(points.len() / width.max(1)) <= MAX_SIDE, "point grids are read up to {MAX_SIDE} px a side");
+        self.visibility(Some(Foreign { points, width }), epsilon)
+    }
+
+    /// [`Self::covisibility`] of the mesh's vertices (`foreign` None) or [`Self::visibility_of`]
+    /// the `foreign` points.
+    fn visibility(&self, foreign: Option<Foreign<'_>>, epsilon: f64) -> Vec<bool> {
         let mesh = self.mesh;
         let Some(grids) = &self.grids else {
-            return (0..mesh.width() * mesh.height())
+            let count = foreign.as_ref().map_or(mesh.width() * mesh.height(), |f| f.points.len());
+            return (0..count)
                 .into_par_iter()
                 .map(|p| {
-                    let Some(point) = mesh.point(p) else { return false };
+                    let point = match &foreign {
+                        None => mesh.point(p).map(|point| (point, Some(p as u32))),
+                        Some(foreign) => foreign.points[p],
+                    };
+                    let Some((point, own)) = point else { return false };
                     let q = self.project(point);
-                    q.z > 0.0
-                        && self.novel.contains(q.truncate())
-                        && !self.segment_blocked(point, Some(p as u32), epsilon)
+                    q.z > 0.0 && self.novel.contains(q.truncate()) && !self.segment_blocked(point, own, epsilon)
                 })
                 .collect();
         };
-        let batch = Batch::new(self, grids, epsilon);
+        let batch = Batch::new(self, grids, foreign, epsilon);
         let everywhere: Vec<usize> = self.blocks().flat_map_iter(|block| batch.scan_block(block)).collect();
+        let seen_at = batch.seen_at();
         let visible = |p: usize| {
-            grids.seen_at[p].is_some()
+            seen_at[p].is_some()
                 && !batch.blocked[p].load(Ordering::Relaxed)
                 && !everywhere.iter().any(|&quad| batch.may_hide(quad, p) && batch.hides(quad, p))
         };
-        (0..grids.seen_at.len()).into_par_iter().map(visible).collect()
+        (0..seen_at.len()).into_par_iter().map(visible).collect()
     }
 
     /// The first surface hit of the ray through every novel pixel (row-major): its distance along
     /// the unit direction `novel.pixel_ray(x, y).normalize()`, None where it hits nothing. Hits
-    /// are those of [`super::ray_triangle`]: closed surface triangles and the mesh's vertices.
+    /// are those of [`super::ray_triangle`]: closed surface triangles, the mesh's vertices and
+    /// its footprint fragments ([`DepthMesh::fragments`]).
     pub fn surface_hits(&self) -> Vec<Option<f64>> {
         let (width, height) = (self.novel.width as usize, self.novel.height as usize);
         let rays: Vec<RenderRay> = (0..width * height)
@@ -444,25 +479,77 @@ impl MeshView<'_> {
                 record(i, rays[i].vertex_hit(point));
             }
         });
+        // The footprint fragments, each tested against the rays in its box as a quad is.
+        (0..self.mesh.width() * self.mesh.height()).into_par_iter().for_each(|p| {
+            for fragment in self.mesh.fragments(p) {
+                let corners = fragment.map(|corner| self.project(corner));
+                let [x0, x1, y0, y1] = match self.reach(&corners) {
+                    Reach::Box(quad_box) => quad_box.pixels,
+                    Reach::Everywhere => [0, width - 1, 0, height - 1],
+                    Reach::Outside => continue,
+                };
+                for i in (y0..=y1).flat_map(|y| y * width + x0..=y * width + x1) {
+                    record(i, DepthMesh::fragment_hit(&fragment, &rays[i]));
+                }
+            }
+        });
         nearest.into_iter().map(|t| Some(f64::from_bits(t.into_inner())).filter(|t| t.is_finite())).collect()
     }
 }
 
-/// One co-visibility batch of a view ([`MeshView::covisibility`]).
+/// Points that a visibility batch tests other than the mesh's vertices ([`MeshView::visibility_of`]).
+struct Foreign<'p> {
+    /// Row-major on a grid `width` wide, with the pixel whose triangles never hide it; None
+    /// where there is no point.
+    points: &'p [Option<(DVec3, Option<u32>)>],
+    width: usize,
+}
+
+/// The foreign points as the novel camera sees them.
+struct SeenForeign<'p> {
+    points: &'p [Option<(DVec3, Option<u32>)>],
+    width: usize,
+    /// Per point, the novel pixel it is seen at (as [`Grids::seen_at`]).
+    seen_at: Vec<Option<u32>>,
+}
+
+/// One visibility batch of a view: the mesh's own vertices ([`MeshView::covisibility`]) or
+/// foreign points ([`MeshView::visibility_of`]).
 struct Batch<'v, 'm> {
     view: &'v MeshView<'m>,
     grids: &'v Grids,
+    /// None: the points tested are the mesh's vertices, each excluding its own triangles.
+    foreign: Option<SeenForeign<'v>>,
     bins: PointBins,
-    /// Per source pixel, whether a quad was found to hide its point.
+    /// Per point tested, whether a quad was found to hide it.
     blocked: Vec<AtomicBool>,
     epsilon: f64,
 }
 
 impl<'v, 'm> Batch<'v, 'm> {
-    fn new(view: &'v MeshView<'m>, grids: &'v Grids, epsilon: f64) -> Self {
-        let bins = PointBins::new(grids, view.mesh.width(), (view.novel.width as usize, view.novel.height as usize));
-        let blocked = grids.seen_at.iter().map(|_| AtomicBool::new(false)).collect();
-        Self { view, grids, bins, blocked, epsilon }
+    fn new(view: &'v MeshView<'m>, grids: &'v Grids, foreign: Option<Foreign<'v>>, epsilon: f64) -> Self {
+        let novel_size = (view.novel.width as usize, view.novel.height as usize);
+        let (foreign, bins) = match foreign {
+            None => (None, PointBins::new(&grids.projected, &grids.seen_at, view.mesh.width(), novel_size)),
+            Some(Foreign { points, width }) => {
+                let projected: Vec<DVec3> = points
+                    .par_iter()
+                    .map(|point| point.map_or(DVec3::ZERO, |(point, _)| view.project(point)))
+                    .collect();
+                let seen_at: Vec<Option<u32>> =
+                    points.par_iter().zip(&projected).map(|(point, &q)| point.and_then(|_| view.seen_at(q))).collect();
+                let bins = PointBins::new(&projected, &seen_at, width, novel_size);
+                (Some(SeenForeign { points, width, seen_at }), bins)
+            }
+        };
+        let count = foreign.as_ref().map_or(grids.seen_at.len(), |f| f.seen_at.len());
+        let blocked = (0..count).map(|_| AtomicBool::new(false)).collect();
+        Self { view, grids, foreign, bins, blocked, epsilon }
+    }
+
+    /// Per point tested, the novel pixel it is seen at.
+    fn seen_at(&self) -> &[Option<u32>] {
+        self.foreign.as_ref().map_or(&self.grids.seen_at, |f| &f.seen_at)
     }
 
     /// Tests the quads of `block` against the points in their boxes, but those of the block, or
@@ -509,6 +596,8 @@ impl<'v, 'm> Batch<'v, 'm> {
         match view.reach(corners) {
             Reach::Everywhere => false,
             Reach::Outside => true,
+            // Foreign points are no vertex of the mesh: any of them in the box may be hidden.
+            Reach::Box(quad_box) if self.foreign.is_some() => !self.bins.any_inside(&quad_box, |_| true),
             Reach::Box(quad_box) => !self.bins.any_inside(&quad_box, |point| {
                 // Not an inner vertex: its column outside r0 + 1..r1 or its row outside s0 + 1..s1
                 // (each by one comparison: below the start wraps to the top).
@@ -528,21 +617,28 @@ impl<'v, 'm> Batch<'v, 'm> {
                 Some(Reach::Everywhere) => everywhere.push(quad),
                 Some(Reach::Outside) | None => {}
                 Some(Reach::Box(quad_box)) => {
-                    // Its own corners are most of the points in its box: see `may_hide`.
-                    let found = self.bins.gather(&quad_box, |p| !is_corner(quad, p, width), width, &mut candidates);
+                    let Some(foreign) = &self.foreign else {
+                        // Its own corners are most of the points in its box: see `may_hide`.
+                        let found = self.bins.gather(&quad_box, |p| !is_corner(quad, p, width), width, &mut candidates);
+                        for &p in &candidates[..found] {
+                            self.test(quad, p);
+                        }
+                        if !view.diagonal_separates(self.grids, quad) {
+                            self.test(quad, quad);
+                            self.test(quad, quad + width + 1);
+                        }
+                        continue;
+                    };
+                    let found = self.bins.gather(&quad_box, |_| true, foreign.width, &mut candidates);
                     for &p in &candidates[..found] {
                         self.test(quad, p);
-                    }
-                    if !view.diagonal_separates(self.grids, quad) {
-                        self.test(quad, quad);
-                        self.test(quad, quad + width + 1);
                     }
                 }
             }
         }
     }
 
-    /// Marks the point of pixel `p` blocked if a triangle of `quad` without `p` as a corner
+    /// Marks point `p` blocked if a triangle of `quad` (without `p` as a corner, for a vertex)
     /// crosses the segment to it.
     fn test(&self, quad: usize, p: usize) {
         if !self.blocked[p].load(Ordering::Relaxed) && self.hides(quad, p) {
@@ -553,18 +649,27 @@ impl<'v, 'm> Batch<'v, 'm> {
     /// Whether `quad` may hide the point of pixel `p`, so that it is tested: unless `p` is a
     /// corner (the point's own surface never hides it). Corners 1 and 2 are in both triangles;
     /// corners 0 and 3 are in one, and the other cannot hide them when the quad's diagonal
-    /// separates them from it ([`MeshView::diagonal_separates`]).
+    /// separates them from it ([`MeshView::diagonal_separates`]). Any quad may hide a foreign
+    /// point.
     fn may_hide(&self, quad: usize, p: usize) -> bool {
         let width = self.view.mesh.width();
-        !is_corner(quad, p, width)
+        self.foreign.is_some()
+            || !is_corner(quad, p, width)
             || ((p == quad || p == quad + width + 1) && !self.view.diagonal_separates(self.grids, quad))
     }
 
-    /// Whether a triangle of `quad` without `p` as a corner crosses the segment to `p`'s point.
+    /// Whether a triangle of `quad` crosses the segment to point `p` (for a vertex, a triangle
+    /// without `p` as a corner).
     fn hides(&self, quad: usize, p: usize) -> bool {
         let mesh = self.view.mesh;
-        let point = mesh.point(p).expect("corners and binned points have one");
-        segment_ray(self.view.eye, point, self.epsilon).is_some_and(|ray| mesh.blocks_segment(quad, &ray, Some(p)))
+        let (point, own) = match &self.foreign {
+            None => (mesh.point(p).expect("corners and binned points have one"), Some(p)),
+            Some(foreign) => {
+                let (point, own) = foreign.points[p].expect("binned points have one");
+                (point, own.map(|own| own as usize))
+            }
+        };
+        segment_ray(self.view.eye, point, self.epsilon).is_some_and(|ray| mesh.blocks_segment(quad, &ray, own))
     }
 }
 
@@ -619,7 +724,7 @@ pub mod probe {
     /// Quarter blocks of quads the co-visibility batch skips (`Batch::good`), and all quarter
     /// blocks (None with the BVH); for tests and benchmarks.
     pub fn skipped_quad_blocks(view: &MeshView<'_>) -> Option<(usize, usize)> {
-        let batch = Batch::new(view, view.grids.as_ref()?, 0.0);
+        let batch = Batch::new(view, view.grids.as_ref()?, None, 0.0);
         let count = |block: Rect| {
             let (whole, quarters) = (batch.good(block), quarters(block));
             (quarters.iter().filter(|&&quarter| whole || batch.good(quarter)).count(), quarters.len())

@@ -1,6 +1,8 @@
-//! Novel-view rendering: one ray per novel pixel into the frame's depth mesh (skirts ignored), the
-//! source colour at the first hit by bilinear interpolation; no hit is a hole (black in the image,
-//! 255 in the hole mask). This is the conditioning at inference time.
+//! Novel-view rendering: one ray per novel pixel into the frame's depth mesh (skirts ignored, the
+//! footprint fragments of its valid pixels included), the source colour at the first hit by
+//! bilinear interpolation within a surface quad, the footprint's own pixel's colour on a fragment;
+//! no hit is a hole (black in the image, 255 in the hole mask). This is the conditioning at
+//! inference time.
 
 use glam::DVec2;
 use image::{GrayImage, Rgb, RgbImage};
@@ -26,6 +28,19 @@ pub fn bilinear(image: &RgbImage, at: DVec2) -> Rgb<u8> {
     }))
 }
 
+/// The colour of the source image at `at` (pixel coordinates), where a render ray met the mesh's
+/// surface: bilinear inside a surface quad, whose four samples are one surface; elsewhere (a
+/// footprint fragment, [`DepthMesh::fragments`]) the colour of the pixel whose footprint holds
+/// `at`, so that no colour bleeds across a depth edge.
+pub fn source_colour(mesh: &DepthMesh, image: &RgbImage, at: DVec2) -> Rgb<u8> {
+    if mesh.joined_at(at) {
+        return bilinear(image, at);
+    }
+    let x = at.x.round().clamp(0.0, f64::from(image.width()) - 1.0);
+    let y = at.y.round().clamp(0.0, f64::from(image.height()) - 1.0);
+    *image.get_pixel(x as u32, y as u32)
+}
+
 /// Renders `frame` (seen by `source`, lifted by `mesh`) from `novel`: the image and its hole mask.
 pub fn render_novel_view(
     mesh: &DepthMesh,
@@ -41,7 +56,7 @@ pub fn render_novel_view(
         .map(|i| {
             let direction = novel.pixel_ray((i % width) as f64, (i / width) as f64).normalize();
             let (pixel, _) = source.project(eye + direction * hits[i]?)?;
-            Some(bilinear(frame, pixel))
+            Some(source_colour(mesh, frame, pixel))
         })
         .collect();
     let mut image = RgbImage::new(width as u32, height as u32);

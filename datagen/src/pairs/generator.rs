@@ -11,7 +11,8 @@ use image::codecs::png::FilterType;
 use image::{GrayImage, RgbImage};
 use rayon::prelude::*;
 use schemas::{
-    ClipRecord, InputDigest, PairKind, ShardStats, ShardWriter, ShardWriterOptions, TrajectoryKind, TrajectoryRecord,
+    ClipRecord, InputDigest, MaskRule, PairKind, ShardStats, ShardWriter, ShardWriterOptions, TrajectoryKind,
+    TrajectoryRecord,
 };
 use serde::{Deserialize, Serialize};
 
@@ -372,6 +373,7 @@ fn generate_clip(
             index: plan.index,
             kind: plan.kind,
             bank_entry: plan.bank_entry.clone(),
+            mask_rule: MaskRule::Exact,
             pivot_distance: plan.pivot_distance,
             azimuth_deg: plan.controls[0].clone(),
             elevation_deg: plan.controls[1].clone(),

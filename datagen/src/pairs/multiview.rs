@@ -2,16 +2,27 @@
 //! ([`crate::io::multiview::MultiViewScene`]): for a source camera s and a target camera t, over
 //! the instants both film, the target is t's real frames and the conditioning is s's frames
 //! rendered into t through s's depth mesh ([`crate::geometry::render`], first surface hit, the
-//! same renderer as `datagen render`); the mask marks the target pixels that s's surface covers
-//! (the render's non-holes). This is the supervision the CogNVS paper names as missing ("does not
-//! take advantage of 3D/4D datasets") and that GCD and ReCamMaster train on.
+//! same renderer as `datagen render`). The mask says which target pixels s sees, by the first rule
+//! that applies ([`MaskRule`], recorded per trajectory):
+//!
+//! - **exact**, where t has depth: a target pixel is kept when its own surface point (its depth
+//!   lifted along its ray) is the first surface s sees along the ray to it, tested against s's
+//!   depth mesh by the monocular co-visibility kernel itself
+//!   ([`crate::geometry::covisibility::target_visibility_mask`]: the same mesh, skirts, epsilon and
+//!   triangle test);
+//! - **dataset**, where t has no depth but the dataset ships co-visibility masks of t seen from s
+//!   (DyCheck's `covisible/`, made for its held-out cameras against its input camera): those;
+//! - **coverage** otherwise: the target pixels s's surface covers (the render's non-holes).
+//!
+//! This is the supervision the CogNVS paper names as missing ("does not take advantage of 3D/4D
+//! datasets") and that GCD and ReCamMaster train on. The conditioning is the render whatever the
+//! rule.
 //!
 //! Clip windows are cut as for monocular pairs ([`crate::pairs::clip::ClipConfig`]) over the
 //! instants both cameras film, matched by `time_ids` (a camera may film a subset of the instants;
 //! `clip_start` is the target's frame index of a window's first instant). Frames stay at the
 //! target camera's resolution, like a monocular clip's. A camera without depth (`has_depth`
-//! false) can be a target, never a source. The dataset's own co-visibility masks (DyCheck's
-//! `covisible/`) are not used: the mask is the render's.
+//! false) can be a target, never a source.
 //!
 //! Which camera pairs (all ordered pairs, or a list), how many per scene (a subset drawn by seed)
 //! and the least co-visible fraction a pair must reach are the `[multiview]` table of the pairs
@@ -26,12 +37,13 @@ use rand::SeedableRng;
 use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
-use schemas::{ClipRecord, PairKind, TrajectoryKind, TrajectoryRecord};
+use schemas::{ClipRecord, MaskRule, PairKind, TrajectoryKind, TrajectoryRecord};
 use serde::{Deserialize, Serialize};
 
 use crate::config_file::{Checked, KeyError, Validate, check_float};
 use crate::error::{Error, Result};
-use crate::geometry::depth_mesh::{DepthMesh, MeshConfig};
+use crate::geometry::covisibility::{CovisibilityConfig, target_visibility_mask};
+use crate::geometry::depth_mesh::DepthMesh;
 use crate::io::depth_exr::encode_depth_exr;
 use crate::io::multiview::{CameraView, MultiViewScene};
 use crate::pairs::clip::ClipConfig;
@@ -158,14 +170,16 @@ pub fn shared_instants(source: &CameraView, target: &CameraView) -> Vec<(usize, 
     target.time_ids.iter().enumerate().filter_map(|(k, id)| by_instant.get(id).map(|&j| (k, j))).collect()
 }
 
-/// What multi-view pairs are made with: the clip windows, the depth mesh of the source and the
-/// `[multiview]` table (borrowed from a [`crate::pairs::generator::PairsConfig`]).
+/// What multi-view pairs are made with: the clip windows, the source's depth mesh and the
+/// visibility test against it, and the `[multiview]` table (borrowed from a
+/// [`crate::pairs::generator::PairsConfig`]).
 #[derive(Debug, Clone, Copy)]
 pub struct MultiViewPairsConfig<'a> {
     /// How the shared instants are cut into clips.
     pub clip: &'a ClipConfig,
-    /// How the source's depth becomes the mesh the render casts rays into.
-    pub mesh: &'a MeshConfig,
+    /// How the source's depth becomes the mesh the render casts rays into, and the exact
+    /// visibility test of target points against it (the monocular pairs' settings).
+    pub covisibility: &'a CovisibilityConfig,
     /// Camera pairs, how many, least co-visible fraction.
     pub multiview: &'a MultiViewConfig,
 }
@@ -223,12 +237,13 @@ fn window_record(
 ) -> Result<ClipRecord> {
     let (s, t) = (&source.sequence, &target.sequence);
     let (width, height) = t.size();
-    // Per frame, in parallel: s's mesh, its render into t, and t's data encoded; the mesh is
-    // dropped when the frame is done, as in the monocular generator.
+    let mask_rule = mask_rule(scene, source, target);
+    // Per frame, in parallel: s's mesh, its render into t and the mask, and t's data encoded; the
+    // mesh is dropped when the frame is done, as in the monocular generator.
     let encoded: Vec<EncodedFrame> = window
         .par_iter()
         .map(|&(kt, ks)| -> Result<_> {
-            let (condition, mask) = render_into_target((source, ks), (target, kt), config.mesh);
+            let (condition, mask) = render_into_target((source, ks), (target, kt), mask_rule, config.covisibility);
             let kept = mask.pixels().filter(|p| p.0[0] != 0).count();
             let dynamic = t.dynamic_masks.as_ref().map(|m| png(&m[kt], FilterType::Up));
             Ok((
@@ -267,6 +282,7 @@ fn window_record(
         condition: Some(condition),
         covisible_fraction,
         bank_entry: None,
+        mask_rule,
     };
     Ok(ClipRecord {
         clip_id: format!("{dataset}/{}/{}/from-{}/{clip_start}", scene.scene_id, target.id, source.id),
@@ -291,19 +307,43 @@ fn window_record(
     })
 }
 
+/// The rule that makes the masks of the pair `source` → `target` (module docs): exact where the
+/// target has depth, the dataset's masks where it ships them for this source (DyCheck's are of
+/// the held-out cameras against the input camera of its split), the render's coverage otherwise.
+pub fn mask_rule(scene: &MultiViewScene, source: &CameraView, target: &CameraView) -> MaskRule {
+    let shipped_for_source = scene.split.as_ref().is_some_and(|split| split.input == source.id);
+    if target.has_depth {
+        MaskRule::Exact
+    } else if target.covisible.is_some() && shipped_for_source {
+        MaskRule::Dataset
+    } else {
+        MaskRule::Coverage
+    }
+}
+
 /// Frame `ks` of `source` rendered into camera `target` at its frame `kt`: the conditioning
-/// (holes black) and the mask (255 where s's surface covers the target pixel, 0 at holes).
+/// (holes black) and the mask by `rule` (255 where s sees the target pixel, 0 elsewhere).
 pub fn render_into_target(
     (source, ks): (&CameraView, usize),
     (target, kt): (&CameraView, usize),
-    mesh: &MeshConfig,
+    rule: MaskRule,
+    config: &CovisibilityConfig,
 ) -> (RgbImage, GrayImage) {
-    let s = &source.sequence;
-    let mesh = DepthMesh::new(&s.depth[ks], &s.cameras[ks], mesh);
-    let (image, mut holes) =
-        crate::geometry::render::render_novel_view(&mesh, &s.frames[ks], &s.cameras[ks], &target.sequence.cameras[kt]);
-    for pixel in holes.pixels_mut() {
-        pixel.0[0] = 255 - pixel.0[0];
-    }
-    (image, holes)
+    let (s, t) = (&source.sequence, &target.sequence);
+    let mesh = DepthMesh::new(&s.depth[ks], &s.cameras[ks], &config.mesh);
+    let (image, holes) =
+        crate::geometry::render::render_novel_view(&mesh, &s.frames[ks], &s.cameras[ks], &t.cameras[kt]);
+    let (width, height) = t.size();
+    let binary = |kept: Vec<bool>| {
+        let values = kept.into_iter().map(|kept| if kept { 255 } else { 0 }).collect();
+        GrayImage::from_raw(width, height, values).expect("one value per target pixel")
+    };
+    let mask = match (rule, &target.covisible) {
+        (MaskRule::Exact, _) => {
+            binary(target_visibility_mask(&mesh, &s.cameras[ks], &t.depth[kt], &t.cameras[kt], config))
+        }
+        (MaskRule::Dataset, Some(shipped)) => binary(shipped[kt].pixels().map(|p| p.0[0] != 0).collect()),
+        _ => binary(holes.pixels().map(|p| p.0[0] == 0).collect()),
+    };
+    (image, mask)
 }

@@ -56,7 +56,7 @@ pub fn generate_scene_clips(
     let mut done = 0;
     let mut out = ScenePairs { camera_pairs: pairs.clone(), ..ScenePairs::default() };
     let multiview =
-        MultiViewPairsConfig { clip: &config.clip, mesh: &config.covisibility.mesh, multiview: &config.multiview };
+        MultiViewPairsConfig { clip: &config.clip, covisibility: &config.covisibility, multiview: &config.multiview };
     let request = TrajectoryRequest { sampled: trajectories, explicit: Vec::new() };
     for camera in monocular {
         // Seeds and clip ids derive from the source id: the scene's and the camera's, so two

@@ -52,6 +52,7 @@ impl InputProcessor for KeyProcessor {
                 condition: None,
                 covisible_fraction: 1.0,
                 bank_entry: None,
+                mask_rule: schemas::MaskRule::Exact,
             }],
             pair_kind: schemas::PairKind::Monocular,
             source_camera: None,

@@ -199,6 +199,63 @@ fn every_accelerator_equals_brute_force_pixel_for_pixel() {
     }
 }
 
+/// The visibility of points that are not the mesh's vertices (another camera's surface points, the
+/// multi-view masks' question) equals brute force on every path: each point is kept when it is in
+/// front of the viewing camera, inside its image, and no triangle (none excluded) crosses the
+/// segment to it; seen from the source camera itself, from an orbit and from close to the surface.
+#[test]
+fn the_visibility_of_foreign_points_equals_brute_force() {
+    let (scene, rendered) = synth(1);
+    let config = SynthConfig { width: 64, height: 48, frames: 1, ..SynthConfig::default() };
+    let geometry = scene.frame_geometry(0);
+    // The foreign points: the surface seen by a camera orbited 25° (its own depth lifted).
+    let target = PinholeCamera {
+        width: 64,
+        height: 48,
+        intrinsics: config.intrinsics(),
+        world_from_camera: orbit(&scene, 0, -25.0),
+    };
+    let depth = scene.render_view(&geometry, &target.world_from_camera, &target.intrinsics).depth;
+    // Every seventh point is given as a source pixel's own surface (excluding that pixel's
+    // triangles), so both kinds of point are compared.
+    let points: Vec<Option<(glam::DVec3, Option<u32>)>> = depth
+        .iter()
+        .enumerate()
+        .map(|(i, &d)| {
+            let point = (d > 0.0).then(|| target.unproject((i % 64) as f64, (i / 64) as f64, f64::from(d)))?;
+            Some((point, i.is_multiple_of(7).then_some((i as u32 * 13) % (64 * 48))))
+        })
+        .collect();
+    let pose = scene.world_from_camera(0);
+    let surface = rendered[0].depth[(48 / 2) * 64 + 64 / 2] as f64;
+    let close_eye = pose.transform_point3(glam::DVec3::new(0.0, 0.0, 0.97 * surface));
+    let close = datagen::synth::look_at(close_eye, pose.transform_point3(glam::DVec3::new(3.0, 0.2, surface)));
+    for accelerator in [Accelerator::ImageGrids, Accelerator::Cwbvh] {
+        let config = with_accelerator(accelerator);
+        let (source, mesh) = source_mesh(&scene, &rendered, 0, &config);
+        let (mut blocked, mut kept_count) = (0, 0);
+        for world_from_view in [source.world_from_camera, orbit(&scene, 0, 20.0), close] {
+            let viewer = PinholeCamera { world_from_camera: world_from_view, ..source };
+            let kept = mesh.view(&viewer).visibility_of(&points, 64, config.epsilon);
+            assert_eq!(kept.len(), points.len());
+            for (index, (&kept, point)) in kept.iter().zip(&points).enumerate() {
+                let Some((point, own)) = *point else {
+                    assert!(!kept, "{accelerator:?}: point {index} does not exist");
+                    continue;
+                };
+                let brute = mesh.segment_blocked_brute_force(viewer.center(), point, own, config.epsilon);
+                let in_view = viewer.camera_from_world().transform_point3(point);
+                let seen =
+                    in_view.z > 0.0 && viewer.contains(foundation::camera::pixel_of(&viewer.intrinsics, in_view));
+                assert_eq!(kept, seen && !brute, "{accelerator:?} viewed from {world_from_view}: point {index}");
+                blocked += usize::from(seen && brute);
+                kept_count += usize::from(kept);
+            }
+        }
+        assert!(blocked > 100 && kept_count > 1000, "{accelerator:?}: {blocked} blocked, {kept_count} kept");
+    }
+}
+
 /// Asserts that a co-visibility `mask` of `mesh` seen from `novel` keeps exactly the pixels with a
 /// point in front of the camera, inside its image, and not blocked by brute force; gives how many
 /// such points were blocked. `context` names the case in failures.

@@ -12,6 +12,7 @@ mod hostile_sequences;
 mod inspect;
 mod multiview;
 mod multiview_datasets;
+mod multiview_masks;
 mod multiview_pairs;
 mod novel_view;
 mod pairs;

@@ -47,6 +47,7 @@ pub fn record(id: &str) -> ClipRecord {
             condition: None,
             covisible_fraction: 0.0,
             bank_entry: None,
+            mask_rule: schemas::MaskRule::Exact,
         }],
         pair_kind: schemas::PairKind::Monocular,
         source_camera: None,

@@ -48,6 +48,7 @@ use crate::io::tool_output::check_depth_sign;
 use foundation::camera::{PinholeCamera, checked_intrinsics, checked_pose, json_matrix};
 use foundation::depth::DepthMap;
 use foundation::frames::read_frames;
+use foundation::paths::check_name;
 
 /// The item list; with [`METADATA_FILE`] and [`CAMERA_DIR`], the mark of the layout.
 pub const DATASET_FILE: &str = "dataset.json";
@@ -197,6 +198,9 @@ fn read_items(dir: &Path) -> Result<(Vec<Item>, Option<Splits>)> {
     }
     let mut seen = BTreeSet::new();
     for (i, id) in ids.iter().enumerate() {
+        // Every file of an item is named after its id (`camera/<id>.json`, `rgb/<f>x/<id>.png`,
+        // ...); the split files and `metadata.json` can only name ids listed here.
+        check_name(id).map_err(|reason| Error::invalid(&dataset.path, format!("ids[{i}]"), reason))?;
         if !seen.insert(id.as_str()) {
             return Err(Error::invalid(&dataset.path, format!("ids[{i}]"), format!("`{id}` is listed twice")));
         }

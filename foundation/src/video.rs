@@ -19,9 +19,9 @@ const X264_CRF: &str = "17";
 const X264_PRESET: &str = "medium";
 /// libx264 frame threads, fixed. x264's bitstream depends on its thread count, and its default
 /// (`threads=0`: 1.5 × the CPUs the calling thread may run on) changes with the machine and the
-/// process's CPU affinity, so one job's `.mp4` bytes (and recorded digests) would depend on where
-/// and how it ran: a resumed `trainer nvs` wrote other bytes than an uninterrupted one. Four
-/// keeps encoding parallel on any machine; the bytes are x264's for four threads everywhere.
+/// process's CPU affinity, so the same frames encoded under `taskset -c 0` and on all CPUs gave
+/// other `.mp4` bytes (and recorded digests). Four keeps encoding parallel on any machine; the
+/// bytes are x264's for four threads everywhere.
 const X264_THREADS: &str = "4";
 
 /// A decoded video: frames in display order and the stream's frame rate.

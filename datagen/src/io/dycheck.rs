@@ -43,6 +43,7 @@ use rayon::prelude::*;
 use crate::error::{Error, Result};
 use crate::io::json_fields::{JsonFile, integer, numbers};
 use crate::io::multiview::{CameraView, EvalSplit, MultiViewScene};
+use crate::io::npy::MAX_SIDE_PX;
 use crate::io::sequence::Sequence;
 use crate::io::tool_output::check_depth_sign;
 use foundation::camera::{PinholeCamera, checked_intrinsics, checked_pose, json_matrix};
@@ -457,6 +458,11 @@ pub fn read_camera_file(path: &Path, factor: u32) -> Result<PinholeCamera> {
     let (width, height) = ((image_size[0] / f).round_ties_even(), (image_size[1] / f).round_ties_even());
     if width < 1.0 || height < 1.0 {
         let reason = format!("{}x{} is below one pixel at factor {factor}", image_size[0], image_size[1]);
+        return Err(Error::invalid(path, "image_size", reason));
+    }
+    // Narrowed to u32 below: a size beyond any readable frame is refused, not saturated.
+    if width > MAX_SIDE_PX as f64 || height > MAX_SIDE_PX as f64 {
+        let reason = format!("{width}x{height} at factor {factor}: more than {MAX_SIDE_PX} px a side");
         return Err(Error::invalid(path, "image_size", reason));
     }
     let (fx, fy) = (focal_length / f, focal_length * pixel_aspect_ratio / f);

@@ -17,6 +17,12 @@ use crate::error::{Error, Result};
 const X264_CRF: &str = "17";
 /// libx264 speed preset: a balance of encode time and size for short clips.
 const X264_PRESET: &str = "medium";
+/// libx264 frame threads, fixed. x264's bitstream depends on its thread count, and its default
+/// (`threads=0`: 1.5 × the CPUs the calling thread may run on) changes with the machine and the
+/// process's CPU affinity, so the same frames encoded under `taskset -c 0` and on all CPUs gave
+/// other `.mp4` bytes (and recorded digests). Four keeps encoding parallel on any machine; the
+/// bytes are x264's for four threads everywhere.
+const X264_THREADS: &str = "4";
 
 /// A decoded video: frames in display order and the stream's frame rate.
 #[derive(Debug, Clone)]
@@ -190,6 +196,7 @@ pub fn encode_video(path: &Path, frames: &[RgbImage], fps: f64) -> Result<()> {
     let mut options = ffmpeg::Dictionary::new();
     options.set("crf", X264_CRF);
     options.set("preset", X264_PRESET);
+    options.set("threads", X264_THREADS);
     let mut encoder = encoder.open_with(options).map_err(|e| video_error(path, "cannot open H.264 encoder", e))?;
     stream.set_parameters(&encoder);
     stream.set_time_base(time_base);

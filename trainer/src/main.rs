@@ -446,7 +446,11 @@ enum ResizeArg {
 fn parse_size(text: &str) -> Result<(u32, u32), String> {
     let (w, h) = text.split_once(['x', 'X']).ok_or_else(|| format!("{text}: expected WIDTHxHEIGHT"))?;
     let parse = |v: &str| v.trim().parse::<u32>().map_err(|e| format!("{text}: {e}"));
-    Ok((parse(w)?, parse(h)?))
+    let (width, height) = (parse(w)?, parse(h)?);
+    if width == 0 || height == 0 {
+        return Err(format!("{text}: an image needs at least one pixel a side"));
+    }
+    Ok((width, height))
 }
 
 #[derive(Debug, Args)]

@@ -21,6 +21,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
 use crate::io::annotations::TrackBox;
+use foundation::paths::FolderIdentity;
 
 /// The dataset layouts the crawler knows.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
@@ -455,6 +456,11 @@ fn read_tao(path: &Path) -> Result<(TaoFile, BTreeMap<u64, Vec<TrackBox>>)> {
     let text = std::fs::read_to_string(path).map_err(|e| Error::io(path, e))?;
     let file: TaoFile =
         serde_json::from_str(&text).map_err(|e| Error::invalid(path, "videos", format!("invalid TAO JSON: {e}")))?;
+    // A video's name is the path of its frame folder under `frames/`.
+    for (index, video) in file.videos.iter().enumerate() {
+        foundation::paths::check_name(&video.name)
+            .map_err(|reason| Error::invalid(path, format!("videos[{index}].name"), reason))?;
+    }
     let images: BTreeMap<u64, &TaoImage> = file.images.iter().map(|i| (i.id, i)).collect();
     let mut boxes: BTreeMap<u64, Vec<TrackBox>> = BTreeMap::new();
     for (index, annotation) in file.annotations.iter().enumerate() {
@@ -561,8 +567,8 @@ pub fn is_multiview_folder(dir: &Path) -> bool {
 /// the path below the root), found at any depth.
 fn crawl_multiview(source: &SourceConfig) -> Result<Vec<VideoEntry>> {
     let mut entries = Vec::new();
-    let mut pending = vec![source.root.clone()];
-    while let Some(dir) = pending.pop() {
+    let mut tree = FolderWalk::new(&source.root);
+    while let Some(dir) = tree.next() {
         if is_multiview_folder(&dir) {
             let id = dir.strip_prefix(&source.root).unwrap_or(&dir).to_string_lossy().into_owned();
             let id = if id.is_empty() { file_name(&dir) } else { id };
@@ -575,16 +581,51 @@ fn crawl_multiview(source: &SourceConfig) -> Result<Vec<VideoEntry>> {
                 reconstruction,
             ));
         } else if !is_sequence_folder(&dir) {
-            pending.extend(sorted_dir(&dir)?.into_iter().filter(|p| p.is_dir()));
+            tree.descend(&dir)?;
         }
     }
     Ok(entries)
 }
 
+/// A depth-first walk over the folders of a tree that visits each real folder once: a folder is
+/// known by its [`FolderIdentity`] (links resolved), so a link back up the tree (`loop -> .`)
+/// or a second name for a folder is skipped, never walked again (which would list one scene
+/// once per spelling, and loop until the OS refuses the path).
+struct FolderWalk {
+    pending: Vec<PathBuf>,
+    visited: std::collections::BTreeSet<FolderIdentity>,
+}
+
+impl FolderWalk {
+    fn new(root: &Path) -> Self {
+        Self { pending: vec![root.to_owned()], visited: Default::default() }
+    }
+
+    /// The next folder not visited under another name.
+    fn next(&mut self) -> Option<PathBuf> {
+        while let Some(dir) = self.pending.pop() {
+            if self.visited.insert(FolderIdentity::of(&dir)) {
+                return Some(dir);
+            }
+        }
+        None
+    }
+
+    /// Queues the sub-folders of `dir`: real folders in sorted order, then links, so that a
+    /// folder reachable under its own name and through a sibling link keeps its own name.
+    fn descend(&mut self, dir: &Path) -> Result<()> {
+        let (links, real): (Vec<PathBuf>, Vec<PathBuf>) =
+            sorted_dir(dir)?.into_iter().filter(|p| p.is_dir()).partition(|p| p.is_symlink());
+        // Reversed so that popping from the end walks them in that order.
+        self.pending.extend(real.into_iter().chain(links).rev());
+        Ok(())
+    }
+}
+
 fn crawl_sequences(source: &SourceConfig) -> Result<Vec<VideoEntry>> {
     let mut entries = Vec::new();
-    let mut pending = vec![source.root.clone()];
-    while let Some(dir) = pending.pop() {
+    let mut tree = FolderWalk::new(&source.root);
+    while let Some(dir) = tree.next() {
         if is_sequence_folder(&dir) {
             let id = dir.strip_prefix(&source.root).unwrap_or(&dir).to_string_lossy().into_owned();
             let id = if id.is_empty() { file_name(&dir) } else { id };
@@ -599,7 +640,7 @@ fn crawl_sequences(source: &SourceConfig) -> Result<Vec<VideoEntry>> {
                 reconstruction,
             ));
         } else {
-            pending.extend(sorted_dir(&dir)?.into_iter().filter(|p| p.is_dir()));
+            tree.descend(&dir)?;
         }
     }
     Ok(entries)

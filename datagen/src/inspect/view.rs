@@ -122,6 +122,26 @@ fn run_script(options: &ViewOptions, parts: &Path, out: &Path) -> Result<()> {
             ),
         ));
     }
+    // An interpreter that is not Python (`--python /bin/true`), or a script that did nothing,
+    // exits 0 without a recording: say so, with what it printed, rather than fail at the rename.
+    if !std::fs::metadata(out).is_ok_and(|m| m.is_file() && m.len() > 0) {
+        let printed = |bytes: &[u8]| {
+            let text = String::from_utf8_lossy(bytes).trim().to_string();
+            if text.is_empty() { "nothing".to_string() } else { format!("`{text}`") }
+        };
+        return Err(Error::parameter(
+            "python",
+            format!(
+                "{} {} exited successfully but wrote no recording to {} (is it a Python interpreter with `pip install \
+                 rerun-sdk`?); it printed {} on stdout and {} on stderr",
+                options.python.display(),
+                options.script.display(),
+                out.display(),
+                printed(&output.stdout),
+                printed(&output.stderr)
+            ),
+        ));
+    }
     Ok(())
 }
 

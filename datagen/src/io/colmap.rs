@@ -30,6 +30,7 @@ use crate::error::{Error, Result};
 use crate::io::npy::MAX_SIDE_PX;
 use crate::io::tool_output::{ToolFrames, ToolOutput, check_depth_sign, invert_camera_from_world};
 use foundation::camera::mat4_to_row_major;
+use foundation::paths::check_name;
 
 /// How far a stored quaternion's norm may be from 1: COLMAP writes unit quaternions in full
 /// double precision, and a text model rounds them to 17 significant digits.
@@ -65,10 +66,10 @@ const CAMERA_MODELS: [(&str, usize); 11] = [
 pub struct ColmapCamera {
     /// Model name (`PINHOLE`, ...).
     pub model: String,
-    /// Image width and height.
-    pub width: u64,
+    /// Image width and height, checked within 1..=[`MAX_SIDE_PX`] when read.
+    pub width: u32,
     /// See `width`.
-    pub height: u64,
+    pub height: u32,
     /// The model's parameters in COLMAP's order.
     pub params: Vec<f64>,
 }
@@ -203,7 +204,7 @@ pub fn read_colmap_reconstruction(dir: &Path) -> Result<ToolOutput> {
         depth_size,
         depth,
         intrinsics_path: cameras_file,
-        intrinsics_size: (width as u32, height as u32),
+        intrinsics_size: (width, height),
         intrinsics,
         poses_path: images_file,
         world_from_camera,
@@ -444,8 +445,7 @@ fn parse_cameras_bin(path: &Path) -> Result<BTreeMap<i64, ColmapCamera>> {
         let field = format!("camera[{i}]");
         let id = cursor.i32(&field)?;
         let (model, count) = model_name(path, &field, cursor.i32(&field)?)?;
-        let width = cursor.u64(&field)?;
-        let height = cursor.u64(&field)?;
+        let (width, height) = image_size(path, &field, cursor.u64(&field)?, cursor.u64(&field)?)?;
         let params = (0..count).map(|_| cursor.f64(&field)).collect::<Result<Vec<_>>>()?;
         cameras.insert(i64::from(id), ColmapCamera { model: model.to_owned(), width, height, params });
     }
@@ -477,6 +477,7 @@ fn parse_images_bin(path: &Path) -> Result<BTreeMap<String, ColmapImage>> {
             .ok_or_else(|| Error::invalid(path, field.as_str(), "name is not NUL-terminated (truncated)"))?;
         let name = String::from_utf8(rest[..end].to_vec())
             .map_err(|_| Error::invalid(path, field.as_str(), "name is not UTF-8"))?;
+        check_name(&name).map_err(|reason| Error::invalid(path, field.as_str(), reason))?;
         cursor.at += end + 1;
         let points = cursor.count(&format!("{field} ({name}): num_points2D"), POINT2D_BYTES)?;
         cursor.take((points * POINT2D_BYTES) as usize, &field)?;
@@ -502,6 +503,29 @@ fn numbers(path: &Path, line: usize, fields: &[&str]) -> Result<Vec<f64>> {
         .collect()
 }
 
+/// An integer field of a text model (an id or a size): a number with a fraction or beyond
+/// `i64` is refused, not truncated.
+fn integer<T: std::str::FromStr>(path: &Path, line: usize, field: &str) -> Result<T> {
+    field
+        .parse::<T>()
+        .map_err(|_| Error::invalid(path, format!("line {line}"), format!("`{field}` is not an integer in range")))
+}
+
+/// A camera's `width` and `height` as read, refused outside 1..=[`MAX_SIDE_PX`] (a size that
+/// wraps when narrowed would silently give another image size).
+fn image_size<T: TryInto<u32> + Copy + std::fmt::Display>(
+    path: &Path,
+    field: &str,
+    width: T,
+    height: T,
+) -> Result<(u32, u32)> {
+    let side = |n: T| n.try_into().ok().filter(|&n| n >= 1 && n as usize <= MAX_SIDE_PX);
+    match (side(width), side(height)) {
+        (Some(w), Some(h)) => Ok((w, h)),
+        _ => Err(Error::invalid(path, field, format!("size {width}x{height} outside 1–{MAX_SIDE_PX} px"))),
+    }
+}
+
 fn parse_cameras_txt(path: &Path) -> Result<BTreeMap<i64, ColmapCamera>> {
     let mut cameras = BTreeMap::new();
     for (line, text) in data_lines(path)? {
@@ -522,11 +546,9 @@ fn parse_cameras_txt(path: &Path) -> Result<BTreeMap<i64, ColmapCamera>> {
         if values.len() != count {
             return Err(Error::invalid(path, field, format!("{model} has {count} parameters, found {}", values.len())));
         }
-        let ints = numbers(path, line, &[fields[0], fields[2], fields[3]])?;
-        cameras.insert(
-            ints[0] as i64,
-            ColmapCamera { model: model.to_owned(), width: ints[1] as u64, height: ints[2] as u64, params: values },
-        );
+        let [id, width, height] = [fields[0], fields[2], fields[3]].map(|f| integer(path, line, f));
+        let (width, height) = image_size(path, &field, width?, height?)?;
+        cameras.insert(id?, ColmapCamera { model: model.to_owned(), width, height, params: values });
     }
     Ok(cameras)
 }
@@ -544,10 +566,11 @@ fn parse_images_txt(path: &Path) -> Result<BTreeMap<String, ColmapImage>> {
         if fields.len() < 10 {
             return Err(Error::invalid(path, field, "expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME"));
         }
-        let values = numbers(path, *line, &fields[1..9])?;
+        let values = numbers(path, *line, &fields[1..8])?;
         let name = fields[9..].join(" ");
+        check_name(&name).map_err(|reason| Error::invalid(path, field.as_str(), reason))?;
         let image = ColmapImage {
-            camera_id: values[7] as i64,
+            camera_id: integer(path, *line, fields[8])?,
             qvec: [values[0], values[1], values[2], values[3]],
             tvec: [values[4], values[5], values[6]],
         };

@@ -43,11 +43,13 @@ use rayon::prelude::*;
 use crate::error::{Error, Result};
 use crate::io::json_fields::{JsonFile, integer, numbers};
 use crate::io::multiview::{CameraView, EvalSplit, MultiViewScene};
+use crate::io::npy::MAX_SIDE_PX;
 use crate::io::sequence::Sequence;
 use crate::io::tool_output::check_depth_sign;
 use foundation::camera::{PinholeCamera, checked_intrinsics, checked_pose, json_matrix};
 use foundation::depth::DepthMap;
 use foundation::frames::read_frames;
+use foundation::paths::check_name;
 
 /// The item list; with [`METADATA_FILE`] and [`CAMERA_DIR`], the mark of the layout.
 pub const DATASET_FILE: &str = "dataset.json";
@@ -197,6 +199,9 @@ fn read_items(dir: &Path) -> Result<(Vec<Item>, Option<Splits>)> {
     }
     let mut seen = BTreeSet::new();
     for (i, id) in ids.iter().enumerate() {
+        // Every file of an item is named after its id (`camera/<id>.json`, `rgb/<f>x/<id>.png`,
+        // ...); the split files and `metadata.json` can only name ids listed here.
+        check_name(id).map_err(|reason| Error::invalid(&dataset.path, format!("ids[{i}]"), reason))?;
         if !seen.insert(id.as_str()) {
             return Err(Error::invalid(&dataset.path, format!("ids[{i}]"), format!("`{id}` is listed twice")));
         }
@@ -453,6 +458,11 @@ pub fn read_camera_file(path: &Path, factor: u32) -> Result<PinholeCamera> {
     let (width, height) = ((image_size[0] / f).round_ties_even(), (image_size[1] / f).round_ties_even());
     if width < 1.0 || height < 1.0 {
         let reason = format!("{}x{} is below one pixel at factor {factor}", image_size[0], image_size[1]);
+        return Err(Error::invalid(path, "image_size", reason));
+    }
+    // Narrowed to u32 below: a size beyond any readable frame is refused, not saturated.
+    if width > MAX_SIDE_PX as f64 || height > MAX_SIDE_PX as f64 {
+        let reason = format!("{width}x{height} at factor {factor}: more than {MAX_SIDE_PX} px a side");
         return Err(Error::invalid(path, "image_size", reason));
     }
     let (fx, fy) = (focal_length / f, focal_length * pixel_aspect_ratio / f);

@@ -58,7 +58,13 @@ pub fn read_gen3c_reconstruction(dir: &Path) -> Result<ToolOutput> {
         let mut archive = NpzReader::open(&mask_path)?;
         // A mask, not a measurement: read as f64, where booleans are accepted (0 or 1).
         let mask = archive.read_f64("mask", &[n, Axis::Is(height), Axis::Is(width)])?;
-        for (plane, valid) in planes.iter_mut().zip(mask.into_planes()) {
+        for (i, (plane, valid)) in planes.iter_mut().zip(mask.into_planes()).enumerate() {
+            // NaN compares unequal to 0 and would mark its pixel valid: refused as in depth.
+            if let Some(p) = valid.iter().position(|v| !v.is_finite()) {
+                let reason =
+                    format!("frame {i}, pixel ({}, {}): {} is not a finite mask value", p % width, p / width, valid[p]);
+                return Err(Error::array(&mask_path, Some("mask.npy"), reason));
+            }
             for (d, v) in plane.iter_mut().zip(valid) {
                 if v == 0.0 {
                     *d = f32::NAN;

@@ -105,6 +105,8 @@ fn views(dir: &Path, scene_id: &str) -> Result<Vec<u32>> {
 pub fn read_kubric4d(dir: &Path) -> Result<MultiViewScene> {
     let scene_id = scene_id(dir);
     let views = views(dir, &scene_id)?;
+    let folders: Vec<PathBuf> = views.iter().map(|&view| frames_dir(dir, view)).collect();
+    crate::io::multiview::check_distinct_folders(dir, "views", &folders)?;
     let cameras = views.iter().map(|&view| read_view(dir, &scene_id, view)).collect::<Result<Vec<_>>>()?;
     let first = &cameras[0];
     for camera in &cameras[1..] {

@@ -20,6 +20,7 @@ use image::GrayImage;
 
 use crate::error::{Error, Result};
 use crate::io::sequence::{Sequence, detect_layout, read_sequence};
+use foundation::paths::FolderIdentity;
 
 /// Largest disagreement between the cameras' timestamps of one frame, as a fraction of the
 /// median frame interval: half an interval would pair a frame with its neighbour's instant.
@@ -112,6 +113,7 @@ pub fn read_multiview(dir: &Path) -> Result<MultiViewScene> {
         ));
     };
     check_camera_folders(dir, &folders)?;
+    check_distinct_folders(dir, "cameras", &folders)?;
     let mut cameras = Vec::with_capacity(folders.len());
     for folder in &folders {
         let id = folder.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
@@ -139,6 +141,26 @@ pub fn read_multiview(dir: &Path) -> Result<MultiViewScene> {
     check_timestamps(&cameras)?;
     let scene_id = dir.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     Ok(MultiViewScene { scene_id, path: dir.to_owned(), cameras, split: None })
+}
+
+/// Refuses a scene whose camera (or view) folders include one folder under two names (a link
+/// `cam02 -> cam00`): its multi-view pairs would pair a camera with itself, and its co-visibility
+/// would count one camera's frames twice. The error names both.
+pub(crate) fn check_distinct_folders(dir: &Path, field: &str, folders: &[PathBuf]) -> Result<()> {
+    let mut seen = std::collections::BTreeMap::new();
+    for folder in folders {
+        if let Some(first) = seen.insert(FolderIdentity::of(folder), folder) {
+            let name = |p: &Path| p.file_name().map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+            let reason = format!(
+                "`{}` and `{}` are the same folder ({}): every camera must be its own",
+                name(first),
+                name(folder),
+                FolderIdentity::of(folder).path().display()
+            );
+            return Err(Error::invalid(dir, field, reason));
+        }
+    }
+    Ok(())
 }
 
 /// Every sub-folder of `dir` but hidden ones and `readable` is a camera whose files are missing or

@@ -47,6 +47,11 @@ const PREAMBLE_V2: usize = 12;
 /// check): large enough that per-read overhead vanishes, small next to any array.
 const DRAIN_BUFFER: usize = 64 * 1024;
 
+/// The most a deflate stream can inflate: 1032 bytes out per byte in (a 258-byte match coded in
+/// 2 bits; zlib's FAQ and `deflateBound`'s derivation). A zip directory declaring more for a
+/// member than its compressed size allows is lying.
+const MAX_DEFLATE_RATIO: u64 = 1032;
+
 /// A dense n-dimensional array in C (row-major) order.
 #[derive(Debug, Clone, PartialEq)]
 pub struct NdArray<T> {
@@ -620,11 +625,59 @@ impl NpzReader {
             .zip_archive()
             .by_name(&file_name)
             .map_err(|e| source.error(format!("unreadable archive member: {e}")))?;
+        check_member_size(&file, source)?;
         let (size, crc32) = (file.size(), file.crc32());
         let mut member =
             MemberReader { inner: &mut file as &mut dyn Read, size, read: 0, crc: flate2::Crc::new(), crc32 };
         read(&mut member, source)
     }
+}
+
+/// Refuses a zip member whose declared uncompressed size its compression cannot produce from its
+/// compressed bytes: a stored member is its bytes, a deflated one at most [`MAX_DEFLATE_RATIO`]
+/// times them. Numpy's `savez` and Python's `zipfile` as the tools use it write only these two
+/// methods, so any other is refused too. Everything sized from the declared size (the array's
+/// allocation, the reading bound) is then bounded by the file's real size.
+fn check_member_size(file: &zip::read::ZipFile<'_>, source: Source<'_>) -> Result<()> {
+    let (size, compressed) = (file.size(), file.compressed_size());
+    let bound = match file.compression() {
+        zip::CompressionMethod::Stored => compressed,
+        zip::CompressionMethod::Deflated => compressed.saturating_mul(MAX_DEFLATE_RATIO),
+        other => {
+            return Err(source.error(format!(
+                "compression method {other:?}: only stored and deflated members are read (as numpy and zipfile write them)"
+            )));
+        }
+    };
+    if size > bound {
+        return Err(source.error(format!(
+            "the zip directory declares {size} bytes, more than its {compressed} compressed bytes can hold ({}): the \
+             archive lies about its size",
+            if file.compression() == zip::CompressionMethod::Stored {
+                "a stored member is its bytes".to_string()
+            } else {
+                format!("deflate inflates at most {MAX_DEFLATE_RATIO}×")
+            }
+        )));
+    }
+    Ok(())
+}
+
+/// The whole of zip member `file` of the archive `path`, checked as an `.npz` member is: its
+/// declared size within what its compression allows ([`check_member_size`]), never read beyond
+/// it, all of it there, and its CRC-32 the directory's. For archives of other files (ViPE's
+/// depth zip of EXR maps); errors name the archive and the member.
+pub fn read_zip_member(path: &Path, file: &mut zip::read::ZipFile<'_>) -> Result<Vec<u8>> {
+    let name = file.name().to_owned();
+    let source = Source { path, member: Some(&name) };
+    check_member_size(file, source)?;
+    let (size, crc32) = (file.size(), file.crc32());
+    let mut member = MemberReader { inner: &mut *file as &mut dyn Read, size, read: 0, crc: flate2::Crc::new(), crc32 };
+    // The declared size is bounded by the compressed bytes on disk, so reserving it is safe.
+    let mut bytes = Vec::with_capacity(usize::try_from(size).unwrap_or(0));
+    member.read_to_end(&mut bytes).map_err(|e| source.error(format!("unreadable member: {e}")))?;
+    member.finish().map_err(|reason| source.error(reason))?;
+    Ok(bytes)
 }
 
 /// A zip member's decompressed bytes, never more than the size the zip directory declares,

@@ -65,6 +65,8 @@ pub fn read_pardom4d(dir: &Path) -> Result<MultiViewScene> {
     if views.len() < 2 {
         return Err(Error::invalid(&rgb_dir, "views", "a multi-view scene needs two or more view folders"));
     }
+    let folders: Vec<PathBuf> = views.iter().map(|view| rgb_dir.join(view)).collect();
+    crate::io::multiview::check_distinct_folders(&rgb_dir, "views", &folders)?;
     // The instants every view has both a frame and a depth map for.
     let mut common: Option<BTreeSet<u64>> = None;
     for view in &views {
@@ -130,6 +132,11 @@ fn read_calibration(dir: &Path) -> Result<Calibration> {
     };
     let file = JsonFile::read(path, "calibration")?;
     let names = file.strings("names")?;
+    // View names are folder names under rgb/ and depth/.
+    for (i, name) in names.iter().enumerate() {
+        foundation::paths::check_name(name)
+            .map_err(|reason| Error::invalid(&file.path, format!("names[{i}]"), reason))?;
+    }
     for key in ["intrinsics", "extrinsics"] {
         let len = list(&file.path, key, file.get(key)?)?.len();
         if len != names.len() {

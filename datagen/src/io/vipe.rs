@@ -15,16 +15,22 @@
 //! ViPE skipped is an error, never given an invented pose. Not read: `mask/NAME.zip` (instance
 //! masks), `flow/`, `vipe/NAME_info.pkl` (a pickle), the visualisations.
 
-use std::io::Read;
 use std::path::{Path, PathBuf};
 
 use crate::error::{Error, Result};
-use crate::io::npy::{Axis, MAX_SIDE_PX, NpzReader};
+use crate::io::npy::{Axis, MAX_SIDE_PX, NpzReader, read_zip_member};
 use crate::io::tool_output::{ToolOutput, check_depth_sign, check_frame_indices, with_video};
+use foundation::camera::{checked_intrinsics, checked_pose, mat4_to_row_major};
 
-/// Largest EXR member read from a depth zip: a [`MAX_SIDE_PX`]² map of 32-bit floats stored
-/// uncompressed, plus room for its header and line offsets.
-const MAX_EXR_MEMBER_BYTES: u64 = (MAX_SIDE_PX * MAX_SIDE_PX * 4 + (1 << 20)) as u64;
+/// Room for an EXR file's header and attributes beyond its samples and line offsets.
+const EXR_HEADER_BYTES: usize = 1 << 20;
+
+/// Largest EXR file of one channel of `width × height` 32-bit samples: the samples stored
+/// uncompressed (OpenEXR stores a block raw when compressing would enlarge it), an 8-byte offset
+/// per scan line, and [`EXR_HEADER_BYTES`]. ViPE's maps have one channel, `Z`.
+fn exr_member_bound(width: usize, height: usize) -> u64 {
+    (width * height * 4 + height * 8 + EXR_HEADER_BYTES) as u64
+}
 
 /// The camera model name ViPE writes for a pinhole camera (`CameraType.PINHOLE.name`).
 const PINHOLE: &str = "PINHOLE";
@@ -89,8 +95,13 @@ pub fn read_vipe_reconstruction(artifact: &VipeArtifact) -> Result<ToolOutput> {
     let inds = poses.read_f64("inds", &[n])?;
     check_frame_indices(&pose_path, "inds", &inds.data)?;
     let pose_data = poses.read_f64("data", &[n, Axis::Is(4), Axis::Is(4)])?;
-    let world_from_camera: Vec<[f64; 16]> =
-        pose_data.data.chunks_exact(16).map(|m| m.try_into().expect("16 values")).collect();
+    // Checked here, at the door, so that errors use ViPE's own names (`data[3]` of pose/NAME.npz).
+    let world_from_camera = pose_data
+        .data
+        .chunks_exact(16)
+        .enumerate()
+        .map(|(i, m)| Ok(mat4_to_row_major(&checked_pose(&pose_path, &format!("data[{i}]"), m)?)))
+        .collect::<Result<Vec<_>>>()?;
 
     let intrinsics_path = artifact.file("intrinsics", ".npz");
     check_camera_types(&artifact.file("intrinsics", "_camera.txt"))?;
@@ -109,7 +120,16 @@ pub fn read_vipe_reconstruction(artifact: &VipeArtifact) -> Result<ToolOutput> {
     let inds = archive.read_f64("inds", &[n])?;
     check_frame_indices(&intrinsics_path, "inds", &inds.data)?;
     let values = archive.read_f64("data", &[n, Axis::Is(4)])?;
-    let intrinsics = values.data.chunks_exact(4).map(|k| [k[0], 0.0, k[2], 0.0, k[1], k[3], 0.0, 0.0, 1.0]).collect();
+    let intrinsics = values
+        .data
+        .chunks_exact(4)
+        .enumerate()
+        .map(|(i, k)| {
+            let row_major = [k[0], 0.0, k[2], 0.0, k[1], k[3], 0.0, 0.0, 1.0];
+            checked_intrinsics(&intrinsics_path, &format!("data[{i}]"), &row_major)?;
+            Ok(row_major)
+        })
+        .collect::<Result<Vec<_>>>()?;
 
     let depth_path = artifact.file("depth", ".zip");
     let (depth_size, depth) = read_depth_zip(&depth_path, frames)?;
@@ -178,18 +198,21 @@ fn read_depth_zip(path: &Path, frames: usize) -> Result<(MapSize, Vec<Vec<f32>>)
         let mut member = archive
             .by_name(name)
             .map_err(|e| Error::invalid(path, name.as_str(), format!("unreadable member: {e}")))?;
-        if member.size() > MAX_EXR_MEMBER_BYTES {
+        // The first map may be of any size up to the side limit; the others are the first's size.
+        let (bound, what) = match size {
+            None => {
+                (exr_member_bound(MAX_SIDE_PX, MAX_SIDE_PX), format!("any depth map up to {MAX_SIDE_PX} px a side"))
+            }
+            Some((w, h)) => (exr_member_bound(w, h), format!("a {w}x{h} depth map (the first map's size)")),
+        };
+        if member.size() > bound {
             return Err(Error::invalid(
                 path,
                 name.as_str(),
-                format!("declares {} bytes, more than any depth map up to {MAX_SIDE_PX} px a side", member.size()),
+                format!("declares {} bytes, more than {what} can take ({bound})", member.size()),
             ));
         }
-        let mut bytes = Vec::with_capacity(member.size() as usize);
-        (&mut member)
-            .take(MAX_EXR_MEMBER_BYTES)
-            .read_to_end(&mut bytes)
-            .map_err(|e| Error::invalid(path, name.as_str(), format!("unreadable member: {e}")))?;
+        let bytes = read_zip_member(path, &mut member)?;
         let context = format!("{}: {name}", path.display());
         let map = match size {
             None => crate::io::depth_exr::decode_depth_exr(&bytes, &context)?,

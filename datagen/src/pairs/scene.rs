@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use schemas::{ClipRecord, InputDigest, PairKind, ShardStats};
 
 use crate::config_file::Validate;
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::io::multiview::{CameraView, MultiViewScene};
 use crate::pairs::generator::{PairsConfig, TrajectoryRequest, generate_clips};
 use crate::pairs::multiview::{DroppedPair, MultiViewPairsConfig, camera_pair_clips, camera_pairs};
@@ -116,9 +116,26 @@ pub fn write_scene_pairs(
     let scene = scene?;
     let input = InputDigest { source_path: dir.display().to_string(), content_hash: content_hash? };
     let mut pairs = generate_scene_clips(&scene, dataset, config, trajectories, seed, progress)?;
+    if pairs.records.is_empty() {
+        return Err(no_pairs(dir, config, &pairs));
+    }
     let records = std::mem::take(&mut pairs.records);
     let multiview = records.iter().filter(|r| r.pair_kind == PairKind::Multiview).count();
     let counts = (records.len() - multiview, multiview);
     let (path, stats) = crate::pairs::generator::write_shard(out, &scene.scene_id, &records, input)?;
     Ok(SceneShard { path, stats, pairs, counts })
+}
+
+/// Why a scene gave no record: an empty shard is not a result.
+fn no_pairs(dir: &Path, config: &PairsConfig, pairs: &ScenePairs) -> Error {
+    let threshold = config.multiview.min_covisible_fraction;
+    let reason = match pairs.dropped.iter().map(|d| d.covisible_fraction).max_by(f64::total_cmp) {
+        Some(best) => format!(
+            "no pairs: all {} windows of the camera pairs are below multiview.min_covisible_fraction {threshold} (the \
+             best is {best:.4}), and no camera gave monocular pairs; lower the fraction or choose other camera_pairs",
+            pairs.dropped.len()
+        ),
+        None => "no pairs: no camera pair has a window and no camera gave monocular pairs".to_string(),
+    };
+    Error::invalid(dir, "pairs", reason)
 }

@@ -73,6 +73,9 @@ struct Member {
     /// CRC-32 and uncompressed size as the directory records them.
     crc: u32,
     size: u32,
+    /// Sizes in a zip64 extra field instead, with this uncompressed size (the fields say
+    /// 0xFFFFFFFF, as zip64 writers do for members of 4 GiB and more).
+    zip64: Option<u64>,
 }
 
 fn crc32(data: &[u8]) -> u32 {
@@ -82,7 +85,7 @@ fn crc32(data: &[u8]) -> u32 {
 }
 
 fn stored(name: &str, data: Vec<u8>) -> Member {
-    Member { name: name.to_owned(), method: 0, crc: crc32(&data), size: data.len() as u32, payload: data }
+    Member { name: name.to_owned(), method: 0, crc: crc32(&data), size: data.len() as u32, payload: data, zip64: None }
 }
 
 fn deflated(name: &str, data: &[u8]) -> Member {
@@ -94,28 +97,44 @@ fn deflated(name: &str, data: &[u8]) -> Member {
         crc: crc32(data),
         size: data.len() as u32,
         payload: encoder.finish().unwrap(),
+        zip64: None,
     }
 }
 
-/// A zip archive (no zip64, no data descriptors) of `members`, as `np.savez` writes one.
+/// A zip archive (no data descriptors; zip64 size fields where a member asks) of `members`, as
+/// `np.savez` writes one.
 fn zip(members: &[Member]) -> Vec<u8> {
     let mut out = Vec::new();
     let mut directory = Vec::new();
     for member in members {
         let offset = out.len() as u32;
+        // The zip64 extended information extra field: uncompressed, then compressed size.
+        let mut extra = Vec::new();
+        if let Some(size) = member.zip64 {
+            extra.extend_from_slice(&1u16.to_le_bytes());
+            extra.extend_from_slice(&16u16.to_le_bytes());
+            extra.extend_from_slice(&size.to_le_bytes());
+            extra.extend_from_slice(&(member.payload.len() as u64).to_le_bytes());
+        }
         let common = |buf: &mut Vec<u8>| {
-            for half in [20u16, 0, member.method, 0, 0x21] {
+            let version = if member.zip64.is_some() { 45 } else { 20 };
+            for half in [version, 0, member.method, 0, 0x21] {
                 buf.extend_from_slice(&half.to_le_bytes());
             }
-            for word in [member.crc, member.payload.len() as u32, member.size] {
+            let sizes = match member.zip64 {
+                Some(_) => [u32::MAX, u32::MAX],
+                None => [member.payload.len() as u32, member.size],
+            };
+            for word in [member.crc, sizes[0], sizes[1]] {
                 buf.extend_from_slice(&word.to_le_bytes());
             }
             buf.extend_from_slice(&(member.name.len() as u16).to_le_bytes());
-            buf.extend_from_slice(&0u16.to_le_bytes());
+            buf.extend_from_slice(&(extra.len() as u16).to_le_bytes());
         };
         out.extend_from_slice(&0x0403_4b50u32.to_le_bytes());
         common(&mut out);
         out.extend_from_slice(member.name.as_bytes());
+        out.extend_from_slice(&extra);
         out.extend_from_slice(&member.payload);
 
         directory.extend_from_slice(&0x0201_4b50u32.to_le_bytes());
@@ -128,6 +147,7 @@ fn zip(members: &[Member]) -> Vec<u8> {
         directory.extend_from_slice(&0u32.to_le_bytes());
         directory.extend_from_slice(&offset.to_le_bytes());
         directory.extend_from_slice(member.name.as_bytes());
+        directory.extend_from_slice(&extra);
     }
     let directory_offset = out.len() as u32;
     out.extend_from_slice(&directory);
@@ -195,11 +215,12 @@ fn hand_built_archives_read_stored_and_deflated() {
 fn npz_member_declaring_a_huge_shape_fails_before_it_is_inflated() {
     let dir = tempfile::tempdir().unwrap();
     // A deflated member of zeros whose header claims 2×100000×100000 float32 (80 GB), and whose
-    // directory entry claims as much as fits a zip32 size field.
+    // directory entry claims as much as its deflate stream could inflate to (1000×).
     let members = megasam_members(|_| {
         let mut data = npy_header("<f4", &[FRAMES as u64, 100_000, 100_000]);
         data.resize(data.len() + (1 << 20), 0);
-        Member { size: u32::MAX, ..deflated("depths.npy", &data) }
+        let member = deflated("depths.npy", &data);
+        Member { size: member.payload.len() as u32 * 1000, ..member }
     });
     let error = error_of(&megasam_folder(dir.path(), "huge", &members));
     assert_names(&error, &["scene_sgd_cvd_hr.npz", "member `depths.npy`", "100000"]);
@@ -327,4 +348,102 @@ fn exr_declaring_a_huge_data_window_fails_naming_the_field() {
     std::fs::write(dir.path().join("00001.exr"), exr_declaring(16, 4)).unwrap();
     let error = read_exr_folder(dir.path()).unwrap_err().to_string();
     assert_names(&error, &["00001.exr", "16x4", "8x4"]);
+}
+
+#[test]
+fn npz_member_whose_zip64_directory_claims_gigabytes_for_kilobytes_is_a_lie_named() {
+    let dir = tempfile::tempdir().unwrap();
+    // Header and zip64 directory agree on 2×16384×16384 float32 (2 GiB); the member deflates
+    // 1 KiB of zeros, which no deflate stream of its size can inflate to.
+    let members = megasam_members(|_| {
+        let mut data = npy_header("<f4", &[FRAMES as u64, 16_384, 16_384]);
+        let declared = data.len() as u64 + 2 * 16_384 * 16_384 * 4;
+        data.resize(data.len() + 1024, 0);
+        Member { zip64: Some(declared), ..deflated("depths.npy", &data) }
+    });
+    let error = error_of(&megasam_folder(dir.path(), "zip64", &members));
+    assert_names(&error, &["scene_sgd_cvd_hr.npz", "member `depths.npy`", "compressed bytes", "lies"]);
+    // A stored member is its bytes: declaring more is the same lie.
+    let members = megasam_members(|depths| {
+        let size = depths.len() as u32 + 4096;
+        Member { size, ..stored("depths.npy", depths) }
+    });
+    let error = error_of(&megasam_folder(dir.path(), "stored", &members));
+    assert_names(&error, &["scene_sgd_cvd_hr.npz", "member `depths.npy`", "stored member", "lies"]);
+}
+
+/// A ViPE folder of the tool_layouts scene, whose depth zip is then replaced by `members`.
+fn vipe_with_depth(dir: &Path, members: impl FnOnce(Vec<Vec<u8>>) -> Vec<Member>) -> std::path::PathBuf {
+    let truth = super::tool_layouts::Truth::new(2);
+    let root = super::tool_layouts::write_vipe(&truth, &dir.join("vipe"), "clip");
+    let zip_path = root.join("depth/clip.zip");
+    let mut archive = zip::ZipArchive::new(std::fs::File::open(&zip_path).unwrap()).unwrap();
+    let maps: Vec<Vec<u8>> = (0..archive.len())
+        .map(|i| {
+            let mut bytes = Vec::new();
+            std::io::Read::read_to_end(&mut archive.by_index(i).unwrap(), &mut bytes).unwrap();
+            bytes
+        })
+        .collect();
+    std::fs::write(&zip_path, zip(&members(maps))).unwrap();
+    root
+}
+
+#[test]
+fn vipe_depth_member_inflating_beyond_its_declared_size_stops_there() {
+    let dir = tempfile::tempdir().unwrap();
+    // Frame 1's member declares its EXR's size, but its deflate stream goes on for 64 MiB.
+    let root = vipe_with_depth(dir.path(), |maps| {
+        let declared = maps[1].len();
+        let mut bomb = maps[1].clone();
+        bomb.resize(declared + (64 << 20), 0);
+        let crc = crc32(&bomb[..declared]);
+        vec![deflated("00000.exr", &maps[0]), Member { size: declared as u32, crc, ..deflated("00001.exr", &bomb) }]
+    });
+    let error = error_of(&root);
+    assert_names(&error, &["depth/clip.zip", "member `00001.exr`", "inflates beyond"]);
+    // The control: the same members, honest, read.
+    let root = vipe_with_depth(&dir.path().join("honest"), |maps| {
+        vec![deflated("00000.exr", &maps[0]), deflated("00001.exr", &maps[1])]
+    });
+    read_sequence(&root).unwrap();
+}
+
+#[test]
+fn vipe_errors_use_vipe_field_names() {
+    let dir = tempfile::tempdir().unwrap();
+    let truth = super::tool_layouts::Truth::new(2);
+    let root = super::tool_layouts::write_vipe(&truth, &dir.path().join("vipe"), "clip");
+    // Pose 1 scaled: not rigid. The error names ViPE's array and index, not the toolkit's.
+    let mut poses: Vec<f64> = truth.world_from_camera.iter().flat_map(foundation::camera::mat4_to_row_major).collect();
+    for (row, col) in (0..3).flat_map(|row| (0..3).map(move |col| (row, col))) {
+        poses[16 + row * 4 + col] *= 2.0;
+    }
+    super::tool_layouts::write_npz(
+        &root.join("pose/clip.npz"),
+        vec![
+            ("data", vec![2, 4, 4], super::tool_layouts::Values::F64(&poses)),
+            ("inds", vec![2], super::tool_layouts::Values::I64(vec![0, 1])),
+        ],
+    );
+    let error = error_of(&root);
+    assert_names(&error, &["pose/clip.npz", "data[1]"]);
+    assert!(!error.contains("world_from_camera"), "{error}");
+}
+
+#[test]
+fn gen3c_mask_with_nan_values_is_refused_like_depth() {
+    let dir = tempfile::tempdir().unwrap();
+    let truth = super::tool_layouts::Truth::new(2);
+    let root = super::tool_layouts::write_gen3c(&truth, &dir.path().join("gen3c"));
+    read_sequence(&root).unwrap();
+    let (h, w) = (truth.height as u64, truth.width as u64);
+    let mut mask = vec![1.0f32; (2 * h * w) as usize];
+    mask[(h * w) as usize + 5] = f32::NAN;
+    super::tool_layouts::write_npz(
+        &root.join("mask.npz"),
+        vec![("mask", vec![2, h, w], super::tool_layouts::Values::F32(mask))],
+    );
+    let error = error_of(&root);
+    assert_names(&error, &["mask.npz", "member `mask.npy`", "frame 1", "pixel (5, 0)", "NaN"]);
 }

@@ -8,6 +8,8 @@ mod geometry;
 mod hostile_configs;
 mod hostile_corpus;
 mod hostile_files;
+mod hostile_paths;
+mod hostile_runs;
 mod hostile_sequences;
 mod inspect;
 mod multiview;

@@ -333,9 +333,10 @@ fn check_settings(out: &Path, settings: &serde_json::Value) -> Result<()> {
                     reason: "not an object".to_string(),
                 });
             };
-            let changed: Vec<String> = new
-                .keys()
-                .chain(old.keys())
+            // Each key once, whether it is in both records or only one.
+            let keys: std::collections::BTreeSet<&String> = new.keys().chain(old.keys()).collect();
+            let changed: Vec<String> = keys
+                .into_iter()
                 .filter(|k| old.get(*k) != new.get(*k))
                 .map(|k| {
                     format!(
@@ -484,6 +485,16 @@ pub fn run(request: &Request, progress: &mut dyn FnMut(Progress)) -> Result<Outc
             ),
         });
     }
+    if let Some((width, height)) = request.eval_size
+        && (width == 0 || height == 0)
+    {
+        return Err(Error::InvalidArgument {
+            name: "eval-size".to_string(),
+            reason: format!("{width}x{height}: the frames scored need at least one pixel a side"),
+        });
+    }
+    // Every argument is checked above, before OUT records the settings: a refused argument must
+    // not leave a record that then refuses the corrected command as "other settings".
     let names = scene_names(request)?;
     let digest = checkpoint_digest(&request.model)?;
     let settings = settings(request, &digest);
@@ -495,7 +506,7 @@ pub fn run(request: &Request, progress: &mut dyn FnMut(Progress)) -> Result<Outc
     let (mut done, mut failed) = (Vec::new(), Vec::new());
     for (index, name) in names.iter().enumerate() {
         let result_path = request.out.join(RESULTS_DIR).join(format!("{name}.json"));
-        if let Some(result) = read_result(&result_path)? {
+        if let Some(result) = read_result(&result_path, name)? {
             progress(Progress::Skipped(name));
             done.push(result);
             continue;
@@ -518,22 +529,43 @@ pub fn run(request: &Request, progress: &mut dyn FnMut(Progress)) -> Result<Outc
         }
     }
 
-    let report = finish(request, &settings, &digest, commit, size, &done, failed)?;
+    let report = finish(request, &settings, &digest, commit, size, &done, &failed)?;
     write_atomic(&request.out.join(REPORT_JSON), &serde_json::to_vec_pretty(&report).expect("json"))?;
     write_atomic(&request.out.join(REPORT_MD), report::markdown(&report).as_bytes())?;
+    if done.is_empty() {
+        // A benchmark that scored nothing is a failure, with each scene's reason, not "0/N".
+        let reasons: Vec<String> = failed.iter().map(|f| format!("{}: {}", f.scene, f.reason)).collect();
+        return Err(Error::InvalidInput {
+            path: request.root.clone(),
+            what: "scenes".to_string(),
+            reason: format!("no scene could be scored ({})", reasons.join("; ")),
+        });
+    }
     Ok(Outcome { report: Some(report), preempted: false })
 }
 
-fn read_result(path: &Path) -> Result<Option<SceneResult>> {
-    match std::fs::read_to_string(path) {
-        Ok(text) => serde_json::from_str(&text).map(Some).map_err(|e| Error::InvalidInput {
-            path: path.to_path_buf(),
-            what: "scene result".to_string(),
-            reason: format!("{e}; delete it to evaluate the scene again"),
-        }),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(None),
-        Err(error) => Err(Error::Io { path: path.to_path_buf(), error }),
+/// `OUT/results/<scene>.json` of scene `name`, if it was scored. Its names become paths (the
+/// scene's work folders, one per camera), so the scene must be `name` and every camera name a
+/// plain relative name.
+fn read_result(path: &Path, name: &str) -> Result<Option<SceneResult>> {
+    let invalid = |what: &str, reason: String| Error::InvalidInput {
+        path: path.to_path_buf(),
+        what: what.to_string(),
+        reason: format!("{reason}; delete it to evaluate the scene again"),
+    };
+    let result: SceneResult = match std::fs::read_to_string(path) {
+        Ok(text) => serde_json::from_str(&text).map_err(|e| invalid("scene result", e.to_string()))?,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(error) => return Err(Error::Io { path: path.to_path_buf(), error }),
+    };
+    if result.scene != name {
+        return Err(invalid("scene", format!("`{}` in the result of scene `{name}`", result.scene)));
     }
+    for (i, camera) in result.cameras.iter().enumerate() {
+        foundation::paths::check_name(&camera.camera)
+            .map_err(|reason| invalid(&format!("cameras[{i}].camera"), reason))?;
+    }
+    Ok(Some(result))
 }
 
 fn scene_line(result: &SceneResult) -> report::SceneLine {
@@ -661,7 +693,7 @@ fn finish(
     commit: Option<String>,
     size: (u32, u32),
     done: &[SceneResult],
-    failed: Vec<report::FailedScene>,
+    failed: &[report::FailedScene],
 ) -> Result<Report> {
     let lines: Vec<report::SceneLine> = done.iter().map(scene_line).collect();
     // Every frame of every scene weighs the same, as the official script pools its frames
@@ -703,7 +735,7 @@ fn finish(
         toolkit_commit: commit,
         seed: request.seed,
         scenes: lines,
-        failed,
+        failed: failed.to_vec(),
         mean,
         fid,
         kid,

@@ -152,6 +152,14 @@ pub fn check_framing(
             reason: format!("{} is not 1 + {temporal}k (the VAE compresses time {temporal}×)", framing.frames),
         });
     }
+    // No conditioning is sampled beyond these bounds (`prepare_condition`); refusing the flag
+    // here keeps every size computed from it (the memory plan) within range.
+    if framing.frames > video_processor::MAX_FRAMES {
+        return Err(Error::InvalidArgument {
+            name: "frames".to_string(),
+            reason: format!("{}: at most {} frames are sampled", framing.frames, video_processor::MAX_FRAMES),
+        });
+    }
     if !(framing.fps.is_finite() && framing.fps > 0.0) {
         return Err(Error::InvalidArgument {
             name: "fps".to_string(),
@@ -164,6 +172,8 @@ pub fn check_framing(
     let multiple = (spatial * config.patch_size) as u32;
     let reason = if width == 0 || height == 0 || width % multiple != 0 || height % multiple != 0 {
         format!("{width}x{height} is not a positive multiple of {multiple} on both sides")
+    } else if width > video_processor::MAX_SIDE || height > video_processor::MAX_SIDE {
+        format!("{width}x{height}: at most {} pixels a side", video_processor::MAX_SIDE)
     } else if config.use_learned_positional_embeddings && (width, height) != model_size {
         let (w, h) = model_size;
         format!("this transformer has a learned positional table for {w}x{h} only")

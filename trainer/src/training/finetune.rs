@@ -106,7 +106,11 @@ pub fn finetune_on(
     let built = request.resume && crate::training::data::ClipIndex::open(std::slice::from_ref(&pairs_dir)).is_ok();
     if rank == 0 && !built {
         let sequence = datagen::io::sequence::read_sequence(sequence_dir)?;
-        let frames = config.data.frames as u32;
+        // Within `video_processor::MAX_FRAMES` once validated; narrowed checked all the same.
+        let frames = u32::try_from(config.data.frames).map_err(|_| Error::InvalidArgument {
+            name: "data.frames".to_string(),
+            reason: format!("{} frames per clip", config.data.frames),
+        })?;
         let pairs_config = datagen::pairs::generator::PairsConfig {
             clip: datagen::pairs::clip::ClipConfig { length: frames, stride: frames, max_clips: 0 },
             ..Default::default()

@@ -768,11 +768,24 @@ pub fn sampling_plan(
     let spatial = vae_config.spatial_compression_ratio() as u64;
     let temporal = vae_config.effective_temporal_compression_ratio() as u64;
     let patch = transformer.patch_size as u64;
-    let latent_frames = (frames - 1) / temporal + 1;
-    let video_tokens = latent_frames.div_ceil(transformer.patch_size_t.unwrap_or(1) as u64)
-        * (height / spatial / patch)
-        * (width / spatial / patch);
-    let tokens = video_tokens + transformer.max_text_seq_length as u64;
+    // `frames`, `height` and `width` come from flags: every count sized by them is checked, so a
+    // huge value is refused naming it instead of wrapping (release) or panicking (debug).
+    let overflow = || Error::InvalidArgument {
+        name: "frames".to_string(),
+        reason: format!(
+            "{frames} frames of {width}x{height}: the memory they need does not fit 64 bits; sample fewer frames or \
+             a smaller size"
+        ),
+    };
+    let mul = |factors: &[u64]| factors.iter().try_fold(1u64, |total, &f| total.checked_mul(f)).ok_or_else(overflow);
+    let add = |terms: &[u64]| terms.iter().try_fold(0u64, |total, &t| total.checked_add(t)).ok_or_else(overflow);
+    let latent_frames = frames.saturating_sub(1) / temporal + 1;
+    let video_tokens = mul(&[
+        latent_frames.div_ceil(transformer.patch_size_t.unwrap_or(1) as u64),
+        height / spatial / patch,
+        width / spatial / patch,
+    ])?;
+    let tokens = add(&[video_tokens, transformer.max_text_seq_length as u64])?;
     let text_bytes = 2 * transformer.max_text_seq_length as u64 * transformer.text_embed_dim as u64 * working;
     let persistent = vec![
         PlanRow {
@@ -792,27 +805,29 @@ pub fn sampling_plan(
         },
     ];
     let resident: u64 = persistent.iter().map(|r| r.bytes).sum();
-    let denoise_peak = INFERENCE_LIVE_UNITS * batch * tokens * transformer.inner_dim() as u64 * working;
+    let denoise_peak = mul(&[INFERENCE_LIVE_UNITS, batch, tokens, transformer.inner_dim() as u64, working])?;
     let (tile_h, tile_w) = match tiling {
         Some(t) => ((t.tile_sample_min_height as u64).min(height), (t.tile_sample_min_width as u64).min(width)),
         None => (height, width),
     };
     let level0 = vae_config.block_out_channels.first().copied().unwrap_or(0) as u64;
-    let pixels = frames * height * width;
-    let video_bytes = RGB * pixels * working;
-    let tile_plane = level0 * tile_h * tile_w * working;
+    let video_bytes = mul(&[RGB, frames, height, width, working])?;
+    let tile_plane = mul(&[level0, tile_h, tile_w, working])?;
     let first_batch = first_temporal_batch(frames, vae::SAMPLE_FRAMES_BATCH_SIZE as u64);
     let output_copies = if tiling.is_some() { TILED_OUTPUT_COPIES } else { 1.0 };
-    let vae_encode_peak = 2 * video_bytes + encoder_live_frames(first_batch) * tile_plane;
+    let vae_encode_peak = add(&[mul(&[2, video_bytes])?, mul(&[encoder_live_frames(first_batch), tile_plane])?])?;
     let decode_first = first_temporal_batch(latent_frames, vae::LATENT_FRAMES_BATCH_SIZE as u64);
     let decode_frames = (decode_first - 1) * temporal + 1;
-    let vae_decode_peak = (encoder_live_frames(decode_frames) + DECODER_EXTRA_TENSORS * decode_frames) * tile_plane
-        + (output_copies * video_bytes as f64) as u64;
+    let decode_live = encoder_live_frames(decode_frames) + DECODER_EXTRA_TENSORS * decode_frames;
+    // Below 2^64 already (`video_bytes` is), so the float product converts back exactly enough.
+    let output_bytes = (output_copies * video_bytes as f64).min(u64::MAX as f64) as u64;
+    let vae_decode_peak = add(&[mul(&[decode_live, tile_plane])?, output_bytes])?;
     // Built in the working type; loading converts one checkpoint tensor at a time, and a LoRA
     // merge holds one layer in fp32.
     let load_peak = resident + largest * FP32_BYTES;
     let runtime = if device == Device::Cpu { CPU_RUNTIME_BYTES } else { 0 };
-    let total = load_peak.max(resident + denoise_peak.max(vae_encode_peak).max(vae_decode_peak)) + runtime;
+    let total =
+        add(&[load_peak.max(add(&[resident, denoise_peak.max(vae_encode_peak).max(vae_decode_peak)])?), runtime])?;
     Ok(SamplingPlan {
         device,
         kind,

@@ -654,6 +654,8 @@ fn nvs_checks_every_argument_and_model_before_its_first_write() {
         (vec![&"--sample-steps", &"0"], vec!["steps", "0"]),
         (vec![&"--sample-steps", &"1001"], vec!["steps", "1001", "1000"]),
         (vec![&"--frames", &"8"], vec!["frames", "8"]),
+        // 1 + 4k, and beyond what any size computed from it can hold: refused, not a panic.
+        (vec![&"--frames", &"18446744073709551613"], vec!["frames", "18446744073709551613", "1025"]),
         (vec![&"--guidance", &"nan"], vec!["guidance", "NaN"]),
         (vec![&"--fps", &"0"], vec!["fps", "0"]),
         (vec![&"--fps", &"-1"], vec!["fps", "-1"]),
@@ -675,7 +677,7 @@ fn nvs_checks_every_argument_and_model_before_its_first_write() {
         assert!(!out.exists(), "{needles:?}: nothing is written");
     }
     // Values the flag parser refuses, naming the flag (exit status 2).
-    for (flag, value) in [("--seed", "-1"), ("--steps", "-2"), ("--finetune-trajectories", "-1")] {
+    for (flag, value) in [("--seed", "-1"), ("--steps", "-2"), ("--finetune-trajectories", "-1"), ("--size", "0x0")] {
         let output = job.run(&out, &job.trajectories, &[&flag, &value]);
         let text = stderr(&output);
         assert_eq!(output.status.code(), Some(2), "{text}");
@@ -987,4 +989,53 @@ fn a_signal_while_nothing_checkpointable_runs_ends_the_process_at_once() {
     // 128 + SIGTERM, from the handler: not the preemption path, and not after the hash.
     assert_eq!(status.code(), Some(143), "{status:?}");
     assert!(took < std::time::Duration::from_secs(5), "the signal waited {took:?} for the hash");
+}
+
+/// A benchmark ROOT whose one scene is unreadable (its second camera's cameras.json cut), with
+/// the tiny released models: `(dir, root, transformer, base)`.
+fn unreadable_benchmark_root() -> (tempfile::TempDir, PathBuf, PathBuf, PathBuf) {
+    let dir = tempfile::tempdir().unwrap();
+    let (transformer, base, _) = super::nvs::released_layout(dir.path());
+    let root = dir.path().join("root");
+    let config = datagen::synth::SynthConfig { width: 80, height: 64, frames: 5, ..Default::default() };
+    let rig = datagen::synth::CameraRig { cameras: 2, spacing_deg: 10.0 };
+    datagen::synth::write_multiview(&config, &rig, &root.join("broken"), |_| {}).unwrap();
+    let cameras = root.join("broken/cam01/cameras.json");
+    let text = std::fs::read_to_string(&cameras).unwrap();
+    std::fs::write(&cameras, &text[..text.len() / 2]).unwrap();
+    (dir, root, transformer, base)
+}
+
+#[test]
+fn benchmark_refuses_bad_flags_before_recording_and_fails_when_nothing_is_scored() {
+    let (dir, root, transformer, base) = unreadable_benchmark_root();
+    let out = dir.path().join("run");
+    let benchmark = |extra: &[&str]| {
+        let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_trainer"));
+        cmd.args(["benchmark", "--dataset", "kubric4d", "--steps", "0", "--sample-steps", "1", "--frames", "5"]);
+        cmd.arg("--root").arg(&root).arg("--init").arg(&transformer).arg("--base-model").arg(&base);
+        cmd.arg("--out").arg(&out).args(extra);
+        cmd.output().unwrap()
+    };
+    // A size of no pixels is refused by the parser, naming the flag, before OUT exists.
+    let refused = benchmark(&["--eval-size", "0x0"]);
+    let text = stderr(&refused);
+    assert_eq!(refused.status.code(), Some(2), "{text}");
+    assert!(text.contains("--eval-size") && text.contains("0x0"), "{text}");
+    assert!(!out.exists(), "a refused flag leaves no record behind");
+
+    // Every scene failing is a failure with each scene's reason, not "0/1 scenes" and exit 0.
+    let failed = benchmark(&["--eval-size", "80x64"]);
+    let text = stderr(&failed);
+    assert!(!failed.status.success(), "{text}");
+    assert!(
+        text.contains("no scene could be scored") && text.contains("broken: ") && text.contains("cameras.json"),
+        "{text}"
+    );
+
+    // Other settings are refused naming each change once.
+    let changed = benchmark(&["--eval-size", "80x64", "--seed", "7"]);
+    let text = stderr(&changed);
+    assert!(!changed.status.success() && text.contains("other settings"), "{text}");
+    assert_eq!(text.matches("seed: 42 → 7").count(), 1, "{text}");
 }

@@ -256,6 +256,11 @@ struct BenchmarkArgs {
     /// KID subsets.
     #[arg(long, default_value_t = trainer::eval::fid::KID_SUBSETS)]
     kid_subsets: usize,
+    /// DyCheck: a folder of dycheck_<scene>_source_target_correspondence.txt files (the CogNVS
+    /// evaluation bundle's dycheck/) selecting the held-out frames scored, as the official script
+    /// selects them [default: every held-out frame the input camera's instants meet].
+    #[arg(long)]
+    correspondence: Option<PathBuf>,
     /// Compute device: cpu, cuda or cuda:N.
     #[arg(long, default_value = "cpu")]
     device: String,
@@ -913,11 +918,13 @@ fn run_benchmark(args: BenchmarkArgs) -> anyhow::Result<bool> {
         inception: args.inception_weights,
         kid_subsets: args.kid_subsets,
         kid_subset_size: args.kid_subset_size,
+        correspondence: args.correspondence,
     };
     let outcome = benchmark::run(&request, &mut |event| match event {
         Progress::Scene(name, i, n) => eprintln!("scene {}/{n}: {name}", i + 1),
         Progress::Skipped(name) => eprintln!("scene {name}: scored by an earlier run, skipped"),
         Progress::Failed(name, reason) => eprintln!("scene {name}: FAILED: {reason}"),
+        Progress::Window(name, i, n, start) => eprintln!("scene {name}: window {}/{n} from frame {start}", i + 1),
         Progress::Done(name, line) => eprintln!(
             "scene {name}: {} frames, PSNR {}",
             line.frames,

@@ -4,21 +4,28 @@
 //!
 //! Per scene of `ROOT` (each sub-folder a multi-camera scene in the DyCheck, Kubric-4D,
 //! ParallelDomain-4D or generic layout, [`datagen::io::multiview_layout::read_multiview_as`]): the
-//! source is the split's input camera over a window of `--frames` instants (from the first one a
-//! held-out camera films), rendered from the dataset's own depth and cameras or from a
-//! reconstruction folder ([`Reconstruction`]); each held-out camera's poses at those instants are
-//! a trajectory; [`crate::pipelines::nvs::run`] (the `trainer nvs` job) finetunes on the source and samples
-//! every trajectory; each result is brought to the held-out camera's intrinsics and size
-//! ([`scene::write_view`]) and scored against its frames at the same instants by `trainer eval`'s
-//! code ([`crate::eval::score::run_pairs`]) at the protocol's size, over the co-visibility
-//! masks the dataset ships where it ships them (DyCheck). FID/KID pool every frame of every
-//! scene, as GCD and the paper do.
+//! frames scored are every held-out camera's frames at instants the split's input camera films
+//! (for DyCheck with `correspondence`, those its correspondence file lists, as the official
+//! script selects them). The input camera's video is sampled in windows of `--frames` instants
+//! that cover every scored instant ([`scene::plan_windows`]: back to back from the first, the
+//! last shifted back to end at the last scored instant; an instant two windows cover is scored
+//! from the earlier). Per window the source, rendered from the dataset's own depth and cameras
+//! or from a reconstruction folder ([`Reconstruction`]), and each held-out camera's poses at
+//! its instants (a trajectory) make one `trainer nvs` job ([`crate::pipelines::nvs::run`]:
+//! finetuning on the window's source, then a sample of every trajectory). Each result is brought
+//! to the held-out camera's intrinsics and size ([`scene::write_view`]) and a camera's frames of
+//! every window are scored against its frames at the same instants by `trainer eval`'s code
+//! ([`crate::eval::score::run_pairs`]) at the protocol's size, over the co-visibility masks the
+//! dataset ships where it ships them (DyCheck). Means pool frames and keep infinite values (∞ in
+//! the table, `"inf"` in the JSON), as the official codes' `np.mean` does. FID/KID pool every
+//! frame of every scene, as GCD and the paper do.
 //!
 //! `OUT/settings.json` holds every setting and the checkpoint's digest; a rerun with other
-//! settings is refused naming what changed. `OUT/scenes/<scene>/` is a scene's work (its source
-//! sequence, trajectories, `nvs/` job, and `pred/`, `target/`, `mask/` per held-out camera);
-//! `OUT/results/<scene>.json`, written atomically when the scene is scored, marks it done: a rerun
-//! skips it, and a scene killed part way continues its `nvs` job. A scene whose inputs are broken
+//! settings is refused naming what changed. `OUT/scenes/<scene>/` is a scene's work
+//! (`window-<start>/` per window with its source sequence, trajectories and `nvs/` job; `pred/`,
+//! `target/`, `mask/` per held-out camera); `OUT/results/<scene>.json`, written atomically when
+//! the scene is scored, marks it done: a rerun skips it, and a scene killed part way skips its
+//! finished windows' jobs and continues the one it was in. A scene whose inputs are broken
 //! is reported as failed with its reason (and tried again by the next run); the rest go on.
 //! `OUT/report.{json,md}` hold the table (see [`report`]).
 
@@ -138,6 +145,11 @@ pub struct Request {
     pub kid_subsets: usize,
     /// KID's largest subset size (clean-fid's `max_subset_size`).
     pub kid_subset_size: usize,
+    /// DyCheck: a folder of `dycheck_<scene>_source_target_correspondence.txt` files (the CogNVS
+    /// evaluation bundle's `dycheck/`) selecting the held-out frames scored, as the official
+    /// `eval_metrics.py` selects them (None: every held-out frame the input camera's instants
+    /// meet).
+    pub correspondence: Option<PathBuf>,
 }
 
 /// What the benchmark reports while it runs.
@@ -149,7 +161,9 @@ pub enum Progress<'a> {
     Skipped(&'a str),
     /// Scene `name` failed; the reason.
     Failed(&'a str, &'a str),
-    /// The scene's `nvs` job reports.
+    /// Scene `name`'s window (index, of windows) starting at input frame `start` starts.
+    Window(&'a str, usize, usize, usize),
+    /// The window's `nvs` job reports.
     Nvs(crate::pipelines::nvs::Progress<'a>),
     /// Scene `name` is scored.
     Done(&'a str, &'a report::SceneLine),
@@ -174,6 +188,8 @@ pub const REPORT_MD: &str = "report.md";
 const RESULTS_DIR: &str = "results";
 /// Per-scene work in OUT.
 const SCENES_DIR: &str = "scenes";
+/// A window's `nvs` job in its work folder.
+const NVS_DIR: &str = "nvs";
 
 /// One held-out camera's scores in a scene.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -197,8 +213,8 @@ pub struct SceneResult {
     pub scene: String,
     /// The input camera.
     pub input_camera: String,
-    /// First frame of the source window.
-    pub window_start: usize,
+    /// The windows of the input camera's video sampled, in order.
+    pub windows: Vec<WindowResult>,
     /// Dataset units per reconstruction unit (1 for the dataset's reconstruction).
     pub reconstruction_scale: f64,
     /// Per held-out camera.
@@ -207,20 +223,32 @@ pub struct SceneResult {
     pub frames: usize,
     /// The frame-weighted mean over cameras.
     pub metrics: Metrics,
-    /// The checkpoint sampled (the finetuned one with steps > 0).
-    pub checkpoint: Option<String>,
-    /// Seconds of finetuning, sampling (all trajectories) and the whole scene.
+    /// Seconds of finetuning, sampling (all windows and trajectories) and the whole scene.
     pub seconds: SceneSeconds,
     /// The toolkit's commit that produced it.
     pub toolkit_commit: Option<String>,
 }
 
+/// One window of a scene: a clip of the input camera's video sampled by its own `nvs` job.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct WindowResult {
+    /// First frame (index into the input camera's video).
+    pub start: usize,
+    /// One past the last frame.
+    pub end: usize,
+    /// The instants (time ids) scored from this window; an instant two windows cover is scored
+    /// from the earlier one.
+    pub time_ids: Vec<usize>,
+    /// The checkpoint sampled (the window's finetuned one with steps > 0).
+    pub checkpoint: Option<String>,
+}
+
 /// Where a scene's time went.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct SceneSeconds {
-    /// Test-time finetuning.
+    /// Test-time finetuning, all windows.
     pub finetune: Option<f64>,
-    /// Sampling, all trajectories.
+    /// Sampling, all windows and trajectories.
     pub sample: Option<f64>,
     /// The scene from start to scores, in the run that finished it.
     pub total: f64,
@@ -293,6 +321,7 @@ fn settings(r: &Request, checkpoint_digest: &str) -> serde_json::Value {
         "inception": show(&r.inception),
         "kid_subsets": r.kid_subsets,
         "kid_subset_size": r.kid_subset_size,
+        "correspondence": show(&r.correspondence),
     })
 }
 
@@ -474,6 +503,18 @@ pub fn run(request: &Request, progress: &mut dyn FnMut(Progress)) -> Result<Outc
             });
         }
     }
+    if let Some(dir) = &request.correspondence
+        && (request.dataset != Dataset::Dycheck || !dir.is_dir())
+    {
+        return Err(Error::InvalidArgument {
+            name: "correspondence".to_string(),
+            reason: if request.dataset == Dataset::Dycheck {
+                format!("{}: not a folder (give the evaluation bundle's dycheck/ folder)", dir.display())
+            } else {
+                "correspondence files select DyCheck frames; this is a benchmark of another dataset".to_string()
+            },
+        });
+    }
     if let Reconstruction::Folder(dir) = &request.reconstruction
         && !dir.is_dir()
     {
@@ -583,7 +624,8 @@ enum SceneOutcome {
     Preempted,
 }
 
-/// One scene: prepare, `nvs`, bring the results to the held-out cameras, score.
+/// One scene: prepare its windows, one `nvs` job per window, bring the results to the held-out
+/// cameras, score each camera over every window.
 fn run_scene(
     request: &Request,
     name: &str,
@@ -600,41 +642,79 @@ fn run_scene(
             reason: "no such scene folder".to_string(),
         });
     }
+    let correspondence = match &request.correspondence {
+        Some(folder) => {
+            let path = folder.join(datagen::io::dycheck::correspondence_file_name(name));
+            if !path.is_file() {
+                return Err(Error::InvalidInput {
+                    path,
+                    what: "correspondence".to_string(),
+                    reason: "no correspondence file for the scene".to_string(),
+                });
+            }
+            Some(path)
+        }
+        None => None,
+    };
     let scene = read_scene(&dir, request.layout)?;
     let work = request.out.join(SCENES_DIR).join(name);
-    let prepared = scene::prepare(&scene, &request.split, &request.reconstruction, request.framing.frames, &work)?;
-    let nvs_out = work.join("nvs");
-    let nvs = crate::pipelines::nvs::NvsRequest {
-        model: request.model.clone(),
-        sequence: prepared.source.clone(),
-        trajectories: prepared.trajectories.clone(),
-        out: nvs_out.clone(),
-        steps: request.steps,
-        finetune_trajectories: request.finetune_trajectories,
-        config: request.config.clone(),
-        sample_steps: request.sample_steps,
-        guidance: request.guidance,
-        seed: request.seed,
-        load: request.load,
-        framing: request.framing.clone(),
-        stack_background: request.stack_background,
-    };
-    let outcome =
-        crate::pipelines::nvs::run(&nvs, request.load.device, None, &mut |event| progress(Progress::Nvs(event)))?;
-    if outcome.preempted {
-        return Ok(SceneOutcome::Preempted);
+    let prepared = scene::prepare(
+        &scene,
+        &request.split,
+        &request.reconstruction,
+        request.framing.frames,
+        correspondence.as_deref(),
+        &work,
+    )?;
+    let mut records = Vec::with_capacity(prepared.windows.len());
+    for (index, window) in prepared.windows.iter().enumerate() {
+        progress(Progress::Window(name, index, prepared.windows.len(), window.window.start));
+        let nvs = crate::pipelines::nvs::NvsRequest {
+            model: request.model.clone(),
+            sequence: window.source.clone(),
+            trajectories: window.trajectories.clone(),
+            out: window.dir.join(NVS_DIR),
+            steps: request.steps,
+            finetune_trajectories: request.finetune_trajectories,
+            config: request.config.clone(),
+            sample_steps: request.sample_steps,
+            guidance: request.guidance,
+            seed: request.seed,
+            load: request.load,
+            framing: request.framing.clone(),
+            stack_background: request.stack_background,
+        };
+        let outcome =
+            crate::pipelines::nvs::run(&nvs, request.load.device, None, &mut |event| progress(Progress::Nvs(event)))?;
+        if outcome.preempted {
+            return Ok(SceneOutcome::Preempted);
+        }
+        records.push(outcome.record.expect("rank 0 has the record"));
     }
-    let record = outcome.record.expect("rank 0 has the record");
-    let (input, _) = scene::cameras(&scene, &request.split)?;
+    let (input, held) = scene::cameras(&scene, &request.split)?;
     let mut cameras = Vec::new();
-    for (view, output) in prepared.views.iter().zip(&record.outputs) {
-        let camera = scene.camera(&view.camera).expect("prepared from the scene");
-        let sampled = crate::eval::metrics::read_frames(&nvs_out.join(output.frames.as_deref().unwrap_or(&view.name)))?;
-        let render_dir = nvs_out.join(&output.render);
-        let render = crate::eval::metrics::read_frames(&render_dir.join("frames"))?;
-        let holes = crate::eval::metrics::read_masks(&render_dir.join("holes"))?;
-        let folders = scene::write_view(&work, view, camera, &prepared.source_cameras, &sampled, &render, &holes)?;
-        if folders.matches.is_empty() {
+    for camera in held {
+        let folders = scene::ViewFolders::create(&work, camera)?;
+        let (mut time_ids, mut error) = (Vec::new(), scene::RenderError::default());
+        for (window, record) in prepared.windows.iter().zip(&records) {
+            let Some(view) = window.views.iter().find(|v| v.camera == camera.id) else { continue };
+            let output = record.outputs.iter().find(|o| o.name == view.name).expect("one output per trajectory");
+            let nvs_out = window.dir.join(NVS_DIR);
+            let sampled =
+                crate::eval::metrics::read_frames(&nvs_out.join(output.frames.as_deref().unwrap_or(&view.name)))?;
+            let render_dir = nvs_out.join(&output.render);
+            let render = crate::eval::metrics::read_frames(&render_dir.join("frames"))?;
+            let holes = crate::eval::metrics::read_masks(&render_dir.join("holes"))?;
+            let outputs = scene::WindowOutputs {
+                source_cameras: &window.source_cameras,
+                sampled: &sampled,
+                render: &render,
+                holes: &holes,
+            };
+            let written = scene::write_view(&folders, time_ids.len(), view, camera, &outputs, &mut error)?;
+            time_ids.extend(written.iter().map(|&(_, j)| camera.time_ids[j]));
+        }
+        if time_ids.is_empty() {
             continue;
         }
         resize_folder(&folders.pred, size, false)?;
@@ -643,44 +723,52 @@ fn run_scene(
             resize_folder(mask, size, true)?;
         }
         let pair = crate::eval::score::Pair::new(
-            view.camera.clone(),
+            camera.id.clone(),
             folders.pred.clone(),
             folders.target.clone(),
             folders.mask.clone(),
         );
         let scored = crate::eval::score::run_pairs(&eval_request(request, false), &[pair], |_, _| {})?;
         cameras.push(CameraResult {
-            camera: view.camera.clone(),
-            time_ids: folders.matches.iter().map(|&(_, j)| camera.time_ids[j]).collect(),
+            camera: camera.id.clone(),
+            time_ids,
             metrics: Metrics::from_row(&scored.videos[0]),
-            render_mse: folders.render_mse,
-            render_coverage: folders.render_coverage,
+            render_mse: error.mse(),
+            render_coverage: error.coverage(),
         });
     }
     if cameras.is_empty() {
         return Err(Error::InvalidInput {
             path: dir,
             what: "held-out frames".to_string(),
-            reason: "no held-out camera films an instant of the sampled window".to_string(),
+            reason: "no held-out camera films an instant of the sampled windows".to_string(),
         });
     }
     let frames = cameras.iter().map(|c| c.time_ids.len()).sum();
     let metrics = Metrics::weighted_mean(cameras.iter().map(|c| (&c.metrics, c.time_ids.len() as f64)));
-    let sample_seconds: Vec<f64> = record.outputs.iter().filter_map(|o| o.sample_seconds).collect();
+    let sum = |values: Vec<f64>| (!values.is_empty()).then(|| values.iter().sum());
+    let finetune = sum(records.iter().filter_map(|r| r.finetune_seconds).collect());
+    let sample = sum(records.iter().flat_map(|r| r.outputs.iter().filter_map(|o| o.sample_seconds)).collect());
+    let windows = prepared
+        .windows
+        .iter()
+        .zip(&records)
+        .map(|(w, record)| WindowResult {
+            start: w.window.start,
+            end: w.window.end,
+            time_ids: w.window.scored.iter().map(|&i| input.time_ids[i]).collect(),
+            checkpoint: record.checkpoint.clone(),
+        })
+        .collect();
     Ok(SceneOutcome::Done(Box::new(SceneResult {
         scene: name.to_string(),
         input_camera: input.id.clone(),
-        window_start: prepared.window_start,
+        windows,
         reconstruction_scale: prepared.scale,
         cameras,
         frames,
         metrics,
-        checkpoint: record.checkpoint.clone(),
-        seconds: SceneSeconds {
-            finetune: record.finetune_seconds,
-            sample: (!sample_seconds.is_empty()).then(|| sample_seconds.iter().sum()),
-            total: started.elapsed().as_secs_f64(),
-        },
+        seconds: SceneSeconds { finetune, sample, total: started.elapsed().as_secs_f64() },
         toolkit_commit: commit,
     })))
 }

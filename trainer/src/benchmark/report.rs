@@ -9,35 +9,82 @@ use serde::{Deserialize, Serialize};
 use super::Dataset;
 use crate::error::{Error, Result};
 
-/// One row of metrics; a value is None where it was not computed (no weights, no masks) or is
-/// not finite (the PSNR of identical frames).
+/// One row of metrics; a value is None where it was not computed (no weights, no masks). A
+/// value may be infinite (the PSNR of a frame identical to its target, the mPSNR of one with no
+/// co-visible pixel): means keep it, as the official codes' `np.mean` does, and the JSON writes
+/// it as the string `"inf"` ([`non_finite`]).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct Metrics {
     /// PSNR ↑ (dB).
+    #[serde(default, with = "non_finite")]
     pub psnr: Option<f64>,
     /// SSIM ↑.
+    #[serde(default, with = "non_finite")]
     pub ssim: Option<f64>,
     /// LPIPS ↓.
+    #[serde(default, with = "non_finite")]
     pub lpips: Option<f64>,
     /// mPSNR ↑ over the co-visibility masks.
+    #[serde(default, with = "non_finite")]
     pub masked_psnr: Option<f64>,
     /// mSSIM ↑.
+    #[serde(default, with = "non_finite")]
     pub masked_ssim: Option<f64>,
     /// mLPIPS ↓.
+    #[serde(default, with = "non_finite")]
     pub masked_lpips: Option<f64>,
 }
 
+/// An optional number in JSON, which has no infinity: finite values as numbers, ±∞ and NaN as
+/// the strings `"inf"`, `"-inf"` and `"nan"` (how Python's `float()` reads them back), None as
+/// null.
+pub mod non_finite {
+    use serde::{Deserialize, Deserializer, Serialize, Serializer};
+
+    /// A number or one of the strings.
+    #[derive(Serialize, Deserialize)]
+    #[serde(untagged)]
+    enum Value {
+        Number(f64),
+        Text(String),
+    }
+
+    /// Writes `value`.
+    pub fn serialize<S: Serializer>(value: &Option<f64>, serializer: S) -> Result<S::Ok, S::Error> {
+        match value {
+            Some(v) if v.is_finite() => serializer.serialize_some(&Value::Number(*v)),
+            Some(v) => serializer.serialize_some(&Value::Text(v.to_string().to_lowercase())),
+            None => serializer.serialize_none(),
+        }
+    }
+
+    /// Reads a value written by [`serialize`].
+    pub fn deserialize<'de, D: Deserializer<'de>>(deserializer: D) -> Result<Option<f64>, D::Error> {
+        match Option::<Value>::deserialize(deserializer)? {
+            None => Ok(None),
+            Some(Value::Number(v)) => Ok(Some(v)),
+            Some(Value::Text(text)) => match text.as_str() {
+                "inf" => Ok(Some(f64::INFINITY)),
+                "-inf" => Ok(Some(f64::NEG_INFINITY)),
+                "nan" => Ok(Some(f64::NAN)),
+                other => {
+                    Err(serde::de::Error::custom(format!("`{other}` is not a number, \"inf\", \"-inf\" or \"nan\"")))
+                }
+            },
+        }
+    }
+}
+
 impl Metrics {
-    /// From `trainer eval`'s row, non-finite values dropped.
+    /// From `trainer eval`'s row, infinite values kept.
     pub fn from_row(row: &crate::eval::score::VideoRow) -> Self {
-        let finite = |v: Option<f64>| v.filter(|v| v.is_finite());
         Self {
-            psnr: finite(Some(row.psnr)),
-            ssim: finite(Some(row.ssim)),
-            lpips: finite(row.lpips),
-            masked_psnr: finite(row.masked_psnr),
-            masked_ssim: finite(row.masked_ssim),
-            masked_lpips: finite(row.masked_lpips),
+            psnr: Some(row.psnr),
+            ssim: Some(row.ssim),
+            lpips: row.lpips,
+            masked_psnr: row.masked_psnr,
+            masked_ssim: row.masked_ssim,
+            masked_lpips: row.masked_lpips,
         }
     }
 
@@ -53,7 +100,8 @@ impl Metrics {
         ]
     }
 
-    /// The mean of each column over `rows` weighted by `weights` (rows without a value skipped).
+    /// The mean of each column over `rows` weighted by `weights` (rows without a value skipped;
+    /// an infinite value makes the mean infinite, as `np.mean` over the frames does).
     pub fn weighted_mean<'a>(rows: impl Iterator<Item = (&'a Metrics, f64)> + Clone) -> Metrics {
         let column = |f: fn(&Metrics) -> Option<f64>| {
             let (sum, weight) = rows
@@ -159,7 +207,7 @@ pub struct Report {
     pub scenes: Vec<SceneLine>,
     /// The scenes that failed, with the reason.
     pub failed: Vec<FailedScene>,
-    /// Mean over scenes.
+    /// Mean over every frame of every scene.
     pub mean: Metrics,
     /// FID over every frame of every scene.
     pub fid: Option<f64>,
@@ -313,7 +361,11 @@ pub struct Comparison {
 }
 
 fn difference(a: &Metrics, b: &Metrics) -> Metrics {
-    let d = |x: Option<f64>, y: Option<f64>| Some(y? - x?);
+    // Equal values differ by 0, the same infinity included (∞ − ∞ would be NaN).
+    let d = |x: Option<f64>, y: Option<f64>| {
+        let (x, y) = (x?, y?);
+        Some(if x == y { 0.0 } else { y - x })
+    };
     Metrics {
         psnr: d(a.psnr, b.psnr),
         ssim: d(a.ssim, b.ssim),
@@ -396,4 +448,39 @@ pub fn comparison_markdown(c: &Comparison) -> String {
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// An infinite value (identical frames) survives the row, the frame-weighted mean, the JSON
+    /// and the table, and two equal infinities differ by 0.
+    #[test]
+    fn infinite_values_are_kept() {
+        let row = crate::eval::score::VideoRow {
+            name: "v".to_string(),
+            frames: 2,
+            sample: None,
+            psnr: f64::INFINITY,
+            ssim: 1.0,
+            lpips: Some(0.0),
+            masked_psnr: Some(f64::INFINITY),
+            masked_ssim: Some(1.0),
+            masked_lpips: Some(0.0),
+        };
+        let infinite = Metrics::from_row(&row);
+        assert_eq!(infinite.psnr, Some(f64::INFINITY));
+        let finite = Metrics { psnr: Some(20.0), ssim: Some(0.5), ..Default::default() };
+        let mean = Metrics::weighted_mean([(&infinite, 1.0), (&finite, 3.0)].into_iter());
+        assert_eq!((mean.psnr, mean.masked_psnr), (Some(f64::INFINITY), Some(f64::INFINITY)));
+        let json = serde_json::to_string(&mean).unwrap();
+        assert!(json.contains(r#""psnr":"inf""#), "{json}");
+        assert_eq!(serde_json::from_str::<Metrics>(&json).unwrap(), mean);
+        let bad = serde_json::from_str::<Metrics>(r#"{"psnr": "big"}"#).unwrap_err().to_string();
+        assert!(bad.contains("big"), "{bad}");
+        assert_eq!(cell(mean.psnr, 4), "inf");
+        assert_eq!(difference(&mean, &mean).psnr, Some(0.0));
+        assert_eq!(difference(&finite, &mean).psnr, Some(f64::INFINITY));
+    }
 }

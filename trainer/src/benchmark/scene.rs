@@ -1,11 +1,14 @@
-//! One benchmark scene's inputs and outputs: the source video written as a generic sequence
-//! folder (the split's input camera with the chosen reconstruction), one trajectory per held-out
-//! camera (its poses at the source's instants), and after sampling, the predictions brought to
-//! each held-out camera's intrinsics and size beside that camera's frames and co-visibility
-//! masks, matched by the scene's time ids.
+//! One benchmark scene's inputs and outputs: the frames scored (every held-out frame at an
+//! instant the input camera films, or those a DyCheck correspondence file lists), the windows of
+//! the input camera's video that cover them ([`plan_windows`]), per window the source video
+//! written as a generic sequence folder (the split's input camera with the chosen
+//! reconstruction) and one trajectory per held-out camera (its poses at the window's instants),
+//! and after sampling, the predictions brought to each held-out camera's intrinsics and size
+//! beside that camera's frames and co-visibility masks, matched by the scene's time ids.
 
 use std::path::{Path, PathBuf};
 
+use datagen::io::dycheck::FrameCorrespondence;
 use datagen::io::multiview::{CameraView, MultiViewScene};
 use datagen::io::sequence::Sequence;
 use foundation::camera::{PinholeCamera, mat3_to_row_major, mat4_to_row_major};
@@ -36,38 +39,63 @@ pub struct SplitOverride {
     pub held_out: Vec<String>,
 }
 
-/// One held-out camera's frames that the sampled window covers.
+/// One held-out camera's frames scored from one window.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct HeldOutView {
     /// The camera's id.
     pub camera: String,
-    /// The trajectory's output name in the `nvs` job (the file stem).
+    /// The trajectory's output name in the window's `nvs` job (the file stem).
     pub name: String,
-    /// For each source window position with a frame of this camera: (position, frame index).
+    /// For each window position scored with a frame of this camera: (position, frame index).
     pub matches: Vec<(usize, usize)>,
+}
+
+/// A window of the input camera's video sampled as one clip, and the instants scored from it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Window {
+    /// First frame (index into the input camera's video).
+    pub start: usize,
+    /// One past the last frame.
+    pub end: usize,
+    /// The evaluated frames scored from this window (indices into the input camera's video).
+    pub scored: Vec<usize>,
+}
+
+/// What [`prepare`] wrote for one window.
+#[derive(Debug, Clone)]
+pub struct PreparedWindow {
+    /// The window.
+    pub window: Window,
+    /// Its work folder (`window-<start>`): the source, the trajectories and the `nvs` job.
+    pub dir: PathBuf,
+    /// The source sequence folder handed to `nvs`.
+    pub source: PathBuf,
+    /// One trajectory file per held-out view.
+    pub trajectories: Vec<PathBuf>,
+    /// The held-out views with a frame scored from this window.
+    pub views: Vec<HeldOutView>,
+    /// The source camera per window position (K and size of the predictions).
+    pub source_cameras: Vec<PinholeCamera>,
 }
 
 /// What [`prepare`] wrote.
 #[derive(Debug, Clone)]
 pub struct PreparedScene {
-    /// The source sequence folder handed to `nvs`.
-    pub source: PathBuf,
-    /// One trajectory file per held-out view.
-    pub trajectories: Vec<PathBuf>,
-    /// The held-out views.
-    pub views: Vec<HeldOutView>,
-    /// The source camera per window position (K and size of the predictions).
-    pub source_cameras: Vec<PinholeCamera>,
-    /// First frame of the window in the input camera's video.
-    pub window_start: usize,
+    /// The windows, in order.
+    pub windows: Vec<PreparedWindow>,
     /// Dataset units per reconstruction unit (1 for the dataset's own reconstruction).
     pub scale: f64,
 }
 
-/// Folder of the source sequence inside a scene's work folder.
+/// Folder of the source sequence inside a window's work folder.
 const SOURCE_DIR: &str = "source";
-/// Folder of the trajectory files inside a scene's work folder.
+/// Folder of the trajectory files inside a window's work folder.
 const TRAJECTORY_DIR: &str = "trajectories";
+
+/// The work folder name of the window starting at frame `start`.
+pub fn window_dir_name(start: usize) -> String {
+    format!("window-{start:05}")
+}
 
 /// The input and held-out cameras of `scene` under `split`, checked to exist and to differ
 /// nowhere but where the user asked (a camera may be its own target: the identity check).
@@ -104,25 +132,105 @@ pub fn cameras<'a>(scene: &'a MultiViewScene, split: &SplitOverride) -> Result<(
     Ok((input, held))
 }
 
-/// Writes the scene's source sequence (the window of `frames` instants from the first one a
-/// held-out camera films) and a trajectory per held-out camera under `work`.
+/// The frames of held-out `camera` that are scored: those at an instant the input camera films,
+/// and with a correspondence file (`path`, read), only those it lists for the camera
+/// (`<camera>_<time>.png`, the camera's id as its number), as the official `eval_metrics.py`
+/// selects them. A listed frame the camera does not have at an instant the input films is
+/// refused naming the file and the entry.
+fn scored_frames(
+    input: &CameraView,
+    camera: &CameraView,
+    correspondence: Option<(&Path, &FrameCorrespondence)>,
+) -> Result<Vec<usize>> {
+    let filmed = |j: usize| input.time_ids.contains(&camera.time_ids[j]);
+    let Some((path, correspondence)) = correspondence else {
+        return Ok((0..camera.time_ids.len()).filter(|&j| filmed(j)).collect());
+    };
+    let refuse =
+        |reason: String| Error::InvalidInput { path: path.to_path_buf(), what: "correspondence".to_string(), reason };
+    let number: u32 = camera.id.parse().map_err(|_| {
+        refuse(format!(
+            "held-out camera `{}` has no number, and correspondence files name cameras by number",
+            camera.id
+        ))
+    })?;
+    let listed = correspondence.frames(number);
+    if listed.is_empty() {
+        return Err(refuse(format!("no `{number}_<frame>.png` line for held-out camera `{}`", camera.id)));
+    }
+    let mut frames = Vec::with_capacity(listed.len());
+    for time in listed {
+        let j = (0..camera.time_ids.len()).find(|&j| camera.time_ids[j] == time && filmed(j)).ok_or_else(|| {
+            refuse(format!(
+                "`{number}_{time:05}.png`: camera `{}` has no frame at instant {time} that input camera `{}` films",
+                camera.id, input.id
+            ))
+        })?;
+        frames.push(j);
+    }
+    frames.sort_unstable();
+    frames.dedup();
+    Ok(frames)
+}
+
+/// The windows of `frames` frames of a video of `len` frames that score the `evaluated` frames
+/// (sorted, distinct): each starts at the first evaluated frame not yet scored, except that one
+/// that would pass the last evaluated frame is shifted back to end there (not before frame 0),
+/// overlapping the window before it. A frame in two windows is scored from the earlier one
+/// (the later window scores only the frames past the earlier's end).
+pub fn plan_windows(evaluated: &[usize], frames: usize, len: usize) -> Vec<Window> {
+    let frames = frames.max(1);
+    let Some(&last) = evaluated.last() else { return Vec::new() };
+    let mut windows = Vec::new();
+    let mut rest = evaluated;
+    while let Some(&next) = rest.first() {
+        let start = next.min((last + 1).saturating_sub(frames));
+        let end = (start + frames).min(len);
+        let scored = rest.iter().take_while(|&&i| i < end).count();
+        windows.push(Window { start, end, scored: rest[..scored].to_vec() });
+        rest = &rest[scored..];
+    }
+    windows
+}
+
+/// Writes the scene's windows under `work`: per window (see [`plan_windows`]) over the frames
+/// scored (every held-out frame at an instant the input camera films, or those the
+/// correspondence file at `correspondence` lists), its source sequence and a trajectory per
+/// held-out camera scored there.
 pub fn prepare(
     scene: &MultiViewScene,
     split: &SplitOverride,
     reconstruction: &Reconstruction,
     frames: usize,
+    correspondence: Option<&Path>,
     work: &Path,
 ) -> Result<PreparedScene> {
     let (input, held) = cameras(scene, split)?;
-    let filmed = |t: usize| held.iter().any(|c| c.time_ids.contains(&t));
-    let window_start = input.time_ids.iter().position(|&t| filmed(t)).ok_or_else(|| Error::InvalidInput {
-        path: scene.path.clone(),
-        what: "time ids".to_string(),
-        reason: format!("no instant of input camera `{}` is filmed by a held-out camera", input.id),
-    })?;
-    let window = window_start..(window_start + frames.max(1)).min(input.sequence.len());
-    let (source, scale) = match reconstruction {
-        Reconstruction::Dataset => (window_of(&input.sequence, window.clone()), 1.0),
+    let correspondence =
+        correspondence.map(|path| datagen::io::dycheck::read_correspondence(path).map(|c| (path, c))).transpose()?;
+    let mut scored = Vec::with_capacity(held.len());
+    for camera in &held {
+        scored.push(scored_frames(input, camera, correspondence.as_ref().map(|(p, c)| (*p, c)))?);
+    }
+    // The input frame of each scored held-out frame (the first at its instant).
+    let position = |time: usize| input.time_ids.iter().position(|&t| t == time).expect("filtered as filmed");
+    let evaluated: std::collections::BTreeSet<usize> = held
+        .iter()
+        .zip(&scored)
+        .flat_map(|(camera, frames)| frames.iter().map(|&j| position(camera.time_ids[j])))
+        .collect();
+    if evaluated.is_empty() {
+        return Err(Error::InvalidInput {
+            path: scene.path.clone(),
+            what: "time ids".to_string(),
+            reason: format!("no instant of input camera `{}` is filmed by a held-out camera", input.id),
+        });
+    }
+    let evaluated: Vec<usize> = evaluated.into_iter().collect();
+    let windows = plan_windows(&evaluated, frames, input.sequence.len());
+    let span = windows.iter().map(|w| w.start).min().unwrap_or(0)..windows.iter().map(|w| w.end).max().unwrap_or(0);
+    let (recon, scale) = match reconstruction {
+        Reconstruction::Dataset => (None, 1.0),
         Reconstruction::Folder(dir) => {
             let path = dir.join(&scene.scene_id);
             let recon = datagen::io::sequence::read_sequence(&path)?;
@@ -139,52 +247,65 @@ pub fn prepare(
                     ),
                 });
             }
-            let scale = if input.has_depth { depth_scale(&input.sequence, &recon, window.clone()) } else { None };
-            (window_of(&recon, window.clone()), scale.unwrap_or(1.0))
+            // One unit for the whole video: the median over every frame the windows span.
+            let scale = if input.has_depth { depth_scale(&input.sequence, &recon, span) } else { None };
+            (Some(recon), scale.unwrap_or(1.0))
         }
     };
-    let source_dir = work.join(SOURCE_DIR);
-    write_generic(&source, &source_dir)?;
-    let trajectory_dir = work.join(TRAJECTORY_DIR);
-    std::fs::create_dir_all(&trajectory_dir).map_err(|error| Error::Io { path: trajectory_dir.clone(), error })?;
-    let mut views = Vec::new();
-    let mut trajectories = Vec::new();
-    for camera in held {
-        let poses: Vec<DMat4> = window
-            .clone()
-            .enumerate()
-            .map(|(k, i)| {
-                let novel = camera.sequence.cameras[nearest_frame(camera, input.time_ids[i])].world_from_camera;
-                match reconstruction {
-                    Reconstruction::Dataset => novel,
-                    Reconstruction::Folder(_) => {
-                        let source_from_novel = input.sequence.cameras[i].camera_from_world() * novel;
-                        source.cameras[k].world_from_camera * scaled(source_from_novel, 1.0 / scale)
+    let mut prepared = Vec::with_capacity(windows.len());
+    for window in windows {
+        let dir = work.join(window_dir_name(window.start));
+        let range = window.start..window.end;
+        let source = window_of(recon.as_ref().unwrap_or(&input.sequence), range.clone());
+        let source_dir = dir.join(SOURCE_DIR);
+        write_generic(&source, &source_dir)?;
+        let trajectory_dir = dir.join(TRAJECTORY_DIR);
+        std::fs::create_dir_all(&trajectory_dir).map_err(|error| Error::Io { path: trajectory_dir.clone(), error })?;
+        let (mut views, mut trajectories) = (Vec::new(), Vec::new());
+        for (camera, frames) in held.iter().zip(&scored) {
+            let matches: Vec<(usize, usize)> = window
+                .scored
+                .iter()
+                .filter_map(|&i| {
+                    let j = frames.iter().copied().find(|&j| camera.time_ids[j] == input.time_ids[i])?;
+                    Some((i - window.start, j))
+                })
+                .collect();
+            if matches.is_empty() {
+                continue;
+            }
+            let poses: Vec<DMat4> = range
+                .clone()
+                .enumerate()
+                .map(|(k, i)| {
+                    let novel = camera.sequence.cameras[nearest_frame(camera, input.time_ids[i])].world_from_camera;
+                    match reconstruction {
+                        Reconstruction::Dataset => novel,
+                        Reconstruction::Folder(_) => {
+                            let source_from_novel = input.sequence.cameras[i].camera_from_world() * novel;
+                            source.cameras[k].world_from_camera * scaled(source_from_novel, 1.0 / scale)
+                        }
                     }
-                }
-            })
-            .collect();
-        let name = format!("view-{}", camera.id);
-        let path = trajectory_dir.join(format!("{name}.json"));
-        let rows: Vec<Vec<f64>> = poses.iter().map(|p| mat4_to_row_major(p).to_vec()).collect();
-        let json = serde_json::json!({ "world_from_camera": rows });
-        write_file(&path, &serde_json::to_vec_pretty(&json).expect("json"))?;
-        let matches = window
-            .clone()
-            .enumerate()
-            .filter_map(|(k, i)| camera.time_ids.iter().position(|&t| t == input.time_ids[i]).map(|j| (k, j)))
-            .collect();
-        views.push(HeldOutView { camera: camera.id.clone(), name, matches });
-        trajectories.push(path);
+                })
+                .collect();
+            let name = format!("view-{}", camera.id);
+            let path = trajectory_dir.join(format!("{name}.json"));
+            let rows: Vec<Vec<f64>> = poses.iter().map(|p| mat4_to_row_major(p).to_vec()).collect();
+            let json = serde_json::json!({ "world_from_camera": rows });
+            write_file(&path, &serde_json::to_vec_pretty(&json).expect("json"))?;
+            views.push(HeldOutView { camera: camera.id.clone(), name, matches });
+            trajectories.push(path);
+        }
+        prepared.push(PreparedWindow {
+            window,
+            dir,
+            source: source_dir,
+            trajectories,
+            views,
+            source_cameras: source.cameras.clone(),
+        });
     }
-    Ok(PreparedScene {
-        source: source_dir,
-        trajectories,
-        views,
-        source_cameras: source.cameras.clone(),
-        window_start,
-        scale,
-    })
+    Ok(PreparedScene { windows: prepared, scale })
 }
 
 /// The frame of `camera` at instant `time`, else at the nearest instant it films.
@@ -258,7 +379,7 @@ fn write_generic(sequence: &Sequence, dir: &Path) -> Result<()> {
     write_file(&dir.join("cameras.json"), &serde_json::to_vec_pretty(&cameras).expect("json"))
 }
 
-/// What [`write_view`] wrote for one held-out camera, and the render's accuracy there.
+/// A held-out camera's folders of scored frames: `work/{pred,target,mask}/<camera>/%05d.png`.
 pub struct ViewFolders {
     /// Predictions at the held-out camera's intrinsics and size.
     pub pred: PathBuf,
@@ -266,68 +387,95 @@ pub struct ViewFolders {
     pub target: PathBuf,
     /// Its co-visibility masks, where the dataset ships them.
     pub mask: Option<PathBuf>,
-    /// Window positions and held-out frames scored.
-    pub matches: Vec<(usize, usize)>,
-    /// Mean squared error of the render over the pixels it covers ([0, 1] intensities), pooled
-    /// over frames and channels; None where it covers none.
-    pub render_mse: Option<f64>,
-    /// Share of the held-out camera's pixels the render covers.
-    pub render_coverage: f64,
 }
 
-/// Writes `work/{pred,target,mask}/<camera>/%05d.png` for `view` from the `nvs` job's outputs
-/// (`sampled`: the sampled frames; `render`, `holes`: the render of every window frame), each
-/// frame brought from the source camera to the held-out camera, with the render's error over the
-/// pixels it covers there. Only window positions below `sampled.len()` count.
+impl ViewFolders {
+    /// The folders of `camera` under `work`, emptied of an earlier run's frames.
+    pub fn create(work: &Path, camera: &CameraView) -> Result<Self> {
+        let folder = |kind: &str| work.join(kind).join(&camera.id);
+        let (pred, target, mask) = (folder("pred"), folder("target"), folder("mask"));
+        for dir in [&pred, &target, &mask] {
+            if dir.exists() {
+                std::fs::remove_dir_all(dir).map_err(|error| Error::Io { path: dir.clone(), error })?;
+            }
+        }
+        Ok(Self { pred, target, mask: camera.covisible.is_some().then_some(mask) })
+    }
+}
+
+/// The render's error over the pixels it covers, summed over the frames written.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct RenderError {
+    /// Sum of squared errors ([0, 1] intensities) over covered pixels and channels.
+    squared: f64,
+    /// Covered pixels.
+    covered: u64,
+    /// All pixels.
+    pixels: u64,
+}
+
+impl RenderError {
+    /// Mean squared error over the covered pixels and channels; None where none is covered.
+    pub fn mse(&self) -> Option<f64> {
+        (self.covered > 0).then(|| self.squared / (3 * self.covered) as f64)
+    }
+
+    /// Share of the pixels covered.
+    pub fn coverage(&self) -> f64 {
+        if self.pixels == 0 { 0.0 } else { self.covered as f64 / self.pixels as f64 }
+    }
+}
+
+/// One window's `nvs` outputs for a held-out view.
+pub struct WindowOutputs<'a> {
+    /// The source camera per window position.
+    pub source_cameras: &'a [PinholeCamera],
+    /// The sampled frames.
+    pub sampled: &'a [RgbImage],
+    /// The render of every window frame.
+    pub render: &'a [RgbImage],
+    /// Its holes.
+    pub holes: &'a [GrayImage],
+}
+
+/// Writes `view`'s scored frames of one window into `folders`, numbered from `first`: each
+/// sampled frame brought from the source camera to the held-out camera beside that camera's
+/// frame (and mask), adding the render's error over the pixels it covers there to `error`.
+/// Only window positions below `outputs.sampled.len()` count; returns the matches written.
 pub fn write_view(
-    work: &Path,
+    folders: &ViewFolders,
+    first: usize,
     view: &HeldOutView,
     camera: &CameraView,
-    source_cameras: &[PinholeCamera],
-    sampled: &[RgbImage],
-    render: &[RgbImage],
-    holes: &[GrayImage],
-) -> Result<ViewFolders> {
+    outputs: &WindowOutputs,
+    error: &mut RenderError,
+) -> Result<Vec<(usize, usize)>> {
     let matches: Vec<(usize, usize)> =
-        view.matches.iter().copied().filter(|&(k, _)| k < sampled.len() && k < render.len()).collect();
-    let folder = |kind: &str| work.join(kind).join(&view.camera);
-    let (pred_dir, target_dir, mask_dir) = (folder("pred"), folder("target"), folder("mask"));
-    for dir in [&pred_dir, &target_dir, &mask_dir] {
-        if dir.exists() {
-            std::fs::remove_dir_all(dir).map_err(|error| Error::Io { path: dir.clone(), error })?;
-        }
-    }
-    let (mut squared, mut counted, mut pixels) = (0.0f64, 0u64, 0u64);
+        view.matches.iter().copied().filter(|&(k, _)| k < outputs.sampled.len() && k < outputs.render.len()).collect();
     for (n, &(k, j)) in matches.iter().enumerate() {
-        let (from, to) = (&source_cameras[k], &camera.sequence.cameras[j]);
-        let pred = to_camera_rgb(&sampled[k], from, to);
-        let rendered = to_camera_rgb(&render[k], from, to);
-        let covered = to_camera_coverage(&holes[k], from, to);
+        let (from, to) = (&outputs.source_cameras[k], &camera.sequence.cameras[j]);
+        let pred = to_camera_rgb(&outputs.sampled[k], from, to);
+        let rendered = to_camera_rgb(&outputs.render[k], from, to);
+        let covered = to_camera_coverage(&outputs.holes[k], from, to);
         let target = &camera.sequence.frames[j];
-        save(&pred, &pred_dir.join(format!("{n:05}.png")))?;
-        save(target, &target_dir.join(format!("{n:05}.png")))?;
-        if let Some(masks) = &camera.covisible {
-            save(&masks[j], &mask_dir.join(format!("{n:05}.png")))?;
+        let name = format!("{:05}.png", first + n);
+        save(&pred, &folders.pred.join(&name))?;
+        save(target, &folders.target.join(&name))?;
+        if let (Some(masks), Some(dir)) = (&camera.covisible, &folders.mask) {
+            save(&masks[j], &dir.join(&name))?;
         }
         for ((r, t), c) in rendered.pixels().zip(target.pixels()).zip(covered.pixels()) {
-            pixels += 1;
+            error.pixels += 1;
             if c.0[0] != 0 {
-                counted += 1;
+                error.covered += 1;
                 for ch in 0..3 {
                     let d = (f64::from(r.0[ch]) - f64::from(t.0[ch])) / 255.0;
-                    squared += d * d;
+                    error.squared += d * d;
                 }
             }
         }
     }
-    Ok(ViewFolders {
-        pred: pred_dir,
-        target: target_dir,
-        mask: camera.covisible.is_some().then_some(mask_dir),
-        matches,
-        render_mse: (counted > 0).then(|| squared / (3 * counted) as f64),
-        render_coverage: if pixels == 0 { 0.0 } else { counted as f64 / pixels as f64 },
-    })
+    Ok(matches)
 }
 
 /// For each pixel centre of camera `to`, the pixel of camera `from` (same pose) that sees the
@@ -439,6 +587,23 @@ mod tests {
         let holes = GrayImage::new(8, 6);
         let covered = to_camera_coverage(&holes, &full, &wide);
         assert_eq!((covered.get_pixel(0, 0).0[0], covered.get_pixel(4, 3).0[0]), (0, 255));
+    }
+
+    /// Windows start at the first frame not yet scored, back to back; the last is shifted back to
+    /// end at the last evaluated frame, overlapping its predecessor, and scores only what that
+    /// one did not; gaps of unevaluated frames are skipped; a short video is one clipped window.
+    #[test]
+    fn windows_cover_every_evaluated_frame_once() {
+        let plan = |evaluated: &[usize], frames, len| {
+            plan_windows(evaluated, frames, len).into_iter().map(|w| (w.start, w.end, w.scored)).collect::<Vec<_>>()
+        };
+        let all: Vec<usize> = [0].into_iter().chain(2..12).collect();
+        assert_eq!(plan(&all, 5, 12), [(0, 5, vec![0, 2, 3, 4]), (5, 10, vec![5, 6, 7, 8, 9]), (7, 12, vec![10, 11])]);
+        assert_eq!(plan(&[2, 3, 7, 11], 5, 20), [(2, 7, vec![2, 3]), (7, 12, vec![7, 11])]);
+        assert_eq!(plan(&[1, 30, 31], 5, 40), [(1, 6, vec![1]), (27, 32, vec![30, 31])]);
+        assert_eq!(plan(&[3, 4], 5, 20), [(0, 5, vec![3, 4])], "one window ends at the last evaluated frame");
+        assert_eq!(plan(&[1, 2], 5, 3), [(0, 3, vec![1, 2])]);
+        assert!(plan(&[], 5, 3).is_empty());
     }
 
     /// A change of unit scales the translation only.

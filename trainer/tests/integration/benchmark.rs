@@ -74,9 +74,9 @@ fn unmoved_psnr(out: &Path, scene: &str, camera: &str) -> f64 {
     let (mut squared, mut count) = (0.0, 0usize);
     for i in 0..FRAMES {
         let name = format!("{i:05}.png");
-        let source = read(work.join("source/frames").join(&name)).to_rgb8();
+        let source = read(work.join("window-00000/source/frames").join(&name)).to_rgb8();
         let target = read(work.join("target").join(camera).join(&name)).to_rgb8();
-        let holes = read(work.join(format!("nvs/renders/view-{camera}/holes")).join(&name)).to_luma8();
+        let holes = read(work.join(format!("window-00000/nvs/renders/view-{camera}/holes")).join(&name)).to_luma8();
         for ((s, t), h) in source.pixels().zip(target.pixels()).zip(holes.pixels()) {
             if h.0[0] == 0 {
                 count += 3;
@@ -386,6 +386,102 @@ fn benchmark_continues_after_a_kill() {
     assert_eq!(scenes, ["a", "b"]);
 }
 
+/// A DyCheck sequence longer than the frames sampled is scored over every window: 12 instants
+/// (camera 1 skips instant 1) in windows of 5 are windows [0, 5), [5, 10) and [7, 12), the last
+/// shifted back to end at the last instant and scoring only instants 10 and 11 (instant 7 is
+/// scored from [5, 10)): every scored prediction is its window's sample at that instant. A rerun
+/// after the result is lost skips every window's finished job and gives the same numbers; an
+/// infinite mean in a result is kept as ∞. A correspondence file selects the instants scored (and
+/// the windows follow them); one listing a frame the camera does not have fails the scene naming
+/// the file and the entry.
+#[test]
+fn benchmark_dycheck_scores_every_window() {
+    const LONG: u32 = 12;
+    let dir = tempfile::tempdir().unwrap();
+    let (transformer, base, config) = released_layout(dir.path());
+    let rig = datagen::synth::CameraRig { cameras: 2, spacing_deg: 10.0 };
+    let dycheck =
+        datagen::synth::SynthConfig { width: 2 * W, height: 2 * H, frames: LONG, seed: 6, ..Default::default() };
+    let root = dir.path().join("dycheck");
+    datagen::synth_layouts::write_dycheck(&dycheck, &rig, &root.join("apple"), |_| {}).unwrap();
+    let f = Fixture { _dir: tempfile::tempdir().unwrap(), root, transformer, base, config, work: dir.path().into() };
+    let out = dir.path().join("whole");
+    let first = benchmark(&f, &out, &["--dataset", "dycheck"]);
+    assert_success(&first);
+    let apple = json(&out.join("results/apple.json"));
+    let windows: Vec<(u64, u64, serde_json::Value)> = apple["windows"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|w| (w["start"].as_u64().unwrap(), w["end"].as_u64().unwrap(), w["time_ids"].clone()))
+        .collect();
+    let ids = |v: &[usize]| serde_json::json!(v);
+    assert_eq!(
+        windows,
+        [(0, 5, ids(&[0, 2, 3, 4])), (5, 10, ids(&[5, 6, 7, 8, 9])), (7, 12, ids(&[10, 11]))],
+        "{apple}"
+    );
+    let scored: Vec<usize> = [0].into_iter().chain(2..LONG as usize).collect();
+    assert_eq!(apple["cameras"][0]["time_ids"], ids(&scored));
+    assert_eq!(apple["frames"], scored.len());
+    // Every scored prediction is the sample of the window that scores its instant.
+    let work = out.join("scenes/apple");
+    let read = |path: PathBuf| image::open(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display())).to_rgb8();
+    let sample =
+        |start: usize, time: usize| read(work.join(format!("window-{start:05}/nvs/view-1/{:05}.png", time - start)));
+    for (n, &time) in scored.iter().enumerate() {
+        let start = [7, 5, 0].into_iter().find(|&s| time >= s && (s != 7 || time >= 10)).unwrap();
+        assert_eq!(read(work.join(format!("pred/1/{n:05}.png"))), sample(start, time), "instant {time}");
+    }
+    assert_ne!(sample(5, 7), sample(7, 7), "the overlap's two samples differ, so the check above tells them apart");
+
+    // The result lost: every window's job is finished and skipped, with the same numbers.
+    std::fs::remove_file(out.join("results/apple.json")).unwrap();
+    let again = benchmark(&f, &out, &["--dataset", "dycheck"]);
+    assert_success(&again);
+    let log = stderr(&again);
+    assert_eq!(log.matches("sample: finished by an earlier run").count(), 3, "{log}");
+    assert!(log.contains("window 3/3 from frame 7"), "{log}");
+    let redone = json(&out.join("results/apple.json"));
+    assert_eq!(redone["metrics"], apple["metrics"]);
+
+    // An infinite PSNR in a scene's result stays infinite in the mean, the table and --compare.
+    let mut infinite = redone.clone();
+    infinite["metrics"]["psnr"] = "inf".into();
+    std::fs::write(out.join("results/apple.json"), infinite.to_string()).unwrap();
+    assert_success(&benchmark(&f, &out, &["--dataset", "dycheck"]));
+    assert_eq!(json(&out.join("report.json"))["mean"]["psnr"], "inf");
+    assert!(std::fs::read_to_string(out.join("report.md")).unwrap().contains("| **ours** | inf |"));
+    let same = Command::new(env!("CARGO_BIN_EXE_trainer"))
+        .arg("benchmark")
+        .arg("--compare")
+        .args([&out, &out])
+        .output()
+        .unwrap();
+    assert_success(&same);
+    assert!(String::from_utf8_lossy(&same.stdout).contains("| apple | +0.0000 |"));
+
+    // The bundle's correspondence file: camera 1 scored at instants 2, 3, 7 and 11 only.
+    let bundle = dir.path().join("bundle");
+    std::fs::create_dir_all(&bundle).unwrap();
+    let file = bundle.join("dycheck_apple_source_target_correspondence.txt");
+    let lines = |held: &[usize]| {
+        let source = (0..LONG).map(|t| format!("0_{t:05}.png"));
+        source.chain(held.iter().map(|t| format!("1_{t:05}.png"))).collect::<Vec<_>>().join("\n")
+    };
+    std::fs::write(&file, lines(&[2, 3, 7, 11])).unwrap();
+    let selected = dir.path().join("selected");
+    let bundle_arg = bundle.display().to_string();
+    assert_success(&benchmark(&f, &selected, &["--dataset", "dycheck", "--correspondence", &bundle_arg]));
+    let apple = json(&selected.join("results/apple.json"));
+    assert_eq!(apple["cameras"][0]["time_ids"], ids(&[2, 3, 7, 11]));
+    assert_eq!((apple["windows"][0]["start"].as_u64(), apple["windows"][1]["start"].as_u64()), (Some(2), Some(7)));
+    std::fs::write(&file, lines(&[2, 1])).unwrap();
+    let bad = benchmark(&f, &dir.path().join("bad"), &["--dataset", "dycheck", "--correspondence", &bundle_arg]);
+    let log = stderr(&bad);
+    assert!(log.contains("dycheck_apple_source_target_correspondence.txt") && log.contains("`1_00001.png`"), "{log}");
+}
+
 /// With --steps > 0 every scene is finetuned on its own source video first (the `nvs` job's
 /// finetuning phase), and the finetuned checkpoint is the one sampled and recorded.
 #[test]
@@ -401,8 +497,8 @@ fn benchmark_finetunes_each_scene() {
     let output = cmd.args(args).output().unwrap();
     assert_success(&output);
     let a = json(&out.join("results/a.json"));
-    let checkpoint = a["checkpoint"].as_str().unwrap();
-    assert!(checkpoint.contains("scenes/a/nvs/finetune/checkpoints/step-"), "{checkpoint}");
+    let checkpoint = a["windows"][0]["checkpoint"].as_str().unwrap();
+    assert!(checkpoint.contains("scenes/a/window-00000/nvs/finetune/checkpoints/step-"), "{checkpoint}");
     assert!(a["seconds"]["finetune"].as_f64().unwrap() > 0.0);
     assert_eq!(json(&out.join("report.json"))["settings"]["finetune_trajectories"], 1);
 }

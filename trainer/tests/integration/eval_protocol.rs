@@ -76,7 +76,7 @@ fn check_table(json: &serde_json::Value, want: &serde_json::Value) {
     close("lpips", &json["mean"]["lpips"], &want["lpips"], METRIC_TOL, false);
 }
 
-/// Kubric-4D: three scenes of 2, 4 and 1 frames, predictions below, at and above 384×576 and a
+/// Kubric-4D: three scenes of 2, 3 and 1 frames, predictions below, at and above 384×576 and a
 /// target above it (non-integer and exact-halving `cv2.resize`), frames pooled, FID/KID on the
 /// pooled frames with clean-fid's `min(n, 1000)` subsets; the scene outside the official list
 /// is not scored.

@@ -1,6 +1,6 @@
 //! The model components, named after the diffusers files they mirror (`diffusers/models/`): the
 //! CogVideoX transformer and its parts (`embeddings`, `attention`, `normalization`), the 3D causal
-//! VAE, the LoRA layer, and the variables and weight files they are made of (`vars` creates
+//! VAE, the Wan transformer (`transformer_wan`), the LoRA layer, and the variables and weight files they are made of (`vars` creates
 //! variables at diffusers' state-dict paths; `weights` reads and writes diffusers model folders, as
 //! diffusers' `modeling_utils` does).
 
@@ -10,5 +10,6 @@ pub mod cogvideox_transformer_3d;
 pub mod embeddings;
 pub mod lora;
 pub mod normalization;
+pub mod transformer_wan;
 pub mod vars;
 pub mod weights;

@@ -23,3 +23,4 @@ mod text_embedding;
 mod transformer;
 mod vae;
 mod validation;
+mod wan;

@@ -1,0 +1,175 @@
+#!/usr/bin/env python3
+"""Reference outputs of diffusers' Wan components, for the trainer's Wan parity tests.
+
+Usage: goldens_wan.py OUT_DIR
+
+Builds tiny random `WanTransformer3DModel`s (fixed seed) with the structures of Wan2.1 T2V,
+Wan2.1 I2V (CLIP image tokens through `image_dim` / `added_kv_proj_dim`), Wan2.1 FLF2V (the image
+embedder's positional table, `pos_embed_seq_len`) and Wan2.2 TI2V (per-token timesteps), runs
+diffusers on fixed random inputs and writes what the Rust tests (`trainer/tests/integration/wan.rs`)
+compare against:
+
+  OUT_DIR/transformer_t2v/              diffusers' own save_pretrained output
+  OUT_DIR/transformer_i2v/              the same, with image cross-attention
+  OUT_DIR/transformer_flf2v/            the same, with the image embedder's positional table
+  OUT_DIR/transformer_io.safetensors    inputs and diffusers' outputs (fp32; bf16 upcast)
+  OUT_DIR/transformer_shapes.json       {preset: {state-dict key: shape}} of the real models
+
+Nothing here is committed; the tests run it into a temporary folder (a few seconds on a CPU).
+Requires torch and diffusers (the project venv, `scripts/setup.sh`).
+"""
+
+import json
+import sys
+from pathlib import Path
+
+import torch
+from safetensors.torch import save_file
+from diffusers import WanTransformer3DModel
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from goldens_vae_scheduler import randomize_  # noqa: E402
+
+SEED = 20261207
+
+# diffusers' WanAttnProcessor splits the image tokens off the front of the cross-attention context
+# by assuming 512 text tokens (umT5's padded length); image-conditioned goldens use that length.
+TEXT_CONTEXT_LENGTH = 512
+
+# Must equal the Rust `WanTransformer3DModelConfig::tiny_t2v()` preset: the Wan2.1 T2V structure
+# at small widths (head_dim 16 splits into 8 temporal and 4 + 4 spatial rotary channels).
+TINY_T2V = dict(
+    patch_size=[1, 2, 2],
+    num_attention_heads=2,
+    attention_head_dim=16,
+    in_channels=4,
+    out_channels=4,
+    text_dim=16,
+    freq_dim=32,
+    ffn_dim=48,
+    num_layers=2,
+    cross_attn_norm=True,
+    qk_norm="rms_norm_across_heads",
+    eps=1e-6,
+    image_dim=None,
+    added_kv_proj_dim=None,
+    rope_max_seq_len=32,
+    pos_embed_seq_len=None,
+)
+
+# Must equal `WanTransformer3DModelConfig::tiny_i2v()`: Wan2.1 I2V's structure (noisy latents +
+# mask + condition latents in, CLIP tokens through the added key/value projections).
+TINY_I2V = dict(TINY_T2V, in_channels=12, image_dim=24, added_kv_proj_dim=32)
+
+# Wan2.1 FLF2V: the image embedder adds a positional table over both frames' CLIP tokens.
+TINY_FLF2V = dict(TINY_I2V, pos_embed_seq_len=2 * 5)
+
+# Real configs (their transformer/config.json on the Hugging Face hub, Wan-AI/*-Diffusers).
+WAN21_T2V_1_3B = dict(
+    patch_size=[1, 2, 2], num_attention_heads=12, attention_head_dim=128, in_channels=16, out_channels=16,
+    text_dim=4096, freq_dim=256, ffn_dim=8960, num_layers=30, cross_attn_norm=True, eps=1e-6,
+)
+WAN21_I2V_14B = dict(
+    patch_size=[1, 2, 2], num_attention_heads=40, attention_head_dim=128, in_channels=36, out_channels=16,
+    text_dim=4096, freq_dim=256, ffn_dim=13824, num_layers=40, cross_attn_norm=True, eps=1e-6,
+    image_dim=1280, added_kv_proj_dim=5120,
+)
+WAN22_TI2V_5B = dict(
+    patch_size=[1, 2, 2], num_attention_heads=24, attention_head_dim=128, in_channels=48, out_channels=48,
+    text_dim=4096, freq_dim=256, ffn_dim=14336, num_layers=30, cross_attn_norm=True, eps=1e-6,
+)
+
+
+def randomized(config: dict, g: torch.Generator) -> WanTransformer3DModel:
+    model = WanTransformer3DModel(**config).eval()
+    randomize_(model, g)
+    with torch.no_grad():
+        for name, p in model.named_parameters():
+            # The image embedder's positional table starts at zero; make it matter.
+            if name.endswith("pos_embed"):
+                p.copy_(0.1 * torch.randn(p.shape, generator=g))
+    return model
+
+
+def run(model, **inputs):
+    with torch.no_grad():
+        return model(**inputs, return_dict=False)[0]
+
+
+def transformer_goldens(out: Path) -> None:
+    g = torch.Generator().manual_seed(SEED)
+    tensors = {}
+
+    def case(name: str, model, **inputs):
+        for key, value in inputs.items():
+            tensors[f"{name}.{key}"] = value.clone()
+        tensors[f"{name}.sample"] = run(model, **inputs)
+
+    t2v = randomized(TINY_T2V, g)
+    t2v.save_pretrained(out / "transformer_t2v", safe_serialization=True)
+    c = TINY_T2V
+    # Batch 2, 3 latent frames of 6x8 (3x4 patches), fractional and integer timesteps.
+    x = torch.randn((2, c["in_channels"], 3, 6, 8), generator=g)
+    text = torch.randn((2, 7, c["text_dim"]), generator=g)
+    case("t2v", t2v, hidden_states=x, timestep=torch.tensor([999.0, 17.5]), encoder_hidden_states=text)
+    # Wan2.2 TI2V's per-token timesteps (`expand_timesteps`): [B, tokens], the first latent frame's
+    # tokens at 0 (the clean image), the rest at the step's timestep.
+    tokens = 3 * (6 // 2) * (8 // 2)
+    per_token = torch.full((2, tokens), 640.0)
+    per_token[:, : tokens // 3] = 0.0
+    per_token[1] = 250.0 * (per_token[1] > 0)
+    case("ti2v", t2v, hidden_states=x, timestep=per_token, encoder_hidden_states=text)
+
+    i2v = randomized(TINY_I2V, g)
+    i2v.save_pretrained(out / "transformer_i2v", safe_serialization=True)
+    c = TINY_I2V
+    x = torch.randn((1, c["in_channels"], 2, 4, 6), generator=g)
+    text = torch.randn((1, TEXT_CONTEXT_LENGTH, c["text_dim"]), generator=g)
+    image = torch.randn((1, 5, c["image_dim"]), generator=g)
+    case(
+        "i2v", i2v, hidden_states=x, timestep=torch.tensor([333]), encoder_hidden_states=text,
+        encoder_hidden_states_image=image,
+    )
+
+    # bf16 as diffusers loads it: `_keep_in_fp32_modules` (time embedder, modulation tables, norms)
+    # stay fp32, the rest is bf16; inputs bf16, the output stored upcast.
+    i2v_bf16 = WanTransformer3DModel.from_pretrained(out / "transformer_i2v", torch_dtype=torch.bfloat16).eval()
+    tensors["i2v_bf16.sample"] = run(
+        i2v_bf16, hidden_states=x.bfloat16(), timestep=torch.tensor([333]), encoder_hidden_states=text.bfloat16(),
+        encoder_hidden_states_image=image.bfloat16(),
+    ).float()
+
+    flf2v = randomized(TINY_FLF2V, g)
+    flf2v.save_pretrained(out / "transformer_flf2v", safe_serialization=True)
+    # The first and last frames' CLIP tokens come as a batch of two per sample.
+    image = torch.randn((2, 5, c["image_dim"]), generator=g)
+    case(
+        "flf2v", flf2v, hidden_states=x, timestep=torch.tensor([71]), encoder_hidden_states=text,
+        encoder_hidden_states_image=image,
+    )
+
+    save_file({k: v.contiguous() for k, v in tensors.items()}, str(out / "transformer_io.safetensors"))
+
+    shapes = {}
+    for preset, config in [
+        ("wan2.1-t2v-1.3b", WAN21_T2V_1_3B),
+        ("wan2.1-i2v-14b", WAN21_I2V_14B),
+        ("wan2.2-ti2v-5b", WAN22_TI2V_5B),
+    ]:
+        with torch.device("meta"):
+            real = WanTransformer3DModel(**config)
+        shapes[preset] = {k: list(v.shape) for k, v in real.state_dict().items()}
+    (out / "transformer_shapes.json").write_text(json.dumps(shapes, indent=1, sort_keys=True))
+
+
+def main() -> None:
+    if len(sys.argv) != 2:
+        sys.exit(__doc__)
+    out = Path(sys.argv[1])
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(SEED)
+    transformer_goldens(out)
+
+
+if __name__ == "__main__":
+    main()

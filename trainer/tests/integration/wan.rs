@@ -1,0 +1,155 @@
+//! Wan parity with diffusers: `WanTransformer3DModel` (T2V, Wan2.2 per-token timesteps, I2V image
+//! cross-attention, FLF2V's image positional table) on tiny random models, diffusers' own model
+//! folders loaded and ours written back in the same layout, and the exact names and shapes of
+//! the released Wan checkpoints.
+//!
+//! Reference values come from `scripts/goldens_wan.py` (diffusers with a fixed seed), run into a
+//! temporary folder once per test binary.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::sync::OnceLock;
+
+use trainer::diffusers_config::DiffusersConfig;
+use trainer::models::transformer_wan::{
+    self as transformer, WanTransformer3DModel, WanTransformer3DModelConfig, WanTransformerInput,
+};
+use trainer::models::weights;
+use trainer::tch::{self, Device, Kind, Tensor, nn};
+
+use super::parity::{assert_close, read_tensors, run_script};
+
+/// Output of `scripts/goldens_wan.py`, generated once per test binary.
+fn goldens() -> &'static Path {
+    static DIR: OnceLock<tempfile::TempDir> = OnceLock::new();
+    DIR.get_or_init(|| run_script("goldens_wan.py")).path()
+}
+
+/// The inputs and diffusers' outputs (tensors are not `Sync`: each test reads its own copy).
+fn transformer_io() -> BTreeMap<String, Tensor> {
+    read_tensors(&goldens().join("transformer_io.safetensors"))
+}
+
+/// A model built from a golden folder's config.json with its weights loaded (names and shapes
+/// checked both ways by `weights::load`).
+fn load_model(dir: &Path) -> (nn::VarStore, WanTransformer3DModel) {
+    let config = WanTransformer3DModelConfig::from_json_file(dir).unwrap();
+    let (vs, model) = transformer::build(&config, Device::Cpu, Kind::Float).unwrap();
+    weights::load(&vs, dir).unwrap();
+    (vs, model)
+}
+
+fn forward(model: &WanTransformer3DModel, io: &BTreeMap<String, Tensor>, case: &str) -> Tensor {
+    let image = io.get(&format!("{case}.encoder_hidden_states_image"));
+    let input = WanTransformerInput {
+        hidden_states: &io[&format!("{case}.hidden_states")],
+        timestep: &io[&format!("{case}.timestep")],
+        encoder_hidden_states: &io[&format!("{case}.encoder_hidden_states")],
+        encoder_hidden_states_image: image,
+    };
+    tch::no_grad(|| model.forward(&input)).unwrap()
+}
+
+#[test]
+fn tiny_presets_equal_the_golden_configs() {
+    for (folder, preset) in [
+        ("transformer_t2v", WanTransformer3DModelConfig::tiny_t2v()),
+        ("transformer_i2v", WanTransformer3DModelConfig::tiny_i2v()),
+    ] {
+        let config = WanTransformer3DModelConfig::from_json_file(goldens().join(folder)).unwrap();
+        assert_eq!(
+            WanTransformer3DModelConfig { extra: Default::default(), ..config },
+            preset,
+            "{folder}: the script's config and the Rust preset must agree"
+        );
+    }
+}
+
+#[test]
+fn text_to_video_forward_matches_diffusers() {
+    let (_vs, model) = load_model(&goldens().join("transformer_t2v"));
+    let io = transformer_io();
+    let out = forward(&model, &io, "t2v");
+    assert_close("wan transformer t2v (batch 2, 3x6x8 latents)", &out, &io["t2v.sample"], 1e-4);
+    // Wan2.2 TI2V: one timestep per token, the first frame's tokens at 0.
+    let out = forward(&model, &io, "ti2v");
+    assert_close("wan transformer per-token timesteps", &out, &io["ti2v.sample"], 1e-4);
+}
+
+#[test]
+fn image_to_video_forward_matches_diffusers() {
+    let io = transformer_io();
+    let (_vs, model) = load_model(&goldens().join("transformer_i2v"));
+    let out = forward(&model, &io, "i2v");
+    assert_close("wan transformer i2v (image cross-attention)", &out, &io["i2v.sample"], 1e-4);
+    let (_vs, model) = load_model(&goldens().join("transformer_flf2v"));
+    let out = forward(&model, &io, "flf2v");
+    assert_close("wan transformer flf2v (image positional table)", &out, &io["flf2v.sample"], 1e-4);
+}
+
+/// In bf16 the fp32-kept modules stay fp32 as in diffusers' `from_pretrained(torch_dtype=bf16)`,
+/// and the result tracks diffusers' bf16 and fp32 outputs.
+#[test]
+fn bf16_forward_tracks_diffusers_bf16() {
+    let io = transformer_io();
+    let dir = goldens().join("transformer_i2v");
+    let config = WanTransformer3DModelConfig::from_json_file(&dir).unwrap();
+    let (vs, model) = transformer::build(&config, Device::Cpu, Kind::BFloat16).unwrap();
+    weights::load(&vs, &dir).unwrap();
+    let variables = vs.variables();
+    assert_eq!(variables["blocks.0.scale_shift_table"].kind(), Kind::Float);
+    assert_eq!(variables["condition_embedder.time_embedder.linear_1.weight"].kind(), Kind::Float);
+    assert_eq!(variables["condition_embedder.image_embedder.norm1.weight"].kind(), Kind::Float);
+    assert_eq!(variables["blocks.0.attn1.to_q.weight"].kind(), Kind::BFloat16);
+    let bf16 = |name: &str| io[&format!("i2v.{name}")].to_kind(Kind::BFloat16);
+    let (x, text, image) = (bf16("hidden_states"), bf16("encoder_hidden_states"), bf16("encoder_hidden_states_image"));
+    let input = WanTransformerInput {
+        hidden_states: &x,
+        timestep: &io["i2v.timestep"],
+        encoder_hidden_states: &text,
+        encoder_hidden_states_image: Some(&image),
+    };
+    let out = tch::no_grad(|| model.forward(&input)).unwrap();
+    assert_eq!(out.kind(), Kind::BFloat16);
+    // The same ops in the same dtypes (bit-exact on the CPU); the tolerance leaves room for another
+    // reduction order.
+    assert_close("wan transformer bf16 vs diffusers bf16", &out, &io["i2v_bf16.sample"], 1e-2);
+    assert_close("wan transformer bf16 vs diffusers fp32", &out, &io["i2v.sample"], 5e-2);
+}
+
+/// Our save of a loaded model is diffusers' folder again: the same config.json values and
+/// tensor names and shapes, and the model read back computes the same output bit for bit.
+#[test]
+fn saved_folders_equal_diffusers_layout() {
+    let dir = goldens().join("transformer_i2v");
+    let (vs, model) = load_model(&dir);
+    let out = tempfile::tempdir().unwrap();
+    weights::save(&vs, model.config(), transformer::CLASS_NAME, out.path(), weights::DEFAULT_MAX_SHARD_BYTES).unwrap();
+    let read = |path: &Path| -> serde_json::Map<String, serde_json::Value> {
+        let mut json: serde_json::Map<String, serde_json::Value> =
+            serde_json::from_str(&std::fs::read_to_string(path.join("config.json")).unwrap()).unwrap();
+        json.remove("_diffusers_version");
+        json
+    };
+    assert_eq!(read(out.path()), read(&dir), "config.json");
+    let shapes = |path: &Path| -> BTreeMap<String, Vec<i64>> {
+        weights::read_checkpoint_info(path).unwrap().into_iter().map(|(k, v)| (k, v.shape)).collect()
+    };
+    assert_eq!(shapes(out.path()), shapes(&dir), "tensor names and shapes");
+    let (_vs, reloaded) = load_model(out.path());
+    let io = transformer_io();
+    assert!(forward(&reloaded, &io, "i2v").equal(&forward(&model, &io, "i2v")));
+}
+
+/// The module tree of each released model has exactly the checkpoint's names and shapes (diffusers
+/// built on the meta device by the golden script).
+#[test]
+fn presets_have_the_released_checkpoints_names_and_shapes() {
+    let text = std::fs::read_to_string(goldens().join("transformer_shapes.json")).unwrap();
+    let all: BTreeMap<String, BTreeMap<String, Vec<i64>>> = serde_json::from_str(&text).unwrap();
+    assert_eq!(all.len(), 3);
+    for (preset, expected) in all {
+        let config = WanTransformer3DModelConfig::preset(&preset).unwrap();
+        assert_eq!(transformer::variable_shapes(&config).unwrap(), expected, "{preset}");
+    }
+}

@@ -14,6 +14,7 @@ compare against:
   OUT_DIR/transformer_flf2v/            the same, with the image embedder's positional table
   OUT_DIR/transformer_io.safetensors    inputs and diffusers' outputs (fp32; bf16 upcast)
   OUT_DIR/transformer_shapes.json       {preset: {state-dict key: shape}} of the real models
+  OUT_DIR/scheduler_<case>/             each scheduler case's save_config output
 
 Nothing here is committed; the tests run it into a temporary folder (a few seconds on a CPU).
 Requires torch and diffusers (the project venv, `scripts/setup.sh`).
@@ -25,7 +26,11 @@ from pathlib import Path
 
 import torch
 from safetensors.torch import save_file
-from diffusers import WanTransformer3DModel
+from diffusers import (
+    FlowMatchEulerDiscreteScheduler,
+    UniPCMultistepScheduler,
+    WanTransformer3DModel,
+)
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from goldens_vae_scheduler import randomize_  # noqa: E402
@@ -162,6 +167,95 @@ def transformer_goldens(out: Path) -> None:
     (out / "transformer_shapes.json").write_text(json.dumps(shapes, indent=1, sort_keys=True))
 
 
+# The scheduler_config.json of Wan-AI/Wan2.1-T2V-1.3B-Diffusers (flow_shift 3: 480p).
+UNIPC_WAN = dict(
+    beta_end=0.02, beta_schedule="linear", beta_start=0.0001, disable_corrector=[], dynamic_thresholding_ratio=0.995,
+    final_sigmas_type="zero", flow_shift=3.0, lower_order_final=True, num_train_timesteps=1000, predict_x0=True,
+    prediction_type="flow_prediction", rescale_betas_zero_snr=False, sample_max_value=1.0, solver_order=2,
+    solver_p=None, solver_type="bh2", steps_offset=0, thresholding=False, timestep_spacing="linspace",
+    trained_betas=None, use_beta_sigmas=False, use_exponential_sigmas=False, use_flow_sigmas=True,
+    use_karras_sigmas=False,
+)
+
+# (case, class, config, steps, mu): Wan's UniPC; a third-order bh1 variant ending at sigma_min
+# with a disabled corrector; data-free epsilon solving with a dynamic linear shift stretched to a
+# terminal sigma; the Euler sampler with Wan's training shift, with a dynamic exponential shift and
+# Karras respacing, inverted, and stochastic.
+SCHEDULER_CASES = [
+    ("unipc_wan", UniPCMultistepScheduler, UNIPC_WAN, 12, None),
+    (
+        "unipc_order3",
+        UniPCMultistepScheduler,
+        dict(UNIPC_WAN, solver_order=3, solver_type="bh1", final_sigmas_type="sigma_min",
+             disable_corrector=[2], flow_shift=5.0),
+        9,
+        None,
+    ),
+    (
+        "unipc_epsilon",
+        UniPCMultistepScheduler,
+        dict(UNIPC_WAN, prediction_type="epsilon", predict_x0=False, final_sigmas_type="sigma_min",
+             use_dynamic_shifting=True, time_shift_type="linear", shift_terminal=0.1),
+        7,
+        0.8,
+    ),
+    ("euler_shift", FlowMatchEulerDiscreteScheduler, dict(shift=5.0), 10, None),
+    (
+        "euler_dynamic",
+        FlowMatchEulerDiscreteScheduler,
+        dict(use_dynamic_shifting=True, shift_terminal=0.02, use_karras_sigmas=True),
+        8,
+        1.3,
+    ),
+    ("euler_inverted", FlowMatchEulerDiscreteScheduler, dict(shift=3.0, invert_sigmas=True, use_exponential_sigmas=True), 6, None),
+    ("euler_stochastic", FlowMatchEulerDiscreteScheduler, dict(shift=3.0, stochastic_sampling=True), 5, None),
+]
+
+
+def scheduler_goldens(out: Path) -> None:
+    g = torch.Generator().manual_seed(SEED + 1)
+    t = {}
+    shape = (1, 4, 3, 2, 3)
+    for name, cls, config, steps, mu in SCHEDULER_CASES:
+        scheduler = cls(**config)
+        scheduler.save_config(out / f"scheduler_{name}")
+        scheduler.set_timesteps(steps, mu=mu)
+        t[f"{name}.timesteps"] = scheduler.timesteps.clone()
+        t[f"{name}.sigmas"] = scheduler.sigmas.clone()
+        t[f"{name}.steps"] = torch.tensor([steps])
+        if mu is not None:
+            t[f"{name}.mu"] = torch.tensor([mu], dtype=torch.float64)
+
+        # The forward process at two of the schedule's timesteps, before stepping.
+        x0 = torch.randn((2,) + shape[1:], generator=g)
+        noise = torch.randn(x0.shape, generator=g)
+        at = scheduler.timesteps[[1, steps - 1]]
+        t[f"{name}.noise_timesteps"] = at.clone()
+        t[f"{name}.original_samples"] = x0
+        t[f"{name}.noise"] = noise
+        if cls is UniPCMultistepScheduler:
+            t[f"{name}.noisy_samples"] = scheduler.add_noise(x0, noise, at)
+        else:
+            t[f"{name}.noisy_samples"] = scheduler.scale_noise(x0, at, noise)
+
+        # A whole sampling loop with random "model outputs" (the update rule needs no model). The
+        # stochastic Euler step draws its noise from the generator passed in: replayed by a twin.
+        sample = torch.randn(shape, generator=g)
+        t[f"{name}.initial_sample"] = sample
+        step_gen = torch.Generator().manual_seed(SEED + 2)
+        twin_gen = torch.Generator().manual_seed(SEED + 2)
+        for i, ts in enumerate(scheduler.timesteps):
+            model_output = torch.randn(shape, generator=g)
+            t[f"{name}.{i}.model_output"] = model_output
+            if config.get("stochastic_sampling"):
+                t[f"{name}.{i}.step_noise"] = torch.randn(shape, generator=twin_gen)
+                sample = scheduler.step(model_output, ts, sample, generator=step_gen, return_dict=False)[0]
+            else:
+                sample = scheduler.step(model_output, ts, sample, return_dict=False)[0]
+            t[f"{name}.{i}.prev_sample"] = sample
+    save_file({k: v.contiguous() for k, v in t.items()}, str(out / "scheduler_io.safetensors"))
+
+
 def main() -> None:
     if len(sys.argv) != 2:
         sys.exit(__doc__)
@@ -169,6 +263,7 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(SEED)
     transformer_goldens(out)
+    scheduler_goldens(out)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,8 @@
 //! Wan parity with diffusers: `WanTransformer3DModel` (T2V, Wan2.2 per-token timesteps, I2V image
 //! cross-attention, FLF2V's image positional table) on tiny random models, diffusers' own model
-//! folders loaded and ours written back in the same layout, and the exact names and shapes of
-//! the released Wan checkpoints.
+//! folders loaded and ours written back in the same layout, the exact names and shapes of the
+//! released Wan checkpoints, and the flow-matching schedulers Wan samples with
+//! (`UniPCMultistepScheduler`, `FlowMatchEulerDiscreteScheduler`) step for step.
 //!
 //! Reference values come from `scripts/goldens_wan.py` (diffusers with a fixed seed), run into a
 //! temporary folder once per test binary.
@@ -15,6 +16,10 @@ use trainer::models::transformer_wan::{
     self as transformer, WanTransformer3DModel, WanTransformer3DModelConfig, WanTransformerInput,
 };
 use trainer::models::weights;
+use trainer::schedulers::scheduling_flow_match_euler_discrete::{
+    FlowMatchEulerDiscreteScheduler, FlowMatchEulerDiscreteSchedulerConfig,
+};
+use trainer::schedulers::scheduling_unipc_multistep::{UniPCMultistepScheduler, UniPCMultistepSchedulerConfig};
 use trainer::tch::{self, Device, Kind, Tensor, nn};
 
 use super::parity::{assert_close, read_tensors, run_script};
@@ -151,5 +156,102 @@ fn presets_have_the_released_checkpoints_names_and_shapes() {
     for (preset, expected) in all {
         let config = WanTransformer3DModelConfig::preset(&preset).unwrap();
         assert_eq!(transformer::variable_shapes(&config).unwrap(), expected, "{preset}");
+    }
+}
+
+/// A scheduler case of the golden script, stepped the way it is in diffusers.
+enum Sampler {
+    UniPC(Box<UniPCMultistepScheduler>),
+    Euler(FlowMatchEulerDiscreteScheduler),
+}
+
+impl Sampler {
+    fn timesteps(&self) -> Tensor {
+        match self {
+            Sampler::UniPC(s) => Tensor::from_slice(s.timesteps()),
+            Sampler::Euler(s) => Tensor::from_slice(s.timesteps()),
+        }
+    }
+
+    fn sigmas(&self) -> Tensor {
+        match self {
+            Sampler::UniPC(s) => Tensor::from_slice(s.sigmas()),
+            Sampler::Euler(s) => Tensor::from_slice(s.sigmas()),
+        }
+    }
+
+    fn noisy(&self, x0: &Tensor, noise: &Tensor, timesteps: &Tensor) -> Tensor {
+        match self {
+            Sampler::UniPC(s) => s.add_noise(x0, noise, timesteps).unwrap(),
+            Sampler::Euler(s) => s.scale_noise(x0, timesteps, noise).unwrap(),
+        }
+    }
+
+    fn step(&mut self, i: usize, output: &Tensor, sample: &Tensor, noise: Option<&Tensor>) -> Tensor {
+        match self {
+            Sampler::UniPC(s) => {
+                let t = s.timesteps()[i];
+                s.step(output, t, sample).unwrap()
+            }
+            Sampler::Euler(s) => {
+                let t = s.timesteps()[i];
+                s.step(output, t, sample, noise).unwrap()
+            }
+        }
+    }
+}
+
+/// Every scheduler case: its schedule, the forward process and a whole sampling loop on random
+/// "model outputs" equal diffusers' step for step (fp32; the solver's coefficients are fp32 in
+/// both, the order conditions solved in fp64 here and in fp32 LAPACK there).
+#[test]
+fn flow_schedulers_match_diffusers_step_for_step() {
+    let io = read_tensors(&goldens().join("scheduler_io.safetensors"));
+    let cases = [
+        "unipc_wan",
+        "unipc_order3",
+        "unipc_epsilon",
+        "euler_shift",
+        "euler_dynamic",
+        "euler_inverted",
+        "euler_stochastic",
+    ];
+    for case in cases {
+        let dir = goldens().join(format!("scheduler_{case}"));
+        let steps = io[&format!("{case}.steps")].int64_value(&[0]) as usize;
+        let mu = io.get(&format!("{case}.mu")).map(|t| t.double_value(&[0]));
+        let mut sampler = if case.starts_with("unipc") {
+            let config = UniPCMultistepSchedulerConfig::from_json_file(&dir).unwrap();
+            let mut s = UniPCMultistepScheduler::new(&config).unwrap();
+            s.set_timesteps(steps, mu).unwrap();
+            Sampler::UniPC(Box::new(s))
+        } else {
+            let config = FlowMatchEulerDiscreteSchedulerConfig::from_json_file(&dir).unwrap();
+            let mut s = FlowMatchEulerDiscreteScheduler::new(&config).unwrap();
+            s.set_timesteps(steps, mu).unwrap();
+            Sampler::Euler(s)
+        };
+        let expected_timesteps = &io[&format!("{case}.timesteps")];
+        if expected_timesteps.kind() == Kind::Int64 {
+            assert!(sampler.timesteps().equal(expected_timesteps), "{case}: timesteps {:?}", sampler.timesteps());
+        } else {
+            assert_close(&format!("{case} timesteps"), &sampler.timesteps(), expected_timesteps, 1e-6);
+        }
+        assert_close(&format!("{case} sigmas"), &sampler.sigmas(), &io[&format!("{case}.sigmas")], 1e-6);
+        let noisy = sampler.noisy(
+            &io[&format!("{case}.original_samples")],
+            &io[&format!("{case}.noise")],
+            &io[&format!("{case}.noise_timesteps")],
+        );
+        assert_close(&format!("{case} forward process"), &noisy, &io[&format!("{case}.noisy_samples")], 1e-6);
+
+        let mut sample = io[&format!("{case}.initial_sample")].shallow_clone();
+        for i in 0..steps {
+            let output = &io[&format!("{case}.{i}.model_output")];
+            let noise = io.get(&format!("{case}.{i}.step_noise"));
+            sample = sampler.step(i, output, &sample, noise);
+            let expected = &io[&format!("{case}.{i}.prev_sample")];
+            assert_close(&format!("{case} step {i}"), &sample, expected, 1e-5);
+        }
     }
 }

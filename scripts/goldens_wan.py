@@ -5,7 +5,9 @@ Usage: goldens_wan.py OUT_DIR
 
 Builds tiny random `WanTransformer3DModel`s (fixed seed) with the structures of Wan2.1 T2V,
 Wan2.1 I2V (CLIP image tokens through `image_dim` / `added_kv_proj_dim`), Wan2.1 FLF2V (the image
-embedder's positional table, `pos_embed_seq_len`) and Wan2.2 TI2V (per-token timesteps), runs
+embedder's positional table, `pos_embed_seq_len`) and Wan2.2 TI2V (per-token timesteps), the
+flow-matching schedulers Wan samples with (`UniPCMultistepScheduler`,
+`FlowMatchEulerDiscreteScheduler`) and tiny `AutoencoderKLWan`s (Wan2.1's, Wan2.2's), runs
 diffusers on fixed random inputs and writes what the Rust tests (`trainer/tests/integration/wan.rs`)
 compare against:
 
@@ -15,6 +17,11 @@ compare against:
   OUT_DIR/transformer_io.safetensors    inputs and diffusers' outputs (fp32; bf16 upcast)
   OUT_DIR/transformer_shapes.json       {preset: {state-dict key: shape}} of the real models
   OUT_DIR/scheduler_<case>/             each scheduler case's save_config output
+  OUT_DIR/scheduler_io.safetensors      schedules, scale_noise/add_noise and whole sampling loops
+  OUT_DIR/vae_wan21/, vae_wan22/        tiny random AutoencoderKLWan folders (Wan2.1's structure;
+                                        Wan2.2's residual, patchified one)
+  OUT_DIR/vae_io.safetensors            their encode (posterior mean and log-variance) and decode
+  OUT_DIR/vae_shapes.json               {name: {state-dict key: shape}} of the real VAEs
 
 Nothing here is committed; the tests run it into a temporary folder (a few seconds on a CPU).
 Requires torch and diffusers (the project venv, `scripts/setup.sh`).
@@ -27,6 +34,7 @@ from pathlib import Path
 import torch
 from safetensors.torch import save_file
 from diffusers import (
+    AutoencoderKLWan,
     FlowMatchEulerDiscreteScheduler,
     UniPCMultistepScheduler,
     WanTransformer3DModel,
@@ -256,6 +264,53 @@ def scheduler_goldens(out: Path) -> None:
     save_file({k: v.contiguous() for k, v in t.items()}, str(out / "scheduler_io.safetensors"))
 
 
+# Must equal `AutoencoderKLWanConfig::tiny()`: Wan2.1's VAE structure at small widths (3 levels,
+# 4x spatial and 4x temporal compression).
+TINY_VAE21 = dict(
+    base_dim=8, z_dim=4, dim_mult=[1, 2, 2], num_res_blocks=1, temperal_downsample=[True, True],
+    latents_mean=[0.1, -0.2, 0.3, 0.0], latents_std=[1.5, 0.8, 1.1, 2.0], scale_factor_spatial=4,
+)
+# Must equal `AutoencoderKLWanConfig::tiny_residual()`: Wan2.2's residual blocks and 2x2 patches.
+TINY_VAE22 = dict(
+    TINY_VAE21, decoder_base_dim=16, z_dim=6, latents_mean=[0.0] * 6, latents_std=[1.0] * 6, is_residual=True,
+    in_channels=12, out_channels=12, patch_size=2, scale_factor_spatial=8,
+)
+# Wan-AI/Wan2.2-TI2V-5B-Diffusers vae/config.json's structure (the latent statistics do not change
+# any parameter's shape).
+WAN22_VAE = dict(
+    base_dim=160, decoder_base_dim=256, z_dim=48, is_residual=True, in_channels=12, out_channels=12, patch_size=2,
+    scale_factor_spatial=16, latents_mean=[0.0] * 48, latents_std=[1.0] * 48,
+)
+
+
+def vae_goldens(out: Path) -> None:
+    g = torch.Generator().manual_seed(SEED + 3)
+    t = {}
+    for name, config, height, width in [("wan21", TINY_VAE21, 16, 24), ("wan22", TINY_VAE22, 16, 32)]:
+        vae = AutoencoderKLWan(**config).eval()
+        randomize_(vae, g)
+        vae.save_pretrained(out / f"vae_{name}", safe_serialization=True)
+        with torch.no_grad():
+            # 9 frames: the encoder runs chunks of 1, 4, 4 frames with the causal caches carried.
+            sample = torch.rand((2, 3, 9, height, width), generator=g) * 2 - 1
+            posterior = vae.encode(sample).latent_dist
+            t[f"{name}.encode.sample"] = sample
+            t[f"{name}.encode.mean"] = posterior.mean
+            t[f"{name}.encode.logvar"] = posterior.logvar
+            # 3 latent frames, decoded one at a time: 1 + 4 + 4 frames.
+            latent = torch.randn((1,) + tuple(posterior.mean.shape[1:]), generator=g)
+            t[f"{name}.decode.latent"] = latent
+            t[f"{name}.decode.sample"] = vae.decode(latent).sample
+    save_file({k: v.contiguous() for k, v in t.items()}, str(out / "vae_io.safetensors"))
+
+    shapes = {}
+    for name, config in [("wan2.1", {}), ("wan2.2", WAN22_VAE)]:
+        with torch.device("meta"):
+            real = AutoencoderKLWan(**config)
+        shapes[name] = {k: list(v.shape) for k, v in real.state_dict().items()}
+    (out / "vae_shapes.json").write_text(json.dumps(shapes, indent=1, sort_keys=True))
+
+
 def main() -> None:
     if len(sys.argv) != 2:
         sys.exit(__doc__)
@@ -264,6 +319,7 @@ def main() -> None:
     torch.manual_seed(SEED)
     transformer_goldens(out)
     scheduler_goldens(out)
+    vae_goldens(out)
 
 
 if __name__ == "__main__":

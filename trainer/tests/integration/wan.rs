@@ -2,7 +2,8 @@
 //! cross-attention, FLF2V's image positional table) on tiny random models, diffusers' own model
 //! folders loaded and ours written back in the same layout, the exact names and shapes of the
 //! released Wan checkpoints, and the flow-matching schedulers Wan samples with
-//! (`UniPCMultistepScheduler`, `FlowMatchEulerDiscreteScheduler`) step for step.
+//! (`UniPCMultistepScheduler`, `FlowMatchEulerDiscreteScheduler`) step for step, and
+//! `AutoencoderKLWan` (Wan2.1's, Wan2.2's residual patchified one) encoding and decoding.
 //!
 //! Reference values come from `scripts/goldens_wan.py` (diffusers with a fixed seed), run into a
 //! temporary folder once per test binary.
@@ -12,6 +13,7 @@ use std::path::Path;
 use std::sync::OnceLock;
 
 use trainer::diffusers_config::DiffusersConfig;
+use trainer::models::autoencoder_kl_wan::{self as vae, AutoencoderKLWanConfig};
 use trainer::models::transformer_wan::{
     self as transformer, WanTransformer3DModel, WanTransformer3DModelConfig, WanTransformerInput,
 };
@@ -254,4 +256,60 @@ fn flow_schedulers_match_diffusers_step_for_step() {
             assert_close(&format!("{case} step {i}"), &sample, expected, 1e-5);
         }
     }
+}
+
+#[test]
+fn vae_tiny_presets_equal_the_golden_configs() {
+    for (folder, preset) in
+        [("vae_wan21", AutoencoderKLWanConfig::tiny()), ("vae_wan22", AutoencoderKLWanConfig::tiny_residual())]
+    {
+        let config = AutoencoderKLWanConfig::from_json_file(goldens().join(folder)).unwrap();
+        assert_eq!(AutoencoderKLWanConfig { extra: Default::default(), ..config }, preset, "{folder}");
+    }
+}
+
+/// Encode (posterior mean and log-variance, 9 frames in chunks of 1 + 4 + 4 with the causal
+/// caches carried) and decode (3 latent frames one at a time) equal diffusers' for Wan2.1's VAE
+/// and Wan2.2's residual, patchified one.
+#[test]
+fn vae_encode_and_decode_match_diffusers() {
+    let io = read_tensors(&goldens().join("vae_io.safetensors"));
+    for name in ["wan21", "wan22"] {
+        let dir = goldens().join(format!("vae_{name}"));
+        let config = AutoencoderKLWanConfig::from_json_file(&dir).unwrap();
+        let (vs, model) = vae::build(&config, Device::Cpu, Kind::Float).unwrap();
+        weights::load(&vs, &dir).unwrap();
+        let posterior = tch::no_grad(|| model.encode_posterior(&io[&format!("{name}.encode.sample")])).unwrap();
+        assert_close(&format!("vae {name} encode mean"), &posterior.mean, &io[&format!("{name}.encode.mean")], 1e-5);
+        assert_close(
+            &format!("vae {name} encode logvar"),
+            &posterior.logvar,
+            &io[&format!("{name}.encode.logvar")],
+            1e-5,
+        );
+        let sample = tch::no_grad(|| model.decode(&io[&format!("{name}.decode.latent")])).unwrap();
+        assert_close(&format!("vae {name} decode"), &sample, &io[&format!("{name}.decode.sample")], 1e-5);
+    }
+}
+
+/// The module trees of the released VAEs have exactly their checkpoints' names and shapes.
+#[test]
+fn vae_presets_have_the_released_checkpoints_names_and_shapes() {
+    let text = std::fs::read_to_string(goldens().join("vae_shapes.json")).unwrap();
+    let all: BTreeMap<String, BTreeMap<String, Vec<i64>>> = serde_json::from_str(&text).unwrap();
+    let wan22 = AutoencoderKLWanConfig {
+        base_dim: 160,
+        decoder_base_dim: Some(256),
+        z_dim: 48,
+        is_residual: true,
+        in_channels: 12,
+        out_channels: 12,
+        patch_size: Some(2),
+        scale_factor_spatial: Some(16),
+        latents_mean: vec![0.0; 48],
+        latents_std: vec![1.0; 48],
+        ..AutoencoderKLWanConfig::wan21()
+    };
+    assert_eq!(vae::variable_shapes(&AutoencoderKLWanConfig::wan21()).unwrap(), all["wan2.1"], "wan2.1");
+    assert_eq!(vae::variable_shapes(&wan22).unwrap(), all["wan2.2"], "wan2.2");
 }

@@ -24,7 +24,7 @@ use trainer::schedulers::scheduling_flow_match_euler_discrete::{
 use trainer::schedulers::scheduling_unipc_multistep::{UniPCMultistepScheduler, UniPCMultistepSchedulerConfig};
 use trainer::tch::{self, Device, Kind, Tensor, nn};
 
-use super::parity::{assert_close, read_tensors, run_script};
+use super::parity::{assert_close, assert_success, read_tensors, run_script};
 
 /// Output of `scripts/goldens_wan.py`, generated once per test binary.
 fn goldens() -> &'static Path {
@@ -312,4 +312,58 @@ fn vae_presets_have_the_released_checkpoints_names_and_shapes() {
     };
     assert_eq!(vae::variable_shapes(&AutoencoderKLWanConfig::wan21()).unwrap(), all["wan2.1"], "wan2.1");
     assert_eq!(vae::variable_shapes(&wan22).unwrap(), all["wan2.2"], "wan2.2");
+}
+
+/// `trainer forward` with `args`, its output checked for success.
+fn trainer_forward(args: &[&std::ffi::OsStr]) -> std::process::Output {
+    std::process::Command::new(env!("CARGO_BIN_EXE_trainer")).arg("forward").args(args).output().expect("run trainer")
+}
+
+/// `trainer forward` picks the Wan family from the config's `_class_name` and reads inputs under
+/// diffusers' argument names (the I2V transformer with its image tokens; Wan2.2's VAE encoder);
+/// a class it does not run is refused, naming the field.
+#[test]
+fn trainer_forward_runs_wan_configs() {
+    let io = transformer_io();
+    let dir = tempfile::tempdir().unwrap();
+    let inputs = dir.path().join("in.safetensors");
+    let names = ["hidden_states", "timestep", "encoder_hidden_states", "encoder_hidden_states_image"];
+    let named: Vec<(&str, &Tensor)> = names.iter().map(|n| (*n, &io[&format!("i2v.{n}")])).collect();
+    Tensor::write_safetensors(&named, &inputs).unwrap();
+    let out = dir.path().join("out.safetensors");
+    let model = goldens().join("transformer_i2v");
+    let run = |module: &str, model: &Path, inputs: &Path| {
+        trainer_forward(&[
+            "--module".as_ref(),
+            module.as_ref(),
+            "--config".as_ref(),
+            model.as_os_str(),
+            "--weights".as_ref(),
+            model.as_os_str(),
+            "--inputs".as_ref(),
+            inputs.as_os_str(),
+            "--out".as_ref(),
+            out.as_os_str(),
+        ])
+    };
+    assert_success(&run("transformer", &model, &inputs));
+    assert_close("trainer forward wan i2v", &read_tensors(&out)["sample"], &io["i2v.sample"], 1e-4);
+
+    let vae_io = read_tensors(&goldens().join("vae_io.safetensors"));
+    let vae_inputs = dir.path().join("vae_in.safetensors");
+    Tensor::write_safetensors(&[("sample", &vae_io["wan22.encode.sample"])], &vae_inputs).unwrap();
+    assert_success(&run("vae_encoder", &goldens().join("vae_wan22"), &vae_inputs));
+    assert_close(
+        "trainer forward wan2.2 vae encoder",
+        &read_tensors(&out)["latent"],
+        &vae_io["wan22.encode.mean"],
+        1e-5,
+    );
+
+    let output = run("vae_encoder", &model, &vae_inputs);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        !output.status.success() && stderr.contains("_class_name") && stderr.contains("AutoencoderKLWan"),
+        "{stderr}"
+    );
 }

@@ -47,6 +47,10 @@ const ROPE_THETA: f64 = 10_000.0;
 /// `_keep_in_fp32_modules` of `WanTransformer3DModel`; a parameter is kept when one of the
 /// components of its dotted name is one of these, as `from_pretrained(torch_dtype=…)` decides).
 pub const KEEP_IN_FP32_MODULES: [&str; 6] = ["rope", "time_embedder", "scale_shift_table", "norm1", "norm2", "norm3"];
+/// Checkpoint tensors skipped when loading (diffusers' `_keys_to_ignore_on_load_unexpected`: the
+/// image key norm's query twin, which early conversions of the I2V checkpoints wrote and the model
+/// never uses).
+pub const KEYS_TO_IGNORE_ON_LOAD_UNEXPECTED: [&str; 1] = ["norm_added_q"];
 /// Largest value of one size field (channels, heads, layers, tokens): far above every released
 /// model's (5120 channels, 40 heads, 1024 rotary positions) and small enough that products of two
 /// or three stay inside 64-bit sizes.
@@ -846,6 +850,13 @@ pub fn build(
     vs.set_kind(kind);
     keep_in_fp32(&vs)?;
     Ok((vs, model))
+}
+
+/// Loads a checkpoint (folder, file or index) into a store built by [`build`]: names and shapes
+/// checked as [`crate::models::weights::load`] does, tensors of
+/// [`KEYS_TO_IGNORE_ON_LOAD_UNEXPECTED`] skipped. Returns how many tensors were loaded.
+pub fn load(vs: &nn::VarStore, path: &std::path::Path) -> Result<usize> {
+    crate::models::weights::load_ignoring(vs, path, &KEYS_TO_IGNORE_ON_LOAD_UNEXPECTED)
 }
 
 /// Converts the variables of [`KEEP_IN_FP32_MODULES`] back to fp32 (in place: the model's handles

@@ -147,9 +147,10 @@ pub fn run(request: &ForwardRequest) -> Result<ForwardReport> {
                 let encoder_hidden_states = inputs.required("encoder_hidden_states", &NAMES)?;
                 let image = inputs.optional("encoder_hidden_states_image")?;
                 let config = WanTransformer3DModelConfig::from_json_file(&request.config)?;
-                check_weights(&wan_transformer::variable_shapes(&config)?, &request.weights)?;
+                let ignored = &wan_transformer::KEYS_TO_IGNORE_ON_LOAD_UNEXPECTED;
+                check_weights(&wan_transformer::variable_shapes(&config)?, &request.weights, ignored)?;
                 let (vs, model) = wan_transformer::build(&config, request.device, request.kind)?;
-                weights::load(&vs, &request.weights)?;
+                wan_transformer::load(&vs, &request.weights)?;
                 let load_seconds = loaded();
                 let input = WanTransformerInput {
                     hidden_states: &hidden_states,
@@ -165,7 +166,7 @@ pub fn run(request: &ForwardRequest) -> Result<ForwardReport> {
                 let encoder_hidden_states = inputs.required("encoder_hidden_states", &NAMES)?;
                 let timestep = inputs.required("timestep", &NAMES)?;
                 let config = CogVideoXTransformer3DModelConfig::from_json_file(&request.config)?;
-                check_weights(&transformer::variable_shapes(&config)?, &request.weights)?;
+                check_weights(&transformer::variable_shapes(&config)?, &request.weights, &[])?;
                 let (vs, model) = transformer::build(&config, request.device, request.kind)?;
                 weights::load(&vs, &request.weights)?;
                 let load_seconds = loaded();
@@ -240,7 +241,8 @@ fn family(request: &ForwardRequest) -> Result<&'static str> {
 }
 
 /// Names and shapes of a checkpoint against a model's, from the headers only.
-fn check_weights(expected: &BTreeMap<String, Vec<i64>>, checkpoint: &Path) -> Result<()> {
-    let found = weights::read_checkpoint_info(checkpoint)?;
+fn check_weights(expected: &BTreeMap<String, Vec<i64>>, checkpoint: &Path, ignored: &[&str]) -> Result<()> {
+    let mut found = weights::read_checkpoint_info(checkpoint)?;
+    found.retain(|name, _| expected.contains_key(name) || !ignored.iter().any(|p| name.contains(p)));
     weights::check_against(expected, &found, checkpoint)
 }

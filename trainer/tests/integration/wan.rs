@@ -38,11 +38,11 @@ fn transformer_io() -> BTreeMap<String, Tensor> {
 }
 
 /// A model built from a golden folder's config.json with its weights loaded (names and shapes
-/// checked both ways by `weights::load`).
+/// checked both ways by `transformer::load`).
 fn load_model(dir: &Path) -> (nn::VarStore, WanTransformer3DModel) {
     let config = WanTransformer3DModelConfig::from_json_file(dir).unwrap();
     let (vs, model) = transformer::build(&config, Device::Cpu, Kind::Float).unwrap();
-    weights::load(&vs, dir).unwrap();
+    transformer::load(&vs, dir).unwrap();
     (vs, model)
 }
 
@@ -102,7 +102,7 @@ fn bf16_forward_tracks_diffusers_bf16() {
     let dir = goldens().join("transformer_i2v");
     let config = WanTransformer3DModelConfig::from_json_file(&dir).unwrap();
     let (vs, model) = transformer::build(&config, Device::Cpu, Kind::BFloat16).unwrap();
-    weights::load(&vs, &dir).unwrap();
+    transformer::load(&vs, &dir).unwrap();
     let variables = vs.variables();
     assert_eq!(variables["blocks.0.scale_shift_table"].kind(), Kind::Float);
     assert_eq!(variables["condition_embedder.time_embedder.linear_1.weight"].kind(), Kind::Float);
@@ -146,6 +146,32 @@ fn saved_folders_equal_diffusers_layout() {
     let (_vs, reloaded) = load_model(out.path());
     let io = transformer_io();
     assert!(forward(&reloaded, &io, "i2v").equal(&forward(&model, &io, "i2v")));
+}
+
+/// A checkpoint with the `norm_added_q` weights early I2V conversions wrote loads (diffusers skips
+/// them too) and computes the same; any other extra tensor is still refused, named.
+#[test]
+fn stale_norm_added_q_weights_are_skipped_and_nothing_else() {
+    let golden = goldens().join("transformer_i2v");
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::copy(golden.join("config.json"), dir.path().join("config.json")).unwrap();
+    let mut tensors = read_tensors(&golden.join("diffusion_pytorch_model.safetensors"));
+    tensors.insert("blocks.0.attn2.norm_added_q.weight".to_string(), Tensor::ones([32], (Kind::Float, Device::Cpu)));
+    let file = dir.path().join("diffusion_pytorch_model.safetensors");
+    let write = |tensors: &BTreeMap<String, Tensor>| {
+        let named: Vec<(&str, &Tensor)> = tensors.iter().map(|(k, v)| (k.as_str(), v)).collect();
+        Tensor::write_safetensors(&named, &file).unwrap();
+    };
+    write(&tensors);
+    let io = transformer_io();
+    let (_vs, model) = load_model(dir.path());
+    assert_close("wan i2v with norm_added_q in the checkpoint", &forward(&model, &io, "i2v"), &io["i2v.sample"], 0.0);
+
+    tensors.insert("blocks.0.attn2.mystery.weight".to_string(), Tensor::ones([32], (Kind::Float, Device::Cpu)));
+    write(&tensors);
+    let (vs, _model) = transformer::build(model.config(), Device::Cpu, Kind::Float).unwrap();
+    let err = transformer::load(&vs, dir.path()).unwrap_err().to_string();
+    assert!(err.contains("blocks.0.attn2.mystery.weight") && err.contains("unexpected"), "{err}");
 }
 
 /// The module tree of each released model has exactly the checkpoint's names and shapes (diffusers

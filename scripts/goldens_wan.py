@@ -20,7 +20,8 @@ compare against:
   OUT_DIR/scheduler_io.safetensors      schedules, scale_noise/add_noise and whole sampling loops
   OUT_DIR/vae_wan21/, vae_wan22/        tiny random AutoencoderKLWan folders (Wan2.1's structure;
                                         Wan2.2's residual, patchified one)
-  OUT_DIR/vae_io.safetensors            their encode (posterior mean and log-variance) and decode
+  OUT_DIR/vae_io.safetensors            their encode (posterior mean and log-variance), decode and
+                                        the pipelines' latent normalisation
   OUT_DIR/vae_shapes.json               {name: {state-dict key: shape}} of the real VAEs
 
 Nothing here is committed; the tests run it into a temporary folder (a few seconds on a CPU).
@@ -301,6 +302,12 @@ def vae_goldens(out: Path) -> None:
             latent = torch.randn((1,) + tuple(posterior.mean.shape[1:]), generator=g)
             t[f"{name}.decode.latent"] = latent
             t[f"{name}.decode.sample"] = vae.decode(latent).sample
+            # The pipelines' normalisation of the encoded latent and its inverse before decoding.
+            c = vae.config
+            mean = torch.tensor(c.latents_mean).view(1, c.z_dim, 1, 1, 1)
+            inv_std = 1.0 / torch.tensor(c.latents_std).view(1, c.z_dim, 1, 1, 1)
+            t[f"{name}.normalized"] = (posterior.mean - mean) * inv_std
+            t[f"{name}.denormalized"] = latent / inv_std + mean
     save_file({k: v.contiguous() for k, v in t.items()}, str(out / "vae_io.safetensors"))
 
     shapes = {}

@@ -940,6 +940,41 @@ impl AutoencoderKLWan {
         Ok(out.f_clamp(-1.0, 1.0)?)
     }
 
+    /// The Wan pipelines' latent normalisation, `(z − latents_mean) · (1 / latents_std)` per
+    /// channel (the reciprocal taken in fp32, as they compute it): what the diffusion model sees.
+    pub fn normalize_latents(&self, latent: &Tensor) -> Result<Tensor> {
+        let (mean, inv_std) = self.latent_statistics(latent)?;
+        Ok(latent.f_sub(&mean)?.f_mul(&inv_std)?)
+    }
+
+    /// The inverse of [`normalize_latents`](Self::normalize_latents), `z / (1 / latents_std) +
+    /// latents_mean`, as the pipelines undo it before decoding.
+    pub fn denormalize_latents(&self, latent: &Tensor) -> Result<Tensor> {
+        let (mean, inv_std) = self.latent_statistics(latent)?;
+        Ok(latent.f_div(&inv_std)?.f_add(&mean)?)
+    }
+
+    /// `latents_mean` and `1 / latents_std` as `[1, z_dim, 1, 1, 1]` in the latent's dtype and
+    /// device.
+    fn latent_statistics(&self, latent: &Tensor) -> Result<(Tensor, Tensor)> {
+        let z = self.config.z_dim;
+        if latent.dim() != 5 || latent.size()[1] != z {
+            return Err(Error::Shape {
+                tensor: "latent".to_string(),
+                expected: format!("[B, {z} (z_dim), f, h, w]"),
+                actual: latent.size(),
+            });
+        }
+        let column = |values: &[f64]| -> Result<Tensor> {
+            let fp32: Vec<f32> = values.iter().map(|&v| v as f32).collect();
+            Ok(Tensor::from_slice(&fp32).f_view([1, z, 1, 1, 1])?)
+        };
+        let mean = column(&self.config.latents_mean)?;
+        let inv_std = column(&self.config.latents_std)?.f_reciprocal()?;
+        let place = |t: Tensor| -> Result<Tensor> { Ok(t.f_to_device(latent.device())?.f_to_kind(latent.kind())?) };
+        Ok((place(mean)?, place(inv_std)?))
+    }
+
     fn patch_area(&self) -> i64 {
         let p = self.config.patch_size.unwrap_or(1);
         p * p

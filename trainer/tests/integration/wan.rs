@@ -295,8 +295,8 @@ fn vae_tiny_presets_equal_the_golden_configs() {
 }
 
 /// Encode (posterior mean and log-variance, 9 frames in chunks of 1 + 4 + 4 with the causal
-/// caches carried) and decode (3 latent frames one at a time) equal diffusers' for Wan2.1's VAE
-/// and Wan2.2's residual, patchified one.
+/// caches carried), decode (3 latent frames one at a time) and the pipelines' latent
+/// normalisation equal diffusers' for Wan2.1's VAE and Wan2.2's residual, patchified one.
 #[test]
 fn vae_encode_and_decode_match_diffusers() {
     let io = read_tensors(&goldens().join("vae_io.safetensors"));
@@ -315,6 +315,10 @@ fn vae_encode_and_decode_match_diffusers() {
         );
         let sample = tch::no_grad(|| model.decode(&io[&format!("{name}.decode.latent")])).unwrap();
         assert_close(&format!("vae {name} decode"), &sample, &io[&format!("{name}.decode.sample")], 1e-5);
+        let normalized = model.normalize_latents(&posterior.mean).unwrap();
+        assert_close(&format!("vae {name} normalize"), &normalized, &io[&format!("{name}.normalized")], 1e-6);
+        let denormalized = model.denormalize_latents(&io[&format!("{name}.decode.latent")]).unwrap();
+        assert_close(&format!("vae {name} denormalize"), &denormalized, &io[&format!("{name}.denormalized")], 1e-6);
     }
 }
 

@@ -382,6 +382,7 @@ impl WanAttention {
     /// `heads × head_dim` attention on `dim`-wide tokens; `added_kv_proj_dim` adds the image
     /// key/value projections.
     pub fn new(vars: &Vars, dim: i64, heads: i64, eps: f64, added_kv_proj_dim: Option<i64>) -> Result<Self> {
+        // diffusers' inner width heads × (dim / heads) is the token width itself.
         let inner = dim;
         let image = match added_kv_proj_dim {
             Some(added) => Some((

@@ -229,6 +229,17 @@ impl Sampler {
     }
 }
 
+/// The `wan_480p` preset is the script's copy of the released scheduler config, as diffusers
+/// writes it back.
+#[test]
+fn unipc_wan_preset_equals_the_golden_config() {
+    let config = UniPCMultistepSchedulerConfig::from_json_file(goldens().join("scheduler_unipc_wan")).unwrap();
+    assert_eq!(
+        UniPCMultistepSchedulerConfig { extra: Default::default(), ..config },
+        UniPCMultistepSchedulerConfig::wan_480p()
+    );
+}
+
 /// Every scheduler case: its schedule, the forward process and a whole sampling loop on random
 /// "model outputs" equal diffusers' step for step (fp32; the solver's coefficients are fp32 in
 /// both, the order conditions solved in fp64 here and in fp32 LAPACK there).

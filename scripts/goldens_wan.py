@@ -14,12 +14,14 @@ compare against:
   OUT_DIR/transformer_t2v/              diffusers' own save_pretrained output
   OUT_DIR/transformer_i2v/              the same, with image cross-attention
   OUT_DIR/transformer_flf2v/            the same, with the image embedder's positional table
+  OUT_DIR/transformer_variant/          T2V without cross-attention norm, patches of 2 x 2 x 2
   OUT_DIR/transformer_io.safetensors    inputs and diffusers' outputs (fp32; bf16 upcast)
   OUT_DIR/transformer_shapes.json       {preset: {state-dict key: shape}} of the real models
   OUT_DIR/scheduler_<case>/             each scheduler case's save_config output
   OUT_DIR/scheduler_io.safetensors      schedules, scale_noise/add_noise and whole sampling loops
-  OUT_DIR/vae_wan21/, vae_wan22/        tiny random AutoencoderKLWan folders (Wan2.1's structure;
-                                        Wan2.2's residual, patchified one)
+  OUT_DIR/vae_wan21/, vae_wan22/,       tiny random AutoencoderKLWan folders (Wan2.1's structure;
+  OUT_DIR/vae_wan21_2d/                 Wan2.2's residual, patchified one; a spatial-only first
+                                        level)
   OUT_DIR/vae_io.safetensors            their encode (posterior mean and log-variance), decode and
                                         the pipelines' latent normalisation
   OUT_DIR/vae_shapes.json               {name: {state-dict key: shape}} of the real VAEs
@@ -133,6 +135,12 @@ def transformer_goldens(out: Path) -> None:
     per_token[:, : tokens // 3] = 0.0
     per_token[1] = 250.0 * (per_token[1] > 0)
     case("ti2v", t2v, hidden_states=x, timestep=per_token, encoder_hidden_states=text)
+
+    # No cross-attention norm and temporal patches of 2 (config branches no released model takes).
+    variant = randomized(dict(TINY_T2V, cross_attn_norm=False, patch_size=[2, 2, 2]), g)
+    variant.save_pretrained(out / "transformer_variant", safe_serialization=True)
+    x = torch.randn((1, TINY_T2V["in_channels"], 4, 4, 6), generator=g)
+    case("variant", variant, hidden_states=x, timestep=torch.tensor([500]), encoder_hidden_states=text[:1].clone())
 
     i2v = randomized(TINY_I2V, g)
     i2v.save_pretrained(out / "transformer_i2v", safe_serialization=True)
@@ -287,7 +295,13 @@ WAN22_VAE = dict(
 def vae_goldens(out: Path) -> None:
     g = torch.Generator().manual_seed(SEED + 3)
     t = {}
-    for name, config, height, width in [("wan21", TINY_VAE21, 16, 24), ("wan22", TINY_VAE22, 16, 32)]:
+    # wan21_2d: Wan2.1's first level compresses space only, as the released VAE's does.
+    cases = [
+        ("wan21", TINY_VAE21, 16, 24),
+        ("wan22", TINY_VAE22, 16, 32),
+        ("wan21_2d", dict(TINY_VAE21, temperal_downsample=[False, True]), 16, 24),
+    ]
+    for name, config, height, width in cases:
         vae = AutoencoderKLWan(**config).eval()
         randomize_(vae, g)
         vae.save_pretrained(out / f"vae_{name}", safe_serialization=True)

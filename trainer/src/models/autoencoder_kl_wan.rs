@@ -54,7 +54,8 @@ pub struct AutoencoderKLWanConfig {
     pub dim_mult: Vec<i64>,
     /// Residual blocks per encoder level (the decoder has one more).
     pub num_res_blocks: i64,
-    /// Encoder scales (1, 1/2, …) with an attention block after each residual block.
+    /// Encoder scales (1, 1/2, …) with an attention block after each residual block; must be
+    /// empty (diffusers' encoder passes its cache to those blocks, which take none, and fails).
     pub attn_scales: Vec<f64>,
     /// Which of the first `len(dim_mult) − 1` levels also halve time (the decoder mirrors it).
     pub temperal_downsample: Vec<bool>,
@@ -162,6 +163,16 @@ impl DiffusersConfig for AutoencoderKLWanConfig {
         }
         if !(0.0..1.0).contains(&self.dropout) {
             return Err(err("dropout", format!("must be in [0, 1), got {}", self.dropout)));
+        }
+        if !self.attn_scales.is_empty() {
+            return Err(err(
+                "attn_scales",
+                format!(
+                    "{:?} is not supported: diffusers' WanEncoder3d cannot run attention blocks in its down \
+                     blocks (it passes them a cache they do not take); every released Wan VAE has none",
+                    self.attn_scales
+                ),
+            ));
         }
         if self.is_residual {
             // AvgDown3D groups in·factor channels into out channels, DupUp3D the reverse.
@@ -643,11 +654,11 @@ impl MidBlock {
     }
 }
 
-/// One entry of the Wan2.1 encoder's flat `down_blocks` list.
+/// One entry of the Wan2.1 encoder's flat `down_blocks` list (no attention blocks: see
+/// [`AutoencoderKLWanConfig::attn_scales`]).
 #[derive(Debug)]
 enum DownLayer {
     Residual(ResidualBlock),
-    Attention(AttentionBlock),
     Resample(Resample),
 }
 
@@ -713,14 +724,10 @@ impl Encoder {
             DownBlocks::Residual(out)
         } else {
             let mut layers = Vec::new();
-            let mut scale = 1.0;
             for i in 0..levels {
                 let (mut in_dim, out_dim) = (dims[i], dims[i + 1]);
                 for _ in 0..c.num_res_blocks {
                     layers.push(DownLayer::Residual(ResidualBlock::new(&blocks.sub(layers.len()), in_dim, out_dim)?));
-                    if c.attn_scales.contains(&scale) {
-                        layers.push(DownLayer::Attention(AttentionBlock::new(&blocks.sub(layers.len()), out_dim)?));
-                    }
                     in_dim = out_dim;
                 }
                 if i != levels - 1 {
@@ -730,7 +737,6 @@ impl Encoder {
                         mode(i),
                         out_dim,
                     )?));
-                    scale /= 2.0;
                 }
             }
             DownBlocks::Plain(layers)
@@ -752,7 +758,6 @@ impl Encoder {
                 for layer in layers {
                     xs = match layer {
                         DownLayer::Residual(block) => block.forward(&xs, cache)?,
-                        DownLayer::Attention(block) => block.forward(&xs)?,
                         DownLayer::Resample(block) => block.forward(&xs, cache)?,
                     };
                 }
@@ -1071,5 +1076,7 @@ mod tests {
         assert!(err.contains("v.json") && err.contains("temperal_downsample"), "{err}");
         let err = AutoencoderKLWanConfig::from_json_str(r#"{"z_dim": 4}"#, "v.json").unwrap_err().to_string();
         assert!(err.contains("latents_mean"), "{err}");
+        let err = AutoencoderKLWanConfig::from_json_str(r#"{"attn_scales": [1.0]}"#, "v.json").unwrap_err().to_string();
+        assert!(err.contains("attn_scales"), "{err}");
     }
 }

@@ -81,6 +81,9 @@ fn text_to_video_forward_matches_diffusers() {
     // Wan2.2 TI2V: one timestep per token, the first frame's tokens at 0.
     let out = forward(&model, &io, "ti2v");
     assert_close("wan transformer per-token timesteps", &out, &io["ti2v.sample"], 1e-4);
+    let (_vs, model) = load_model(&goldens().join("transformer_variant"));
+    let out = forward(&model, &io, "variant");
+    assert_close("wan transformer without cross-attention norm, 2x2x2 patches", &out, &io["variant.sample"], 1e-4);
 }
 
 #[test]
@@ -307,11 +310,12 @@ fn vae_tiny_presets_equal_the_golden_configs() {
 
 /// Encode (posterior mean and log-variance, 9 frames in chunks of 1 + 4 + 4 with the causal
 /// caches carried), decode (3 latent frames one at a time) and the pipelines' latent
-/// normalisation equal diffusers' for Wan2.1's VAE and Wan2.2's residual, patchified one.
+/// normalisation equal diffusers' for Wan2.1's VAE (also with a spatial-only first level) and
+/// Wan2.2's residual, patchified one.
 #[test]
 fn vae_encode_and_decode_match_diffusers() {
     let io = read_tensors(&goldens().join("vae_io.safetensors"));
-    for name in ["wan21", "wan22"] {
+    for name in ["wan21", "wan22", "wan21_2d"] {
         let dir = goldens().join(format!("vae_{name}"));
         let config = AutoencoderKLWanConfig::from_json_file(&dir).unwrap();
         let (vs, model) = vae::build(&config, Device::Cpu, Kind::Float).unwrap();

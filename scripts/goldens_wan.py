@@ -25,6 +25,10 @@ compare against:
   OUT_DIR/vae_io.safetensors            their encode (posterior mean and log-variance), decode and
                                         the pipelines' latent normalisation
   OUT_DIR/vae_shapes.json               {name: {state-dict key: shape}} of the real VAEs
+  OUT_DIR/pipeline_transformer_2/       a second tiny T2V transformer (Wan2.2's low-noise expert)
+  OUT_DIR/pipeline_scheduler/           the UniPC config the pipeline cases sample with
+  OUT_DIR/pipeline_io.safetensors       `WanPipeline` videos (output_type="np") for a seed: with
+                                        classifier-free guidance, two experts, per-token timesteps
 
 Nothing here is committed; the tests run it into a temporary folder (a few seconds on a CPU).
 Requires torch and diffusers (the project venv, `scripts/setup.sh`).
@@ -40,6 +44,7 @@ from diffusers import (
     AutoencoderKLWan,
     FlowMatchEulerDiscreteScheduler,
     UniPCMultistepScheduler,
+    WanPipeline,
     WanTransformer3DModel,
 )
 
@@ -332,6 +337,55 @@ def vae_goldens(out: Path) -> None:
     (out / "vae_shapes.json").write_text(json.dumps(shapes, indent=1, sort_keys=True))
 
 
+# Pipeline cases: 9 frames of 16 x 32 (divisible by 16, as `WanPipeline.check_inputs` asks), so
+# 3 latent frames of 4 x 8 with the tiny Wan2.1 VAE; 4 UniPC steps; seed of the pipeline's
+# generator (a CPU `torch.Generator`, which the Rust side replays with `tch::manual_seed`).
+PIPELINE_FRAMES, PIPELINE_HEIGHT, PIPELINE_WIDTH, PIPELINE_STEPS, PIPELINE_SEED = 9, 16, 32, 4, 42
+# (name, guidance_scale, guidance_scale_2, boundary_ratio, expand_timesteps): CFG on one expert;
+# Wan2.2's two experts switching at 0.8 of the training timesteps (between the 2nd and 3rd of the
+# 4 steps: 999, 900 | 750, 500) with their own guidance; TI2V's
+# per-token timesteps; no guidance (one forward per step).
+PIPELINE_CASES = [
+    ("cfg", 3.0, None, None, False),
+    ("two_experts", 3.0, 1.5, 0.8, False),
+    ("expand_timesteps", 2.0, None, None, True),
+    ("no_guidance", 1.0, None, None, False),
+]
+
+
+def pipeline_goldens(out: Path) -> None:
+    g = torch.Generator().manual_seed(SEED + 4)
+    transformer = WanTransformer3DModel.from_pretrained(out / "transformer_t2v").eval()
+    transformer_2 = randomized(TINY_T2V, g)
+    transformer_2.save_pretrained(out / "pipeline_transformer_2", safe_serialization=True)
+    vae = AutoencoderKLWan.from_pretrained(out / "vae_wan21").eval()
+    # Wan2.1's released scheduler (flow prediction, flow sigmas, shift 3) at a small step count.
+    scheduler = UniPCMultistepScheduler(prediction_type="flow_prediction", use_flow_sigmas=True, flow_shift=3.0)
+    scheduler.save_config(out / "pipeline_scheduler")
+    t = {
+        "prompt_embeds": torch.randn((1, 7, TINY_T2V["text_dim"]), generator=g),
+        "negative_prompt_embeds": torch.randn((1, 7, TINY_T2V["text_dim"]), generator=g),
+        "shape": torch.tensor([PIPELINE_FRAMES, PIPELINE_HEIGHT, PIPELINE_WIDTH, PIPELINE_STEPS, PIPELINE_SEED]),
+    }
+    for name, guidance, guidance_2, boundary, expand in PIPELINE_CASES:
+        pipe = WanPipeline(
+            tokenizer=None, text_encoder=None, vae=vae, scheduler=scheduler, transformer=transformer,
+            transformer_2=transformer_2 if boundary is not None else None, boundary_ratio=boundary,
+            expand_timesteps=expand,
+        )
+        pipe.set_progress_bar_config(disable=True)
+        extra = {} if guidance_2 is None else {"guidance_scale_2": guidance_2}
+        video = pipe(
+            prompt_embeds=t["prompt_embeds"], negative_prompt_embeds=t["negative_prompt_embeds"],
+            height=PIPELINE_HEIGHT, width=PIPELINE_WIDTH, num_frames=PIPELINE_FRAMES,
+            num_inference_steps=PIPELINE_STEPS, guidance_scale=guidance,
+            generator=torch.Generator().manual_seed(PIPELINE_SEED), output_type="np", **extra,
+        ).frames
+        # [1, F, H, W, 3] in [0, 1].
+        t[f"{name}.video"] = torch.from_numpy(video).float()
+    save_file({k: v.contiguous() for k, v in t.items()}, str(out / "pipeline_io.safetensors"))
+
+
 def main() -> None:
     if len(sys.argv) != 2:
         sys.exit(__doc__)
@@ -341,6 +395,7 @@ def main() -> None:
     transformer_goldens(out)
     scheduler_goldens(out)
     vae_goldens(out)
+    pipeline_goldens(out)
 
 
 if __name__ == "__main__":

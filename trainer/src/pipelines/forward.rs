@@ -21,13 +21,14 @@ use std::time::Instant;
 
 use tch::{Device, Kind, Tensor};
 
-use crate::diffusers_config::{self, DiffusersConfig};
+use crate::diffusers_config::DiffusersConfig;
 use crate::error::{Error, Result};
 use crate::models::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoXConfig, TilingConfig};
 use crate::models::autoencoder_kl_wan::{self as wan_vae, AutoencoderKLWanConfig};
 use crate::models::cogvideox_transformer_3d::{
     self as transformer, CogVideoXTransformer3DModelConfig, TransformerInput,
 };
+use crate::models::family::{Job, ModelFamily};
 use crate::models::transformer_wan::{self as wan_transformer, WanTransformer3DModelConfig, WanTransformerInput};
 use crate::models::weights;
 
@@ -51,12 +52,13 @@ impl Module {
         }
     }
 
-    /// The `_class_name`s a config of this module may carry, the default (no class name) first.
-    fn class_names(self) -> [&'static str; 2] {
-        match self {
-            Module::Transformer => [transformer::CLASS_NAME, wan_transformer::CLASS_NAME],
-            Module::VaeEncoder | Module::VaeDecoder => [vae::CLASS_NAME, wan_vae::CLASS_NAME],
-        }
+    /// The family of this module's config: its `_class_name` (see [`ModelFamily`]).
+    fn family(self, config: &Path) -> Result<ModelFamily> {
+        let family = match self {
+            Module::Transformer => ModelFamily::of_transformer(config)?,
+            Module::VaeEncoder | Module::VaeDecoder => ModelFamily::of_vae(config)?,
+        };
+        family.require(Job::Forward, config)
     }
 }
 
@@ -134,12 +136,12 @@ impl Inputs<'_> {
 pub fn run(request: &ForwardRequest) -> Result<ForwardReport> {
     let file: BTreeMap<String, Tensor> = weights::read_safetensors(&request.inputs)?;
     let mut inputs = Inputs { request, file, read: Vec::new() };
-    let class = family(request)?;
+    let family = request.module.family(&request.config)?;
     let started = Instant::now();
     let (output, load_seconds) = tch::no_grad(|| -> Result<(Tensor, f64)> {
         let loaded = || started.elapsed().as_secs_f64();
-        match (request.module, class) {
-            (Module::Transformer, wan_transformer::CLASS_NAME) => {
+        match (request.module, family) {
+            (Module::Transformer, ModelFamily::Wan) => {
                 const NAMES: [&str; 4] =
                     ["hidden_states", "timestep", "encoder_hidden_states", "encoder_hidden_states_image (I2V)"];
                 let hidden_states = inputs.required("hidden_states", &NAMES)?;
@@ -160,7 +162,7 @@ pub fn run(request: &ForwardRequest) -> Result<ForwardReport> {
                 };
                 Ok((model.forward(&input)?, load_seconds))
             }
-            (Module::Transformer, _) => {
+            (Module::Transformer, ModelFamily::CogVideoX) => {
                 const NAMES: [&str; 3] = ["hidden_states", "encoder_hidden_states", "timestep"];
                 let hidden_states = inputs.required("hidden_states", &NAMES)?;
                 let encoder_hidden_states = inputs.required("encoder_hidden_states", &NAMES)?;
@@ -185,11 +187,11 @@ pub fn run(request: &ForwardRequest) -> Result<ForwardReport> {
                 let input = inputs.required(name, &[name])?;
                 // Truncated or mislabelled weight files fail before the model is allocated.
                 weights::read_checkpoint_info(&request.weights)?;
-                if family == wan_vae::CLASS_NAME {
+                if family == ModelFamily::Wan {
                     if request.tiling {
                         return Err(Error::InvalidArgument {
                             name: "--tiling".to_string(),
-                            reason: format!("spatial tiling is not implemented for {family}"),
+                            reason: format!("spatial tiling is not implemented for {}", family.vae_class()),
                         });
                     }
                     let config = AutoencoderKLWanConfig::from_json_file(&request.config)?;
@@ -225,18 +227,6 @@ pub fn run(request: &ForwardRequest) -> Result<ForwardReport> {
         ignored_inputs: inputs.file.into_keys().collect(),
         load_seconds,
         forward_seconds,
-    })
-}
-
-/// The model family of the request's config: its `_class_name`, which must be one this module
-/// has (no class name: CogVideoX's).
-fn family(request: &ForwardRequest) -> Result<&'static str> {
-    let classes = request.module.class_names();
-    let Some(class) = diffusers_config::class_name(&request.config, "config.json")? else { return Ok(classes[0]) };
-    classes.into_iter().find(|c| *c == class).ok_or_else(|| Error::InvalidConfig {
-        source_name: request.config.display().to_string(),
-        field: "_class_name".to_string(),
-        reason: format!("is `{class}`; `trainer forward` runs {} here", classes.join(" or ")),
     })
 }
 

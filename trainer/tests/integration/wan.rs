@@ -412,3 +412,99 @@ fn trainer_forward_runs_wan_configs() {
         "{stderr}"
     );
 }
+
+/// The jobs that do not run Wan yet (sampling, training) pick the family from the folders'
+/// `_class_name` and refuse a Wan model by name, before anything is parsed as CogVideoX's.
+#[test]
+fn sampling_and_training_refuse_wan_folders_by_family() {
+    let root = tempfile::tempdir().unwrap();
+    let folder = |name: &str, class: &str| {
+        let dir = root.path().join(name);
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join("config.json"), format!(r#"{{"_class_name": "{class}"}}"#)).unwrap();
+        dir
+    };
+    let wan_transformer = folder("transformer", transformer::CLASS_NAME);
+    let wan_vae = folder("vae", vae::CLASS_NAME);
+    let paths = trainer::loaders::ModelPaths {
+        transformer: wan_transformer.clone(),
+        adapters: Vec::new(),
+        vae: wan_vae.clone(),
+        scheduler: None,
+        text_embedding: None,
+        negative_text_embedding: None,
+        zero_text_embedding: false,
+    };
+    let e = trainer::pipelines::sampling::CheckedModels::read(&paths, Device::Cpu).unwrap_err().to_string();
+    assert!(e.contains("is a Wan model; sampling runs CogVideoX"), "{e}");
+    assert!(e.contains(&wan_transformer.display().to_string()), "{e}");
+    let model = trainer::training::ModelConfig {
+        transformer: "tiny".to_string(),
+        vae: wan_vae.display().to_string(),
+        text_embedding: None,
+        zero_text_embedding: false,
+        scheduler: None,
+        transformer_lora: None,
+    };
+    let e = model.configs(false).unwrap_err().to_string();
+    assert!(e.contains("is a Wan model; training runs CogVideoX") && e.contains("vae"), "{e}");
+}
+
+/// `WanPipeline`'s videos for a seed (`output_type="np"`, [0, 1]) from ours, within one grey
+/// level: classifier-free guidance, Wan2.2's two experts switching at `boundary_ratio` with their
+/// own guidance scale, TI2V's per-token timesteps, and no guidance.
+#[test]
+fn wan_pipeline_samples_equal_diffusers_for_the_same_seed() {
+    use trainer::pipelines::pipeline_wan::{self, WanExperts, WanSampling};
+    let io = read_tensors(&goldens().join("pipeline_io.safetensors"));
+    let (_vs, model) = load_model(&goldens().join("transformer_t2v"));
+    let (_vs_2, model_2) = load_model(&goldens().join("pipeline_transformer_2"));
+    let vae_dir = goldens().join("vae_wan21");
+    let (vae_vs, vae_model) =
+        vae::build(&AutoencoderKLWanConfig::from_json_file(&vae_dir).unwrap(), Device::Cpu, Kind::Float).unwrap();
+    weights::load(&vae_vs, &vae_dir).unwrap();
+    let scheduler = UniPCMultistepSchedulerConfig::from_json_file(goldens().join("pipeline_scheduler")).unwrap();
+    let shape: Vec<i64> = Vec::try_from(&io["shape"]).unwrap();
+    let [frames, height, width, steps, seed] = shape[..] else { panic!("shape holds 5 values") };
+    // (case, guidance_scale, guidance_scale_2, boundary_ratio, expand_timesteps): the script's.
+    let cases = [
+        ("cfg", 3.0, None, None, false),
+        ("two_experts", 3.0, Some(1.5), Some(0.8), false),
+        ("expand_timesteps", 2.0, None, None, true),
+        ("no_guidance", 1.0, None, None, false),
+    ];
+    let grey = |a: &Tensor, b: &Tensor| a.f_sub(b).unwrap().abs().max().double_value(&[]) * 255.0;
+    for (case, guidance_scale, guidance_scale_2, boundary_ratio, expand_timesteps) in cases {
+        let experts =
+            WanExperts { transformer: &model, transformer_2: boundary_ratio.map(|_| &model_2), boundary_ratio };
+        let sampling = WanSampling {
+            frames,
+            height,
+            width,
+            steps: steps as usize,
+            guidance_scale,
+            guidance_scale_2,
+            expand_timesteps,
+        };
+        tch::manual_seed(seed);
+        let video = pipeline_wan::generate(
+            experts,
+            &vae_model,
+            &scheduler,
+            &io["prompt_embeds"],
+            Some(&io["negative_prompt_embeds"]),
+            &sampling,
+        )
+        .unwrap();
+        let frames_np = (video / 2.0 + 0.5).clamp(0.0, 1.0).permute([0, 2, 3, 4, 1]);
+        let expected = &io[&format!("{case}.video")];
+        let error = grey(&frames_np, expected);
+        println!("wan pipeline {case}: max error {error:.3e} grey levels");
+        assert!(error <= 1.0, "{case}: {error} grey levels from WanPipeline");
+    }
+    // Each case exercises its branch: the second expert and guidance change the video.
+    for (a, b) in [("cfg", "two_experts"), ("cfg", "no_guidance")] {
+        let apart = grey(&io[&format!("{a}.video")], &io[&format!("{b}.video")]);
+        assert!(apart > 1.0, "{a} and {b} are {apart} grey levels apart: the case tests nothing");
+    }
+}

@@ -28,7 +28,8 @@ compare against:
   OUT_DIR/pipeline_transformer_2/       a second tiny T2V transformer (Wan2.2's low-noise expert)
   OUT_DIR/pipeline_scheduler/           the UniPC config the pipeline cases sample with
   OUT_DIR/pipeline_io.safetensors       `WanPipeline` videos (output_type="np") for a seed: with
-                                        classifier-free guidance, two experts, per-token timesteps
+                                        classifier-free guidance, two experts, per-token timesteps;
+                                        and `WanImageToVideoPipeline`'s for an image and CLIP tokens
 
 Nothing here is committed; the tests run it into a temporary folder (a few seconds on a CPU).
 Requires torch and diffusers (the project venv, `scripts/setup.sh`).
@@ -44,6 +45,7 @@ from diffusers import (
     AutoencoderKLWan,
     FlowMatchEulerDiscreteScheduler,
     UniPCMultistepScheduler,
+    WanImageToVideoPipeline,
     WanPipeline,
     WanTransformer3DModel,
 )
@@ -383,6 +385,32 @@ def pipeline_goldens(out: Path) -> None:
         ).frames
         # [1, F, H, W, 3] in [0, 1].
         t[f"{name}.video"] = torch.from_numpy(video).float()
+
+    # Image to video with the tiny Wan2.1 I2V transformer: the image's latent and the first-frame
+    # mask enter beside the noisy latents, CLIP tokens through the image cross-attention. The
+    # CLIP embedding is given (the toolkit precomputes it by script): diffusers refuses `image`
+    # beside `image_embeds`, so its `encode_image` is replaced by one returning them.
+    i2v = WanTransformer3DModel.from_pretrained(out / "transformer_i2v").eval()
+    image = torch.rand((1, 3, PIPELINE_HEIGHT, PIPELINE_WIDTH), generator=g) * 2 - 1
+    image_embeds = torch.randn((1, 5, TINY_I2V["image_dim"]), generator=g)
+    text = torch.randn((1, TEXT_CONTEXT_LENGTH, TINY_I2V["text_dim"]), generator=g)
+    negative = torch.randn((1, TEXT_CONTEXT_LENGTH, TINY_I2V["text_dim"]), generator=g)
+    pipe = WanImageToVideoPipeline(
+        tokenizer=None, text_encoder=None, vae=vae, scheduler=scheduler, transformer=i2v
+    )
+    pipe.set_progress_bar_config(disable=True)
+    pipe.encode_image = lambda image, device: image_embeds
+    # A tensor in [-1, 1] at the output size reaches the VAE unchanged (no resize, no rescale).
+    assert torch.equal(pipe.video_processor.preprocess(image, height=PIPELINE_HEIGHT, width=PIPELINE_WIDTH), image)
+    video = pipe(
+        image=image, prompt_embeds=text, negative_prompt_embeds=negative, height=PIPELINE_HEIGHT,
+        width=PIPELINE_WIDTH, num_frames=PIPELINE_FRAMES, num_inference_steps=PIPELINE_STEPS, guidance_scale=3.0,
+        generator=torch.Generator().manual_seed(PIPELINE_SEED), output_type="np",
+    ).frames
+    t.update({
+        "i2v.image": image, "i2v.image_embeds": image_embeds, "i2v.prompt_embeds": text,
+        "i2v.negative_prompt_embeds": negative, "i2v.video": torch.from_numpy(video).float(),
+    })
     save_file({k: v.contiguous() for k, v in t.items()}, str(out / "pipeline_io.safetensors"))
 
 

@@ -1,19 +1,33 @@
-//! Text-to-video sampling with the Wan family, as diffusers' `WanPipeline` computes it, so that a
-//! seed gives the same video as the pipeline called with
-//! `generator=torch.Generator("cpu").manual_seed(seed)`:
-//! 1. the initial latents `[1, in_channels, 1 + (F − 1)/t, H/s, W/s]` (t, s: the VAE's temporal
-//!    and spatial scale factors) are drawn in f32 on the CPU generator (the only draw);
-//! 2. the UniPC timesteps are set for `steps`; at each timestep t the expert is the transformer
+//! Sampling with the Wan family, as diffusers' `WanPipeline` (text to video) and
+//! `WanImageToVideoPipeline` compute it, so that a seed gives the same video as the pipeline
+//! called with `generator=torch.Generator("cpu").manual_seed(seed)`:
+//! 1. the initial latents `[1, C, 1 + (F − 1)/t, H/s, W/s]` (t, s: the VAE's temporal and
+//!    spatial scale factors; C the transformer's `in_channels`, or with a condition the VAE's
+//!    `z_dim`) are drawn in f32 on the CPU generator (the only draw);
+//! 2. with a condition ([`WanCondition`]), its channels are computed once (below);
+//! 3. the UniPC timesteps are set for `steps`; at each timestep t the expert is the transformer
 //!    while `t ≥ boundary_ratio · num_train_timesteps` (always, without a boundary) and
 //!    `transformer_2` after (Wan2.2 A14B's low-noise expert), each with its own guidance scale;
-//! 3. the transformer runs on the latents cast to its element type with the prompt embedding and,
-//!    when the scale is above 1, again with the negative one (two forwards, as the pipeline runs
-//!    them), mixed as `uncond + g·(cond − uncond)`; the timestep is one per sample, or with
-//!    `expand_timesteps` (Wan2.2 TI2V) one per token, every token at t;
-//! 4. the scheduler steps the f32 latents; at the end they are denormalised with the VAE's latent
+//! 4. the transformer runs on the latents (and the condition channels after them) cast to its
+//!    element type with the prompt embedding and, when the scale is above 1, again with the
+//!    negative one (two forwards, as the pipelines run them), mixed as `uncond + g·(cond −
+//!    uncond)`; the timestep is one per sample, or with `expand_timesteps` (Wan2.2 TI2V, text to
+//!    video) one per token, every token at t;
+//! 5. the scheduler steps the f32 latents; at the end they are denormalised with the VAE's latent
 //!    statistics and decoded.
 //!
-//! The video comes back as the VAE decodes it, `[1, 3, F, H, W]` in [−1, 1]; the pipeline's
+//! **The CogNVS conditioning on Wan.** The render video and its hole mask enter through the
+//! image-to-video model's condition channels, `[mask (t channels), condition latents (z_dim)]`
+//! after the noisy latents, built as `WanImageToVideoPipeline.prepare_latents` builds them for an
+//! image, with the render in place of "the image followed by black frames" and the hole mask in
+//! place of "the first frame is known": the render is VAE-encoded (posterior mean) and normalised;
+//! the mask `[1, 1, F, H, W]` (1 known) is brought to the latent grid by a minimum over each
+//! s × s block (a latent pixel is known only where all its pixels are), its first frame repeated
+//! t times so that the F + t − 1 frames fold into t channels per latent frame. An input whose
+//! render is the first frame followed by zeros and whose mask marks only the first frame is
+//! therefore exactly `WanImageToVideoPipeline`'s input for that image.
+//!
+//! The video comes back as the VAE decodes it, `[1, 3, F, H, W]` in [−1, 1]; the pipelines'
 //! `output_type="np"` frames are `(v / 2 + 0.5)` clamped to [0, 1].
 
 use tch::{Device, Kind, Tensor};
@@ -40,6 +54,18 @@ pub struct WanExperts<'a> {
     pub boundary_ratio: Option<f64>,
 }
 
+/// What the video is conditioned on (image-to-video transformers; see the module docs).
+#[derive(Clone, Copy)]
+pub struct WanCondition<'a> {
+    /// The render `[1, 3, F, H, W]` in [−1, 1] at the output size, zeros in the holes.
+    pub video: &'a Tensor,
+    /// Which pixels of `video` are known, `[1, 1, F, H, W]`: 1 known, 0 a hole.
+    pub mask: &'a Tensor,
+    /// CLIP image tokens `[1, N, image_dim]` for transformers with image cross-attention (Wan2.1
+    /// I2V), precomputed as the pipeline's `encode_image` computes them.
+    pub image_embeds: Option<&'a Tensor>,
+}
+
 /// What to sample: the pipeline's call arguments other than the text and the generator.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct WanSampling {
@@ -61,13 +87,15 @@ pub struct WanSampling {
 
 /// The video `[1, 3, F, H, W]` (f32, [−1, 1]) for `prompt` `[1, S, D]` (in the transformer's
 /// element type, as the pipeline casts it) and `negative` (needed when a guidance scale is above
-/// 1), drawing from tch's generator as it stands (seed it with `tch::manual_seed`).
+/// 1), conditioned on `condition` where given, drawing from tch's generator as it stands (seed it
+/// with `tch::manual_seed`).
 pub fn generate(
     experts: WanExperts<'_>,
     vae: &AutoencoderKLWan,
     scheduler: &UniPCMultistepSchedulerConfig,
     prompt: &Tensor,
     negative: Option<&Tensor>,
+    condition: Option<WanCondition<'_>>,
     sampling: &WanSampling,
 ) -> Result<Tensor> {
     let invalid = |name: &str, reason: String| Error::InvalidArgument { name: name.to_string(), reason };
@@ -97,9 +125,28 @@ pub fn generate(
     }
     let kind = prompt.kind();
     tch::no_grad(|| -> Result<Tensor> {
-        let shape = [1, config.in_channels, (frames - 1) / temporal + 1, height / spatial, width / spatial];
+        let channels = if condition.is_some() { vae_config.z_dim } else { config.in_channels };
+        let shape = [1, channels, (frames - 1) / temporal + 1, height / spatial, width / spatial];
         // The pipeline draws on the CPU generator in f32 and moves the draw to the device.
         let mut latents = Tensor::f_randn(shape, (Kind::Float, Device::Cpu))?.f_to_device(prompt.device())?;
+        let condition_channels = match condition {
+            Some(c) => Some(condition_channels(vae, &c, sampling, (temporal, spatial), kind)?),
+            None => None,
+        };
+        let conditioned = condition_channels.as_ref().map_or(channels, |c| channels + c.size()[1]);
+        if conditioned != config.in_channels {
+            return Err(invalid(
+                "condition",
+                format!(
+                    "the transformer takes {} input channels; the latents and condition give {conditioned}",
+                    config.in_channels
+                ),
+            ));
+        }
+        let image_embeds = match condition.and_then(|c| c.image_embeds) {
+            Some(embeds) => Some(embeds.f_to_kind(kind)?),
+            None => None,
+        };
         let mut scheduler = UniPCMultistepScheduler::new(scheduler)?;
         scheduler.set_timesteps(steps, None)?;
         scheduler.set_begin_index(0);
@@ -110,7 +157,10 @@ pub fn generate(
                 Some(b) if (t as f64) < b => (experts.transformer_2.expect("checked above"), guidance_scale_2),
                 _ => (experts.transformer, guidance_scale),
             };
-            let input = latents.f_to_kind(kind)?;
+            let input = match &condition_channels {
+                Some(c) => Tensor::f_cat(&[&latents, c], 1)?.f_to_kind(kind)?,
+                None => latents.f_to_kind(kind)?,
+            };
             // The pipeline's per-token timesteps are `ones_mask · t` in f32; per sample, t itself.
             let timestep = if expand_timesteps {
                 Tensor::f_full([1, tokens], t as f64, (Kind::Float, prompt.device()))?
@@ -122,7 +172,7 @@ pub fn generate(
                     hidden_states: &input,
                     timestep: &timestep,
                     encoder_hidden_states: text,
-                    encoder_hidden_states_image: None,
+                    encoder_hidden_states_image: image_embeds.as_ref(),
                 })
             };
             let mut noise_pred = run(prompt)?;
@@ -136,4 +186,39 @@ pub fn generate(
         let latents = vae.denormalize_latents(&latents.f_to_kind(kind)?)?;
         Ok(vae.decode(&latents)?.f_to_kind(Kind::Float)?)
     })
+}
+
+/// The condition channels `[1, t + z_dim, F', h, w]` of a render and its mask (module docs).
+fn condition_channels(
+    vae: &AutoencoderKLWan,
+    condition: &WanCondition<'_>,
+    sampling: &WanSampling,
+    (temporal, spatial): (i64, i64),
+    kind: Kind,
+) -> Result<Tensor> {
+    let (frames, height, width) = (sampling.frames, sampling.height, sampling.width);
+    for (name, tensor, channels) in [("condition video", condition.video, 3), ("condition mask", condition.mask, 1)] {
+        if tensor.size() != [1, channels, frames, height, width] {
+            return Err(Error::InvalidArgument {
+                name: name.to_string(),
+                reason: format!("shape {:?}, expected [1, {channels}, {frames}, {height}, {width}]", tensor.size()),
+            });
+        }
+    }
+    // The pipeline encodes in the VAE's type (here the models' one type) and normalises in f32.
+    let latent = vae.encode(&condition.video.f_to_kind(kind)?)?.f_to_kind(Kind::Float)?;
+    let latent = vae.normalize_latents(&latent)?;
+    // Known only where every pixel of the s × s block is: a minimum, as −max(−m).
+    let mask = condition
+        .mask
+        .f_to_kind(Kind::Float)?
+        .f_to_device(latent.device())?
+        .f_neg()?
+        .f_max_pool3d([1, spatial, spatial], [1, spatial, spatial], [0, 0, 0], [1, 1, 1], false)?
+        .f_neg()?;
+    let first = mask.f_narrow(2, 0, 1)?.f_repeat([1, 1, temporal, 1, 1])?;
+    let mask = Tensor::f_cat(&[first, mask.f_narrow(2, 1, frames - 1)?], 2)?;
+    let [_, _, _, h, w] = mask.size()[..] else { unreachable!("5-D mask") };
+    let mask = mask.f_view([1, -1, temporal, h, w])?.f_transpose(1, 2)?;
+    Ok(Tensor::f_cat(&[mask, latent], 1)?)
 }

@@ -493,6 +493,7 @@ fn wan_pipeline_samples_equal_diffusers_for_the_same_seed() {
             &scheduler,
             &io["prompt_embeds"],
             Some(&io["negative_prompt_embeds"]),
+            None,
             &sampling,
         )
         .unwrap();
@@ -507,4 +508,59 @@ fn wan_pipeline_samples_equal_diffusers_for_the_same_seed() {
         let apart = grey(&io[&format!("{a}.video")], &io[&format!("{b}.video")]);
         assert!(apart > 1.0, "{a} and {b} are {apart} grey levels apart: the case tests nothing");
     }
+}
+
+/// The CogNVS conditioning on an image-to-video checkpoint reduces to `WanImageToVideoPipeline`:
+/// a render that is the image followed by zeros, with a mask marking only the first frame, gives
+/// the pipeline's video for that image within one grey level (Wan2.1 I2V: CLIP tokens too). A
+/// mask that also marks a later frame known changes the video.
+#[test]
+fn cognvs_condition_of_first_frame_equals_wan_image_to_video_pipeline() {
+    use trainer::pipelines::pipeline_wan::{self, WanCondition, WanExperts, WanSampling};
+    let io = read_tensors(&goldens().join("pipeline_io.safetensors"));
+    let (_vs, model) = load_model(&goldens().join("transformer_i2v"));
+    let vae_dir = goldens().join("vae_wan21");
+    let (vae_vs, vae_model) =
+        vae::build(&AutoencoderKLWanConfig::from_json_file(&vae_dir).unwrap(), Device::Cpu, Kind::Float).unwrap();
+    weights::load(&vae_vs, &vae_dir).unwrap();
+    let scheduler = UniPCMultistepSchedulerConfig::from_json_file(goldens().join("pipeline_scheduler")).unwrap();
+    let shape: Vec<i64> = Vec::try_from(&io["shape"]).unwrap();
+    let [frames, height, width, steps, seed] = shape[..] else { panic!("shape holds 5 values") };
+    let image = io["i2v.image"].unsqueeze(2);
+    let render =
+        Tensor::cat(&[&image, &Tensor::zeros([1, 3, frames - 1, height, width], (Kind::Float, Device::Cpu))], 2);
+    let mask = Tensor::zeros([1, 1, frames, height, width], (Kind::Float, Device::Cpu));
+    let _ = mask.narrow(2, 0, 1).fill_(1.0);
+    let sampling = WanSampling {
+        frames,
+        height,
+        width,
+        steps: steps as usize,
+        guidance_scale: 3.0,
+        guidance_scale_2: None,
+        expand_timesteps: false,
+    };
+    let experts = WanExperts { transformer: &model, transformer_2: None, boundary_ratio: None };
+    let sample = |mask: &Tensor| {
+        tch::manual_seed(seed);
+        let condition = WanCondition { video: &render, mask, image_embeds: Some(&io["i2v.image_embeds"]) };
+        let video = pipeline_wan::generate(
+            experts,
+            &vae_model,
+            &scheduler,
+            &io["i2v.prompt_embeds"],
+            Some(&io["i2v.negative_prompt_embeds"]),
+            Some(condition),
+            &sampling,
+        )
+        .unwrap();
+        (video / 2.0 + 0.5).clamp(0.0, 1.0).permute([0, 2, 3, 4, 1])
+    };
+    let grey = |a: &Tensor, b: &Tensor| a.f_sub(b).unwrap().abs().max().double_value(&[]) * 255.0;
+    let error = grey(&sample(&mask), &io["i2v.video"]);
+    println!("wan i2v pipeline from the CogNVS condition: max error {error:.3e} grey levels");
+    assert!(error <= 1.0, "{error} grey levels from WanImageToVideoPipeline");
+    let _ = mask.narrow(2, frames - 1, 1).fill_(1.0);
+    let apart = grey(&sample(&mask), &io["i2v.video"]);
+    assert!(apart > 1.0, "marking the last frame known moved the video only {apart} grey levels");
 }

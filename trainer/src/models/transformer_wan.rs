@@ -853,6 +853,48 @@ pub fn build(
     Ok((vs, model))
 }
 
+/// The patch embedding's weight, `[inner_dim, in_channels, pt, ph, pw]`.
+pub const PATCH_EMBEDDING_WEIGHT: &str = "patch_embedding.weight";
+
+/// The model of `config` (its variables in `vs`) widened to `in_channels` inputs: every variable
+/// copied, the patch embedding's weight zero for the new input channels (after the old ones), so
+/// that the widened model of `[x, anything]` on channels equals the original of `x`. This is how
+/// a text-to-video checkpoint takes the CogNVS condition channels before training.
+pub fn widen_in_channels(
+    vs: &nn::VarStore,
+    config: &WanTransformer3DModelConfig,
+    in_channels: i64,
+) -> Result<(nn::VarStore, WanTransformer3DModel)> {
+    if in_channels < config.in_channels {
+        return Err(Error::InvalidArgument {
+            name: "in_channels".to_string(),
+            reason: format!("{in_channels} is fewer than the model's {}", config.in_channels),
+        });
+    }
+    let wide = WanTransformer3DModelConfig { in_channels, ..config.clone() };
+    let old = vs.variables();
+    let kind = old.get(PATCH_EMBEDDING_WEIGHT).map_or(Kind::Float, Tensor::kind);
+    let (wide_vs, model) = build(&wide, vs.device(), kind)?;
+    tch::no_grad(|| -> Result<()> {
+        for (name, mut var) in wide_vs.variables() {
+            let Some(source) = old.get(&name) else {
+                return Err(Error::InvalidArgument {
+                    name: "vs".to_string(),
+                    reason: format!("no variable `{name}` in the model to widen"),
+                });
+            };
+            if name == PATCH_EMBEDDING_WEIGHT {
+                let _ = var.f_zero_()?;
+                var.f_narrow(1, 0, config.in_channels)?.f_copy_(source)?;
+            } else {
+                var.f_copy_(source)?;
+            }
+        }
+        Ok(())
+    })?;
+    Ok((wide_vs, model))
+}
+
 /// Loads a checkpoint (folder, file or index) into a store built by [`build`]: names and shapes
 /// checked as [`crate::models::weights::load`] does, tensors of
 /// [`KEYS_TO_IGNORE_ON_LOAD_UNEXPECTED`] skipped. Returns how many tensors were loaded.

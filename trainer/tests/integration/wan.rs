@@ -564,3 +564,67 @@ fn cognvs_condition_of_first_frame_equals_wan_image_to_video_pipeline() {
     let apart = grey(&sample(&mask), &io["i2v.video"]);
     assert!(apart > 1.0, "marking the last frame known moved the video only {apart} grey levels");
 }
+
+/// The CogNVS conditioning on a text-to-video checkpoint: the patch embedding widened with zero
+/// weights for the mask and condition channels leaves the untrained model equal to `WanPipeline`
+/// (within one grey level), whatever the render and mask; a non-zero weight there changes the
+/// video, so the condition does reach the model.
+#[test]
+fn t2v_widened_for_the_cognvs_condition_equals_wan_pipeline() {
+    use trainer::pipelines::pipeline_wan::{self, WanCondition, WanExperts, WanSampling};
+    let io = read_tensors(&goldens().join("pipeline_io.safetensors"));
+    let dir = goldens().join("transformer_t2v");
+    let config = WanTransformer3DModelConfig::from_json_file(&dir).unwrap();
+    let (vs, _) = load_model(&dir);
+    let vae_dir = goldens().join("vae_wan21");
+    let vae_config = AutoencoderKLWanConfig::from_json_file(&vae_dir).unwrap();
+    let (vae_vs, vae_model) = vae::build(&vae_config, Device::Cpu, Kind::Float).unwrap();
+    weights::load(&vae_vs, &vae_dir).unwrap();
+    let temporal = vae_config.scale_factor_temporal.unwrap();
+    // Noisy latents, then t mask channels and z_dim condition latents.
+    let wide = config.in_channels + temporal + vae_config.z_dim;
+    let (wide_vs, model) = transformer::widen_in_channels(&vs, &config, wide).unwrap();
+    let scheduler = UniPCMultistepSchedulerConfig::from_json_file(goldens().join("pipeline_scheduler")).unwrap();
+    let shape: Vec<i64> = Vec::try_from(&io["shape"]).unwrap();
+    let [frames, height, width, steps, seed] = shape[..] else { panic!("shape holds 5 values") };
+    tch::manual_seed(7);
+    let render = Tensor::rand([1, 3, frames, height, width], (Kind::Float, Device::Cpu)) * 2.0 - 1.0;
+    // Random holes, and a first frame known whole (so the mask channels are not all zero).
+    let mask = Tensor::rand([1, 1, frames, height, width], (Kind::Float, Device::Cpu)).gt(0.5).to_kind(Kind::Float);
+    let _ = mask.narrow(2, 0, 1).fill_(1.0);
+    let sampling = WanSampling {
+        frames,
+        height,
+        width,
+        steps: steps as usize,
+        guidance_scale: 3.0,
+        guidance_scale_2: None,
+        expand_timesteps: false,
+    };
+    let sample = || {
+        tch::manual_seed(seed);
+        let video = pipeline_wan::generate(
+            WanExperts { transformer: &model, transformer_2: None, boundary_ratio: None },
+            &vae_model,
+            &scheduler,
+            &io["prompt_embeds"],
+            Some(&io["negative_prompt_embeds"]),
+            Some(WanCondition { video: &render, mask: &mask, image_embeds: None }),
+            &sampling,
+        )
+        .unwrap();
+        (video / 2.0 + 0.5).clamp(0.0, 1.0).permute([0, 2, 3, 4, 1])
+    };
+    let grey = |a: &Tensor, b: &Tensor| a.f_sub(b).unwrap().abs().max().double_value(&[]) * 255.0;
+    let error = grey(&sample(), &io["cfg.video"]);
+    println!("wan t2v widened for the CogNVS condition: max error {error:.3e} grey levels from WanPipeline");
+    assert!(error <= 1.0, "{error} grey levels from WanPipeline");
+    let weight = &wide_vs.variables()[transformer::PATCH_EMBEDDING_WEIGHT];
+    tch::no_grad(|| {
+        // Random, not constant: a constant over the features is removed by the blocks' LayerNorms.
+        let mut condition_weights = weight.narrow(1, config.in_channels, wide - config.in_channels);
+        condition_weights.copy_(&(condition_weights.randn_like() * 0.1));
+    });
+    let apart = grey(&sample(), &io["cfg.video"]);
+    assert!(apart > 1.0, "non-zero condition weights moved the video only {apart} grey levels");
+}

@@ -3,7 +3,10 @@
 //! folders loaded and ours written back in the same layout, the exact names and shapes of the
 //! released Wan checkpoints, and the flow-matching schedulers Wan samples with
 //! (`UniPCMultistepScheduler`, `FlowMatchEulerDiscreteScheduler`) step for step, and
-//! `AutoencoderKLWan` (Wan2.1's, Wan2.2's residual patchified one) encoding and decoding.
+//! `AutoencoderKLWan` (Wan2.1's, Wan2.2's residual patchified one) encoding and decoding; whole
+//! sampling runs equal to `WanPipeline` and `WanImageToVideoPipeline` for a seed, the CogNVS
+//! render + mask conditioning reducing to them (I2V checkpoint; T2V widened with zeros), and the
+//! jobs that do not run Wan yet refusing it by family.
 //!
 //! Reference values come from `scripts/goldens_wan.py` (diffusers with a fixed seed), run into a
 //! temporary folder once per test binary.

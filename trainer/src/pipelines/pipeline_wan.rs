@@ -119,6 +119,11 @@ pub fn generate(
         (None, None) => None,
         _ => return Err(invalid("boundary_ratio", "two experts need both transformer_2 and a boundary".into())),
     };
+    if condition.is_some() && expand_timesteps {
+        // TI2V-5B's image-to-video mode overwrites the first latent frame with the image's latent
+        // and gives its tokens timestep 0 instead of adding condition channels: not this path.
+        return Err(invalid("expand_timesteps", "per-token timesteps with a condition are not implemented".into()));
+    }
     let guidance_scale_2 = sampling.guidance_scale_2.unwrap_or(guidance_scale);
     if (guidance_scale > 1.0 || (boundary.is_some() && guidance_scale_2 > 1.0)) && negative.is_none() {
         return Err(invalid("negative", "classifier-free guidance needs a negative prompt embedding".into()));

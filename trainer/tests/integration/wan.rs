@@ -631,3 +631,44 @@ fn t2v_widened_for_the_cognvs_condition_equals_wan_pipeline() {
     let apart = grey(&sample(), &io["cfg.video"]);
     assert!(apart > 1.0, "non-zero condition weights moved the video only {apart} grey levels");
 }
+
+/// Arguments the Wan sampler cannot honour are refused by name, before anything is drawn.
+#[test]
+fn wan_sampling_refuses_what_it_cannot_honour() {
+    use trainer::pipelines::pipeline_wan::{self, WanCondition, WanExperts, WanSampling};
+    let (_vs, model) = transformer::build(&WanTransformer3DModelConfig::tiny_t2v(), Device::Cpu, Kind::Float).unwrap();
+    let (_vae_vs, vae_model) = vae::build(&AutoencoderKLWanConfig::tiny(), Device::Cpu, Kind::Float).unwrap();
+    let scheduler = UniPCMultistepSchedulerConfig::wan_480p();
+    let text = Tensor::zeros([1, 7, model.config().text_dim], (Kind::Float, Device::Cpu));
+    let base = WanSampling {
+        frames: 5,
+        height: 16,
+        width: 16,
+        steps: 2,
+        guidance_scale: 1.0,
+        guidance_scale_2: None,
+        expand_timesteps: false,
+    };
+    let one = WanExperts { transformer: &model, transformer_2: None, boundary_ratio: None };
+    let video = Tensor::zeros([1, 3, 5, 16, 16], (Kind::Float, Device::Cpu));
+    let mask = Tensor::zeros([1, 1, 5, 16, 16], (Kind::Float, Device::Cpu));
+    let condition = WanCondition { video: &video, mask: &mask, image_embeds: None };
+    let refusal = |experts, negative, condition, sampling: WanSampling| {
+        pipeline_wan::generate(experts, &vae_model, &scheduler, &text, negative, condition, &sampling)
+            .unwrap_err()
+            .to_string()
+    };
+    let cases = [
+        (one, None, None, WanSampling { frames: 6, ..base }, "frames"),
+        (one, None, None, WanSampling { height: 12, ..base }, "size"),
+        (one, None, None, WanSampling { guidance_scale: 2.0, ..base }, "negative"),
+        (WanExperts { boundary_ratio: Some(0.9), ..one }, None, None, base, "boundary_ratio"),
+        (one, None, Some(condition), WanSampling { expand_timesteps: true, ..base }, "expand_timesteps"),
+        // Condition channels on a transformer without room for them.
+        (one, None, Some(condition), base, "condition"),
+    ];
+    for (experts, negative, condition, sampling, flag) in cases {
+        let e = refusal(experts, negative, condition, sampling);
+        assert!(e.contains(flag), "{flag}: {e}");
+    }
+}

@@ -68,6 +68,27 @@ pub trait DiffusersConfig: DeserializeOwned {
     }
 }
 
+/// The `_class_name` of a diffusers config file (or of `file_name` in a folder), if it has one:
+/// what selects the model family before the file is read as that family's config.
+pub fn class_name(path: &Path, file_name: &str) -> Result<Option<String>> {
+    let path = if path.is_dir() { path.join(file_name) } else { path.to_path_buf() };
+    let json = std::fs::read_to_string(&path).map_err(|source| Error::Io { path: path.clone(), error: source })?;
+    let value: serde_json::Value = serde_json::from_str(&json).map_err(|e| Error::InvalidConfig {
+        source_name: path.display().to_string(),
+        field: "(json)".to_string(),
+        reason: e.to_string(),
+    })?;
+    match value.get("_class_name") {
+        None | Some(serde_json::Value::Null) => Ok(None),
+        Some(serde_json::Value::String(class)) => Ok(Some(class.clone())),
+        Some(other) => Err(Error::InvalidConfig {
+            source_name: path.display().to_string(),
+            field: "_class_name".to_string(),
+            reason: format!("must be a string, got {other}"),
+        }),
+    }
+}
+
 /// Parses and validates a config; `source_name` names it in errors. A value of the wrong type
 /// is reported with its key (`field `block_out_channels``), not only a line and column.
 pub fn parse<T: DiffusersConfig>(json: &str, source_name: &str) -> Result<T> {

@@ -19,10 +19,13 @@ struct Cli {
 #[derive(Debug, Subcommand)]
 enum Command {
     /// Run one component on tensors from a safetensors file and write its output: for checking
-    /// this port or a checkpoint against diffusers. Inputs and outputs use diffusers' argument
-    /// names: transformer `hidden_states` [B,F,C,H,W], `encoder_hidden_states` [B,S,D],
-    /// `timestep` [B] → `sample`; vae_encoder `sample` [B,3,F,H,W] → `latent` (posterior mean,
-    /// unscaled); vae_decoder `latent` → `sample`. Outputs are written as fp32.
+    /// this port or a checkpoint against diffusers. The config's `_class_name` picks CogVideoX or
+    /// Wan. Inputs and outputs use diffusers' argument names: CogVideoX transformer
+    /// `hidden_states` [B,F,C,H,W], `encoder_hidden_states` [B,S,D], `timestep` [B] → `sample`;
+    /// Wan transformer `hidden_states` [B,C,F,H,W], `timestep`, `encoder_hidden_states` and for
+    /// image-to-video `encoder_hidden_states_image` → `sample`; vae_encoder `sample`
+    /// [B,3,F,H,W] → `latent` (posterior mean, unscaled); vae_decoder `latent` → `sample`.
+    /// Outputs are written as fp32.
     Forward(ForwardArgs),
     /// Compare predictions with targets: PSNR and SSIM (scikit-image conventions), LPIPS (the
     /// lpips package) and FID/KID (clean-fid) from weight files you convert once with
@@ -629,7 +632,7 @@ enum LpipsNetArg {
 
 #[derive(Debug, Clone, Copy, ValueEnum)]
 enum ModuleArg {
-    /// CogVideoXTransformer3DModel.
+    /// The transformer (CogVideoXTransformer3DModel or WanTransformer3DModel).
     #[value(name = "transformer")]
     Transformer,
     /// The VAE encoder (posterior mean).

@@ -130,16 +130,29 @@ pub struct FeedForward {
 impl FeedForward {
     /// Variables `net.0.proj.*` and `net.2.*`.
     pub fn new(vars: &Vars, dim: i64, inner_dim: i64, activation: Activation, dropout: f64) -> Result<Self> {
+        Self::with_output(vars, dim, inner_dim, dim, activation, dropout)
+    }
+
+    /// As [`FeedForward::new`] with `dim_out` output channels (diffusers' `dim_out`; Wan's image
+    /// embedder maps CLIP's width to the model's).
+    pub fn with_output(
+        vars: &Vars,
+        dim: i64,
+        inner_dim: i64,
+        dim_out: i64,
+        activation: Activation,
+        dropout: f64,
+    ) -> Result<Self> {
         let net = vars.sub("net");
         Ok(Self {
             proj_in: net.sub(0).sub("proj").linear(dim, inner_dim, true)?,
-            proj_out: net.sub(2).linear(inner_dim, dim, true)?,
+            proj_out: net.sub(2).linear(inner_dim, dim_out, true)?,
             activation,
             dropout,
         })
     }
 
-    /// `[…, dim]` → `[…, dim]`.
+    /// `[…, dim]` → `[…, dim_out]`.
     pub fn forward(&self, xs: &Tensor, train: bool) -> Result<Tensor> {
         let approximate = match self.activation {
             Activation::GeluTanh => "tanh",

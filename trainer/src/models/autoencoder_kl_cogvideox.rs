@@ -929,7 +929,8 @@ pub struct DiagonalGaussian {
 }
 
 impl DiagonalGaussian {
-    fn from_moments(moments: &Tensor, latent_channels: i64) -> Result<Self> {
+    /// Splits encoder moments `[B, 2·latent_channels, …]` into mean and clamped log-variance.
+    pub(crate) fn from_moments(moments: &Tensor, latent_channels: i64) -> Result<Self> {
         let mean = moments.f_narrow(1, 0, latent_channels)?;
         let logvar = moments.f_narrow(1, latent_channels, latent_channels)?.f_clamp(LOGVAR_RANGE.0, LOGVAR_RANGE.1)?;
         Ok(Self { mean, logvar })

@@ -66,6 +66,11 @@ impl TimestepEmbedding {
     pub fn forward(&self, xs: &Tensor) -> Result<Tensor> {
         self.linear_2.forward(&self.linear_1.forward(xs)?.f_silu()?)
     }
+
+    /// The dtype of its weights.
+    pub fn kind(&self) -> Kind {
+        self.linear_1.weight().kind()
+    }
 }
 
 /// diffusers' `get_1d_sincos_pos_embed_from_grid` in fp64: `[M]` positions → `[M, dim]`

@@ -1,14 +1,19 @@
 //! The model components, named after the diffusers files they mirror (`diffusers/models/`): the
 //! CogVideoX transformer and its parts (`embeddings`, `attention`, `normalization`), the 3D causal
-//! VAE, the LoRA layer, and the variables and weight files they are made of (`vars` creates
-//! variables at diffusers' state-dict paths; `weights` reads and writes diffusers model folders, as
-//! diffusers' `modeling_utils` does).
+//! VAE, the Wan transformer and VAE (`transformer_wan`, `autoencoder_kl_wan`), the LoRA layer, and
+//! the variables and weight files they are made of (`vars` creates variables at diffusers'
+//! state-dict paths; `weights` reads and writes diffusers model folders, as diffusers'
+//! `modeling_utils` does). `family` tells the families apart from a config's `_class_name`, once
+//! for every job.
 
 pub mod attention;
 pub mod autoencoder_kl_cogvideox;
+pub mod autoencoder_kl_wan;
 pub mod cogvideox_transformer_3d;
 pub mod embeddings;
+pub mod family;
 pub mod lora;
 pub mod normalization;
+pub mod transformer_wan;
 pub mod vars;
 pub mod weights;

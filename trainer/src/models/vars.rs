@@ -2,8 +2,8 @@
 //! (`transformer_blocks.0.attn1.to_q.weight`), either allocated and initialised like PyTorch's
 //! defaults or as shape-only placeholders (one element, broadcast), so the full 5B module tree can be
 //! listed and checked against a checkpoint without allocating its 22 GB; with LoRA settings, the
-//! targeted linear layers get their adapters in a second store. [`Linear`] and [`LayerNorm`] are
-//! the two layers built this way.
+//! targeted linear layers get their adapters in a second store. [`Linear`], [`LayerNorm`] and
+//! [`RmsNorm`] are the layers built this way.
 
 use tch::{Device, Kind, Tensor, nn};
 
@@ -18,6 +18,9 @@ pub enum ParamInit {
     FanInUniform(i64),
     /// A constant (LayerNorm weights 1, biases 0).
     Const(f64),
+    /// Normal with mean 0 and this standard deviation (Wan's modulation tables,
+    /// `torch.randn(…) / dim**0.5`).
+    Normal(f64),
 }
 
 /// Where a module's variables go: a path in a [`nn::VarStore`] and whether to allocate them,
@@ -72,6 +75,7 @@ impl<'a> Vars<'a> {
                 Tensor::f_empty(dims, options)?.f_uniform_(-bound, bound)?
             }
             ParamInit::Const(c) => Tensor::f_full(dims, c, options)?,
+            ParamInit::Normal(std) => Tensor::f_randn(dims, options)?.f_mul_scalar(std)?,
         };
         Ok(self.path.add(name, value, true))
     }
@@ -115,6 +119,12 @@ impl<'a> Vars<'a> {
             (None, None)
         };
         Ok(LayerNorm { weight, bias, dim, eps })
+    }
+
+    /// `torch.nn.RMSNorm(dim, eps, elementwise_affine)`.
+    pub fn rms_norm(&self, dim: i64, eps: f64, elementwise_affine: bool) -> Result<RmsNorm> {
+        let weight = if elementwise_affine { Some(self.param("weight", &[dim], ParamInit::Const(1.0))?) } else { None };
+        Ok(RmsNorm { weight, eps })
     }
 
     fn placeholder(dims: &[i64], device: Device) -> Result<Tensor> {
@@ -164,5 +174,36 @@ impl LayerNorm {
     /// Normalises the last dimension (computed in the input's dtype, as PyTorch does).
     pub fn forward(&self, xs: &Tensor) -> Result<Tensor> {
         Ok(xs.f_layer_norm([self.dim], self.weight.as_ref(), self.bias.as_ref(), self.eps, true)?)
+    }
+
+    /// diffusers' `FP32LayerNorm`: input and parameters upcast to fp32, the result cast back to
+    /// the input's dtype (Wan normalises in fp32 whatever the weights' dtype).
+    pub fn forward_fp32(&self, xs: &Tensor) -> Result<Tensor> {
+        let upcast = |t: &Option<Tensor>| t.as_ref().map(|t| t.f_to_kind(Kind::Float)).transpose();
+        let (weight, bias) = (upcast(&self.weight)?, upcast(&self.bias)?);
+        let out =
+            xs.f_to_kind(Kind::Float)?.f_layer_norm([self.dim], weight.as_ref(), bias.as_ref(), self.eps, true)?;
+        Ok(out.f_to_kind(xs.kind())?)
+    }
+}
+
+/// `torch.nn.RMSNorm` over the last dimension: `x / sqrt(mean(x²) + eps) · weight`.
+#[derive(Debug)]
+pub struct RmsNorm {
+    weight: Option<Tensor>,
+    eps: f64,
+}
+
+impl RmsNorm {
+    /// Normalises the last dimension, accumulating in fp32 and returning the input's dtype (as
+    /// PyTorch's fused kernel does for reduced precision).
+    pub fn forward(&self, xs: &Tensor) -> Result<Tensor> {
+        let x = xs.f_to_kind(Kind::Float)?;
+        let mean_square = x.f_square()?.f_mean_dim(-1, true, Kind::Float)?;
+        let mut out = x.f_mul(&mean_square.f_add_scalar(self.eps)?.f_rsqrt()?)?;
+        if let Some(weight) = &self.weight {
+            out = out.f_mul(&weight.f_to_kind(Kind::Float)?)?;
+        }
+        Ok(out.f_to_kind(xs.kind())?)
     }
 }

@@ -264,12 +264,21 @@ pub fn variable_shapes(vs: &nn::VarStore) -> BTreeMap<String, Vec<i64>> {
 /// [`check_against`]), then each file is read and its tensors copied into the variables, converted
 /// to their dtype and device. Returns how many tensors were loaded.
 pub fn load(vs: &nn::VarStore, path: &Path) -> Result<usize> {
+    load_ignoring(vs, path, &[])
+}
+
+/// [`load`], skipping checkpoint tensors the model does not have whose names contain one of
+/// `ignore_unexpected` (diffusers' `_keys_to_ignore_on_load_unexpected`: weights that older
+/// conversions wrote and the model no longer uses).
+pub fn load_ignoring(vs: &nn::VarStore, path: &Path, ignore_unexpected: &[&str]) -> Result<usize> {
     let (files, named) = checkpoint_files(path)?;
+    let expected = variable_shapes(vs);
     let mut found = BTreeMap::new();
     for file in &files {
         found.extend(read_header(file)?);
     }
-    check_against(&variable_shapes(vs), &found, &named)?;
+    found.retain(|name, _| expected.contains_key(name) || !ignore_unexpected.iter().any(|p| name.contains(p)));
+    check_against(&expected, &found, &named)?;
     let mut variables = vs.variables();
     let mut loaded = 0;
     for file in &files {

@@ -39,6 +39,7 @@ use crate::models::cogvideox_transformer_3d::{
     self as transformer, CogVideoXTransformer3DModel, CogVideoXTransformer3DModelConfig, TransformerInput,
 };
 use crate::models::embeddings::RotaryEmbedding;
+use crate::models::family::{Job, ModelFamily};
 use crate::models::weights;
 use crate::pipelines::video_processor::{self, ResizeMode};
 use crate::precision::Precision;
@@ -88,6 +89,8 @@ impl CheckedModels {
     /// embeddings are loaded there), without building a model: a job calls it before it writes
     /// anything.
     pub fn read(paths: &ModelPaths, device: Device) -> Result<Self> {
+        ModelFamily::of_transformer(&paths.transformer)?.require(Job::Sampling, &paths.transformer)?;
+        ModelFamily::of_vae(&paths.vae)?.require(Job::Sampling, &paths.vae)?;
         paths.check_text_embedding()?;
         let adapters = paths
             .adapters

@@ -9,6 +9,7 @@ use crate::diffusers_config;
 use crate::error::{Error, Result};
 use crate::models::autoencoder_kl_cogvideox::AutoencoderKLCogVideoXConfig;
 use crate::models::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
+use crate::models::family::{Job, ModelFamily};
 use crate::models::lora::LoraConfig;
 pub use crate::precision::Precision;
 use crate::training::data::DataConfig;
@@ -579,6 +580,7 @@ impl ModelConfig {
         let mut warnings = Vec::new();
         let transformer = match Path::new(&self.transformer) {
             p if p.is_dir() || p.is_file() => {
+                ModelFamily::of_transformer(p)?.require(Job::Training, p)?;
                 let (config, w) = diffusers_config::read_quiet(p)?;
                 warnings.extend(w);
                 config
@@ -587,6 +589,7 @@ impl ModelConfig {
         };
         let vae = match Path::new(&self.vae) {
             p if p.is_dir() => {
+                ModelFamily::of_vae(p)?.require(Job::Training, p)?;
                 let (config, w) = diffusers_config::read_quiet(p)?;
                 warnings.extend(w);
                 config

@@ -24,3 +24,4 @@ mod text_embedding;
 mod transformer;
 mod vae;
 mod validation;
+mod wan;

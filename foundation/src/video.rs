@@ -24,6 +24,49 @@ const X264_PRESET: &str = "medium";
 /// bytes are x264's for four threads everywhere.
 const X264_THREADS: &str = "4";
 
+/// x264's SIMD feature names (its `asm` option; the names of x264's `x264_cpu_names` table, each
+/// switching on a cumulative set of flags) that this CPU offers, up to AVX2 and never AVX-512.
+///
+/// x264's AVX-512 code lets memory that x264 allocated without initialising reach the bitstream:
+/// the same frames, every plane's row padding zeroed, gave other P/B-frame bytes under other
+/// glibc `MALLOC_PERTURB_` values (also with `ffmpeg -c:v libx264`, so not our frames), but not
+/// with `mbtree=0`, `bframes=0` or any SIMD level up to AVX2. x264's AVX-512 macroblock-tree
+/// propagation (`mbtree_propagate_list_internal`) works on 8 macroblocks a step without
+/// stopping at the row's end, where the C and AVX2 versions stop, so it reads costs and vectors
+/// past the last row. A resumed trainer job, whose heap had another history, so wrote another
+/// `.mp4` than an uninterrupted one. Without AVX-512 the bytes are those of the AVX-512 encode on
+/// a fresh heap: x264's SIMD code is otherwise bit-exact with its C code (its `checkasm`), so
+/// the cap costs speed, not bytes. Naming only what the CPU has keeps x264 from instructions it
+/// lacks; it matches x264's own detection less `AVX512` on current CPUs (speed hints such as
+/// `SlowShuffle` are left out, so older CPUs may encode a little slower).
+#[cfg(target_arch = "x86_64")]
+fn x264_simd_without_avx512() -> String {
+    let sse3 = is_x86_feature_detected!("sse3");
+    let ssse3 = sse3 && is_x86_feature_detected!("ssse3");
+    let sse41 = ssse3 && is_x86_feature_detected!("sse4.1");
+    let sse42 = sse41 && is_x86_feature_detected!("sse4.2");
+    let avx = sse42 && is_x86_feature_detected!("avx");
+    let fma3 = avx && is_x86_feature_detected!("fma");
+    let lzcnt = is_x86_feature_detected!("lzcnt");
+    let bmi2 = avx && lzcnt && is_x86_feature_detected!("bmi1") && is_x86_feature_detected!("bmi2");
+    let avx2 = fma3 && bmi2 && is_x86_feature_detected!("avx2");
+    // SSE2 is part of every x86-64 CPU; x264 marks SSE2 fast on CPUs with SSSE3.
+    let names = [
+        ("SSE2", true),
+        ("SSE2Fast", ssse3),
+        ("SSE3", sse3),
+        ("SSSE3", ssse3),
+        ("SSE4.1", sse41),
+        ("SSE4.2", sse42),
+        ("AVX", avx),
+        ("FMA3", fma3),
+        ("LZCNT", lzcnt),
+        ("BMI2", bmi2),
+        ("AVX2", avx2),
+    ];
+    names.iter().filter(|(_, has)| *has).map(|(name, _)| *name).collect::<Vec<_>>().join(",")
+}
+
 /// A decoded video: frames in display order and the stream's frame rate.
 #[derive(Debug, Clone)]
 pub struct Video {
@@ -197,6 +240,8 @@ pub fn encode_video(path: &Path, frames: &[RgbImage], fps: f64) -> Result<()> {
     options.set("crf", X264_CRF);
     options.set("preset", X264_PRESET);
     options.set("threads", X264_THREADS);
+    #[cfg(target_arch = "x86_64")]
+    options.set("x264-params", &format!("asm={}", x264_simd_without_avx512()));
     let mut encoder = encoder.open_with(options).map_err(|e| video_error(path, "cannot open H.264 encoder", e))?;
     stream.set_parameters(&encoder);
     stream.set_time_base(time_base);

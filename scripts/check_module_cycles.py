@@ -231,14 +231,59 @@ def check_layers(src: Path, key: str, layers: list, uses: dict) -> list[str]:
         if crate != key:
             continue
         for module, code in sorted(codes.items()):
-            for path in sorted(set(re.findall(rf"\b{other}((?:::[A-Za-z_][A-Za-z0-9_]*)+)", code))):
-                parts = path.strip(":").split("::")
+            for path in sorted(crate_paths(code, other)):
+                parts = path.strip(":").split("::") if path else []
                 if not any(parts[: len(a.split("::"))] == a.split("::") for a in allowed):
                     problems.append(
                         f"{src}: {'::'.join(module) or 'crate'} names {other}{path}, outside what it may use of "
                         f"{other} ({' '.join(allowed) or 'nothing'})"
                     )
     return problems
+
+
+def group_items(group: str) -> list[str]:
+    """The top-level items of a `use` group's inside (`a, b::{c, d}, e as f`), nesting kept."""
+    items, depth, start = [], 0, 0
+    for i, ch in enumerate(group):
+        depth += {"{": 1, "}": -1}.get(ch, 0)
+        if ch == "," and depth == 0:
+            items.append(group[start:i])
+            start = i + 1
+    items.append(group[start:])
+    return [item.strip() for item in items if item.strip()]
+
+
+def expand_group(prefix: str, group: str) -> set[str]:
+    """Every path a `use` group names: `x::{a, b::{c, self}, d as e, *}` under `x` is `x::a`,
+    `x::b::c`, `x::b`, `x::d` and `x` (a glob names what its prefix holds)."""
+    paths = set()
+    for item in group_items(group):
+        item = re.sub(r"\s+as\s+\w+$", "", item)
+        if m := re.fullmatch(r"((?:[A-Za-z_]\w*::)*)\{(.*)\}", item, re.S):
+            paths |= expand_group(prefix + "::" + m.group(1).rstrip(":") if m.group(1) else prefix, m.group(2))
+        elif item in ("self", "*"):
+            paths.add(prefix)
+        else:
+            paths.add(f"{prefix}::{item}")
+    return {p.replace("::::", "::") for p in paths}
+
+
+def crate_paths(code: str, other: str) -> set[str]:
+    """Every path into crate `other` that `code` names, as `::a::b` (`""` for the bare crate, as
+    `use other;` or `use other as alias;` name it): plain paths, and each path of a `use` group
+    (`other::{a::b, c}`), so that a group cannot hide a path from the allowed list."""
+    paths = set()
+    for m in re.finditer(rf"\b{other}\b((?:\s*::\s*[A-Za-z_][A-Za-z0-9_]*)*)(\s*::\s*\{{)?", code):
+        prefix = re.sub(r"\s+", "", m.group(1))
+        if not m.group(2):
+            paths.add(prefix)
+            continue
+        depth, end = 1, m.end()
+        while end < len(code) and depth:
+            depth += {"{": 1, "}": -1}.get(code[end], 0)
+            end += 1
+        paths |= {p[len(other):] for p in expand_group(other + prefix, code[m.end() : end - 1])}
+    return paths
 
 
 def workspace_members(manifest: Path) -> list[str]:
@@ -277,7 +322,8 @@ def self_test() -> None:
     assert not found["acyclic"], found
     with tempfile.TemporaryDirectory() as root:
         files = {"lib.rs": "pub mod low;\npub mod high;", "low/mod.rs": "pub mod a;", "low/a.rs": "use crate::high::b;",
-                 "high/mod.rs": "pub mod b;", "high/b.rs": "fn f() { other::inner::x(); other::api::y(); }"}
+                 "high/mod.rs": "pub mod b;", "high/b.rs": "fn f() { other::inner::x(); other::api::y(); }",
+                 "high/c.rs": "use other::{api::{self, z}, grouped::{w as v}};\nuse other as alias;"}
         for rel, text in files.items():
             path = Path(root, "c", rel)
             path.parent.mkdir(parents=True, exist_ok=True)
@@ -285,11 +331,15 @@ def self_test() -> None:
         doc = Path(root, "doc.md")
         Path(root, "c", "stray.rs").write_text("use crate::low::a;")
         Path(root, "c", "lib.rs").write_text("pub mod low;\npub mod high;\npub mod stray;")
+        Path(root, "c", "high", "mod.rs").write_text("pub mod b;\npub mod c;")
         doc.write_text("```layers\nc\n  low\n  high\nc uses other: api\n```\n")
         layers, uses = read_layers(doc)
         problems = check_layers(Path(root, "c"), "c", layers["c"], uses)
     assert any("low::a" in p and "higher layer" in p for p in problems), problems
     assert any("other::inner::x" in p for p in problems) and not any("other::api" in p for p in problems), problems
+    # A path inside a `use` group, and the bare crate under an alias, are refused as plain paths are.
+    assert any("names other::grouped::w," in p for p in problems), problems
+    assert any("high::c names other," in p for p in problems), problems
     assert any("stray belongs to no layer" in p for p in problems), problems
     assert not any(p.split(": ")[1].startswith(("low belongs", "high belongs")) for p in problems), problems
     print("self-test: cycles through re-exports, direct ones and ones after literals found, none where there is none;"

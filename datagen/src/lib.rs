@@ -6,11 +6,13 @@
 //! maps, video and frames): [`error`] and [`config_file`]; [`io`] (file formats, sequence folders
 //! and multi-camera scenes); [`geometry`] (depth meshes, co-visibility, rendering); [`pairs`]
 //! (clips, trajectories, the pair generator); [`synth`] (synthetic scenes with exact answers, for
-//! tests and benchmarks); [`corpus`] (whole dataset trees); [`inspect`] (looking at the shards).
+//! tests and benchmarks); [`corpus`] (whole dataset trees); [`inspect`] (looking at the shards);
+//! [`api`], the one door for other crates (the trainer) to what they use of these.
 //! A module uses its own layer and those below, never one above (`docs/ARCHITECTURE.md` states
 //! the layers; `scripts/check_module_cycles.py` checks them). The `datagen` binary is a thin layer
 //! over them.
 
+pub mod api;
 pub mod config_file;
 pub mod corpus;
 pub mod error;

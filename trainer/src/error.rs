@@ -140,7 +140,7 @@ pub enum Error {
     Foundation(#[from] foundation::Error),
     /// A sequence could not be read or its pairs made (the `datagen` readers and generator).
     #[error(transparent)]
-    Datagen(#[from] datagen::Error),
+    Datagen(#[from] datagen::api::Error),
     /// A training shard or other `schemas` file could not be read or written.
     #[error(transparent)]
     Schemas(#[from] schemas::Error),

@@ -473,6 +473,24 @@ pub fn render_sequence(
         &sequence.cameras,
         &sequence.depth[0],
     )?;
+    render_sequence_along(sequence, &poses, out, config, stacking)
+}
+
+/// [`render_sequence`] along `poses` (one `world_from_camera` per frame, read already).
+pub fn render_sequence_along(
+    sequence: &Sequence,
+    poses: &[DMat4],
+    out: &Path,
+    config: &PairsConfig,
+    stacking: bool,
+) -> Result<RenderSummary> {
+    config.validate()?;
+    if poses.len() != sequence.len() {
+        return Err(Error::parameter(
+            "poses",
+            format!("{} poses for a sequence of {} frames", poses.len(), sequence.len()),
+        ));
+    }
     for sub in ["frames", "holes"] {
         std::fs::create_dir_all(out.join(sub)).map_err(|e| Error::io(out.join(sub), e))?;
     }

@@ -3,13 +3,14 @@
 //! depth of measured depth noise, generate every clip's pairs, write the shard), so a test or
 //! another program runs exactly what the command runs.
 
+use std::borrow::Cow;
 use std::path::PathBuf;
 use std::time::Instant;
 
 use schemas::{InputDigest, ShardStats};
 
 use crate::error::{Error, Result};
-use crate::io::sequence::{LayoutName, ReadOptions, read_sequence_with};
+use crate::io::sequence::{LayoutName, ReadOptions, Sequence, read_sequence_with};
 use crate::pairs::generator::{PairsConfig, PhaseTimes, generate_clips_timed, trajectory_request, write_shard};
 
 /// What to make pairs from and where to write them.
@@ -80,11 +81,26 @@ pub fn make_pairs(job: &PairsJob) -> Result<PairsReport> {
         || read_sequence_with(&job.seq_dir, job.layout, &job.read_options),
         || foundation::hashing::hash_tree(&job.seq_dir),
     );
-    let mut sequence = sequence?;
+    let sequence = sequence?;
     let input = InputDigest { source_path: job.seq_dir.display().to_string(), content_hash: content_hash? };
+    let read_seconds = started.elapsed().as_secs_f64();
+    let mut report = make_pairs_from(job, Cow::Owned(sequence), input)?;
+    report.read_seconds += read_seconds;
+    report.seconds = started.elapsed().as_secs_f64();
+    Ok(report)
+}
+
+/// [`make_pairs`] on a sequence read already (`job.seq_dir`, `job.layout` and
+/// `job.read_options` are not read again; `input` is the folder's digest for the stats marker).
+/// An owned sequence is freed before the shard is written; a borrowed one is copied only when
+/// depth noise loads a second depth into it.
+pub fn make_pairs_from(job: &PairsJob, mut sequence: Cow<'_, Sequence>, input: InputDigest) -> Result<PairsReport> {
+    let started = Instant::now();
     let noise = &job.config.depth_noise;
     let source_id = sequence.source_id.clone();
-    noise.load_second_depth(&mut sequence, job.second_depth.as_deref(), &job.dataset, &source_id)?;
+    if noise.enabled {
+        noise.load_second_depth(sequence.to_mut(), job.second_depth.as_deref(), &job.dataset, &source_id)?;
+    }
     let mut notes = Vec::new();
     if noise.enabled && sequence.dynamic_masks.is_none() {
         notes.push(format!("{} has no dynamic-object masks; depth noise changes nothing", job.seq_dir.display()));

@@ -3,7 +3,7 @@
 //! appendix's masked table: DyCheck iPhone).
 //!
 //! Per scene of `ROOT` (each sub-folder a multi-camera scene in the DyCheck, Kubric-4D,
-//! ParallelDomain-4D or generic layout, [`datagen::io::multiview_layout::read_multiview_as`]): the
+//! ParallelDomain-4D or generic layout, [`datagen::api::read_multiview`]): the
 //! frames scored are every held-out camera's frames at instants the split's input camera films
 //! (for DyCheck with `correspondence`, those its correspondence file lists, as the official
 //! script selects them). The input camera's video is sampled in windows of `--frames` instants
@@ -35,7 +35,7 @@ pub mod scene;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use datagen::io::multiview_layout::MultiViewLayoutName;
+use datagen::api::MultiViewLayoutName;
 use serde::{Deserialize, Serialize};
 use tch::Device;
 
@@ -43,7 +43,7 @@ use crate::error::{Error, Result};
 use crate::eval::lpips::LpipsNet;
 use crate::eval::score::{Protocol, ScoreRequest};
 use crate::loaders::ModelSource;
-use crate::pipelines::sampling::{Framing, LoadOptions};
+use crate::pipelines::nvs::{NvsSettings, SettingsRecord};
 pub use report::{Comparison, Metrics, Report, compare};
 pub use scene::{Reconstruction, SplitOverride};
 
@@ -113,26 +113,9 @@ pub struct Request {
     pub reconstruction: Reconstruction,
     /// Output folder.
     pub out: PathBuf,
-    /// The checkpoint and where its other models come from (as `trainer nvs`).
-    pub model: ModelSource,
-    /// Test-time finetuning steps per scene (0: none).
-    pub steps: u64,
-    /// Trajectories per clip of the finetuning pairs.
-    pub finetune_trajectories: u32,
-    /// Training TOML for finetuning (needed for a checkpoint that is not a trainer run's).
-    pub config: Option<PathBuf>,
-    /// Denoising steps per sample.
-    pub sample_steps: usize,
-    /// Classifier-free guidance scale.
-    pub guidance: f64,
-    /// Seed of every sampling draw.
-    pub seed: u64,
-    /// Device, arithmetic and VAE tiling of sampling.
-    pub load: LoadOptions,
-    /// Frames, sizes and frame rate of sampling; `frames` is also the source window's length.
-    pub framing: Framing,
-    /// Fill render holes from the stacked static background (None: `nvs`'s rule).
-    pub stack_background: Option<bool>,
+    /// How each window's nvs job finetunes and samples (as `trainer nvs`); `framing.frames` is
+    /// also the source window's length.
+    pub nvs: NvsSettings,
     /// (width, height) of the metrics; None: the protocol's.
     pub eval_size: Option<(u32, u32)>,
     /// LPIPS weights (None: no LPIPS).
@@ -282,47 +265,52 @@ pub fn toolkit_commit() -> Option<String> {
     (output.status.success() && !text.is_empty()).then_some(text)
 }
 
-/// The settings `settings.json` records: everything that changes a scene's result.
+/// What `settings.json` records: everything that changes a scene's result, the nvs job's
+/// settings as `nvs.json` records them beside the benchmark's own.
+#[derive(Serialize)]
+struct Settings {
+    dataset: &'static str,
+    root: String,
+    layout: Option<&'static str>,
+    input_camera: Option<String>,
+    held_out_cameras: Vec<String>,
+    reconstruction: String,
+    checkpoint_digest: String,
+    #[serde(flatten)]
+    nvs: SettingsRecord,
+    eval_size: (u32, u32),
+    lpips: Option<String>,
+    lpips_net: String,
+    inception: Option<String>,
+    kid_subsets: usize,
+    kid_subset_size: usize,
+    correspondence: Option<String>,
+}
+
+/// The settings `settings.json` records.
 fn settings(r: &Request, checkpoint_digest: &str) -> serde_json::Value {
     let show = |p: &Option<PathBuf>| p.as_ref().map(|p| p.display().to_string());
-    serde_json::json!({
-        "dataset": r.dataset.name(),
-        "root": r.root.display().to_string(),
-        "layout": r.layout.map(|l| l.as_str()),
-        "input_camera": r.split.input,
-        "held_out_cameras": r.split.held_out,
-        "reconstruction": match &r.reconstruction {
+    let settings = Settings {
+        dataset: r.dataset.name(),
+        root: r.root.display().to_string(),
+        layout: r.layout.map(|l| l.as_str()),
+        input_camera: r.split.input.clone(),
+        held_out_cameras: r.split.held_out.clone(),
+        reconstruction: match &r.reconstruction {
             Reconstruction::Dataset => "dataset".to_string(),
             Reconstruction::Folder(dir) => dir.display().to_string(),
         },
-        "init": r.model.checkpoint.display().to_string(),
-        "checkpoint_digest": checkpoint_digest,
-        "base_model": show(&r.model.base_model),
-        "vae": show(&r.model.vae),
-        "lora": show(&r.model.lora),
-        "text_embedding": show(&r.model.text_embedding),
-        "zero_text_embedding": r.model.zero_text_embedding,
-        "steps": r.steps,
-        "finetune_trajectories": r.finetune_trajectories,
-        "config": show(&r.config),
-        "sample_steps": r.sample_steps,
-        "guidance": r.guidance,
-        "seed": r.seed,
-        "precision": format!("{:?}", r.load.precision),
-        "vae_tiling": r.load.vae_tiling,
-        "frames": r.framing.frames,
-        "resize": format!("{:?}", r.framing.resize),
-        "size": r.framing.size,
-        "restore_size": r.framing.restore_size,
-        "stack_background": r.stack_background,
-        "eval_size": r.eval_size.unwrap_or(r.dataset.protocol().size()),
-        "lpips": show(&r.lpips),
-        "lpips_net": format!("{:?}", r.lpips_net),
-        "inception": show(&r.inception),
-        "kid_subsets": r.kid_subsets,
-        "kid_subset_size": r.kid_subset_size,
-        "correspondence": show(&r.correspondence),
-    })
+        checkpoint_digest: checkpoint_digest.to_string(),
+        nvs: r.nvs.record(),
+        eval_size: r.eval_size.unwrap_or(r.dataset.protocol().size()),
+        lpips: show(&r.lpips),
+        lpips_net: format!("{:?}", r.lpips_net),
+        inception: show(&r.inception),
+        kid_subsets: r.kid_subsets,
+        kid_subset_size: r.kid_subset_size,
+        correspondence: show(&r.correspondence),
+    };
+    serde_json::to_value(settings).expect("settings serialise")
 }
 
 /// blake3 of the checkpoint folder, with the LoRA file's when one is given.
@@ -427,8 +415,8 @@ fn scene_names(request: &Request) -> Result<Vec<String>> {
 }
 
 /// Reads one scene folder in `layout` (None: detected).
-fn read_scene(dir: &Path, layout: Option<MultiViewLayoutName>) -> Result<datagen::io::multiview::MultiViewScene> {
-    Ok(datagen::io::multiview_layout::read_multiview_as(dir, layout)?)
+fn read_scene(dir: &Path, layout: Option<MultiViewLayoutName>) -> Result<datagen::api::MultiViewScene> {
+    Ok(datagen::api::read_multiview(dir, layout)?)
 }
 
 /// The eval request of one scene's cameras (LPIPS, no FID) or of the pooled frames (FID/KID only).
@@ -446,8 +434,8 @@ fn eval_request(request: &Request, pooled: bool) -> ScoreRequest {
         kid: pooled,
         kid_subsets: request.kid_subsets,
         kid_subset_size: request.kid_subset_size,
-        seed: request.seed,
-        device: request.load.device,
+        seed: request.nvs.seed,
+        device: request.nvs.load.device,
     }
 }
 
@@ -492,9 +480,9 @@ pub fn run(request: &Request, progress: &mut dyn FnMut(Progress)) -> Result<Outc
         });
     }
     // The models are checked once here, so a scene fails only for its own inputs.
-    let paths = request.model.resolve()?;
+    let paths = request.nvs.model.resolve()?;
     let checked = crate::pipelines::sampling::CheckedModels::read(&paths, Device::Cpu)?;
-    checked.check_sampling("sample-steps", request.sample_steps, request.guidance, &request.framing)?;
+    checked.check_sampling("sample-steps", request.nvs.sample_steps, request.nvs.guidance, &request.nvs.framing)?;
     for (name, path) in [("lpips-weights", &request.lpips), ("inception-weights", &request.inception)] {
         if let Some(path) = path.as_ref().filter(|p| !p.is_file()) {
             return Err(Error::InvalidArgument {
@@ -537,7 +525,7 @@ pub fn run(request: &Request, progress: &mut dyn FnMut(Progress)) -> Result<Outc
     // Every argument is checked above, before OUT records the settings: a refused argument must
     // not leave a record that then refuses the corrected command as "other settings".
     let names = scene_names(request)?;
-    let digest = checkpoint_digest(&request.model)?;
+    let digest = checkpoint_digest(&request.nvs.model)?;
     let settings = settings(request, &digest);
     check_settings(&request.out, &settings)?;
     let _lock = crate::training::RunLock::acquire_on(&request.out, "trainer benchmark", None)?;
@@ -644,7 +632,7 @@ fn run_scene(
     }
     let correspondence = match &request.correspondence {
         Some(folder) => {
-            let path = folder.join(datagen::io::dycheck::correspondence_file_name(name));
+            let path = folder.join(datagen::api::correspondence_file_name(name));
             if !path.is_file() {
                 return Err(Error::InvalidInput {
                     path,
@@ -662,7 +650,7 @@ fn run_scene(
         &scene,
         &request.split,
         &request.reconstruction,
-        request.framing.frames,
+        request.nvs.framing.frames,
         correspondence.as_deref(),
         &work,
     )?;
@@ -670,22 +658,15 @@ fn run_scene(
     for (index, window) in prepared.windows.iter().enumerate() {
         progress(Progress::Window(name, index, prepared.windows.len(), window.window.start));
         let nvs = crate::pipelines::nvs::NvsRequest {
-            model: request.model.clone(),
             sequence: window.source.clone(),
+            layout: None,
             trajectories: window.trajectories.clone(),
             out: window.dir.join(NVS_DIR),
-            steps: request.steps,
-            finetune_trajectories: request.finetune_trajectories,
-            config: request.config.clone(),
-            sample_steps: request.sample_steps,
-            guidance: request.guidance,
-            seed: request.seed,
-            load: request.load,
-            framing: request.framing.clone(),
-            stack_background: request.stack_background,
+            settings: request.nvs.clone(),
         };
-        let outcome =
-            crate::pipelines::nvs::run(&nvs, request.load.device, None, &mut |event| progress(Progress::Nvs(event)))?;
+        let outcome = crate::pipelines::nvs::run(&nvs, request.nvs.load.device, None, &mut |event| {
+            progress(Progress::Nvs(event))
+        })?;
         if outcome.preempted {
             return Ok(SceneOutcome::Preempted);
         }
@@ -821,7 +802,7 @@ fn finish(
         settings: settings.clone(),
         checkpoint_digest: digest.to_string(),
         toolkit_commit: commit,
-        seed: request.seed,
+        seed: request.nvs.seed,
         scenes: lines,
         failed: failed.to_vec(),
         mean,
@@ -833,4 +814,27 @@ fn finish(
     };
     report.summary = report::summary(&report);
     Ok(report)
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::cli::{Command, benchmark::Asked, parse_from};
+
+    #[test]
+    fn settings_json_records_every_nvs_setting_beside_the_benchmarks_own() {
+        let flags = ["trainer", "benchmark", "--dataset", "dycheck", "--root", "r", "--init", "c", "--out", "o"];
+        let flags = [&flags[..], &["--layout", "dycheck", "--steps", "3", "--fps", "10"]].concat();
+        let Command::Benchmark(args) = parse_from(flags).unwrap().command else { panic!("a benchmark") };
+        let Asked::Run(request) = args.asked().unwrap() else { panic!("a run") };
+        let settings = super::settings(&request, "digest");
+        let nvs = serde_json::to_value(request.nvs.record()).unwrap();
+        for (key, value) in nvs.as_object().unwrap() {
+            assert_eq!(&settings[key], value, "settings.json's {key}");
+        }
+        assert_eq!(
+            (settings["layout"].as_str(), settings["checkpoint_digest"].as_str()),
+            (Some("dycheck"), Some("digest"))
+        );
+        assert_eq!((settings["steps"].as_u64(), settings["fps"].as_f64()), (Some(3), Some(10.0)));
+    }
 }

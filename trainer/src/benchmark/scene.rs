@@ -8,9 +8,9 @@
 
 use std::path::{Path, PathBuf};
 
-use datagen::io::dycheck::FrameCorrespondence;
-use datagen::io::multiview::{CameraView, MultiViewScene};
-use datagen::io::sequence::Sequence;
+use datagen::api::FrameCorrespondence;
+use datagen::api::Sequence;
+use datagen::api::{CameraView, MultiViewScene};
 use foundation::camera::{PinholeCamera, mat3_to_row_major, mat4_to_row_major};
 use foundation::depth::DepthMap;
 use glam::{DMat3, DMat4, DVec3};
@@ -25,7 +25,7 @@ pub enum Reconstruction {
     /// The dataset's own depth and cameras of the input camera.
     Dataset,
     /// A folder with one reconstruction per scene, `DIR/<scene>/`, in any layout
-    /// [`datagen::io::sequence`] reads (MegaSAM's, MoSca's exported, ...), of the input camera's
+    /// [`datagen::api::read_sequence`] reads (MegaSAM's, MoSca's exported, ...), of the input camera's
     /// whole video.
     Folder(PathBuf),
 }
@@ -207,7 +207,7 @@ pub fn prepare(
 ) -> Result<PreparedScene> {
     let (input, held) = cameras(scene, split)?;
     let correspondence =
-        correspondence.map(|path| datagen::io::dycheck::read_correspondence(path).map(|c| (path, c))).transpose()?;
+        correspondence.map(|path| datagen::api::read_correspondence(path).map(|c| (path, c))).transpose()?;
     let mut scored = Vec::with_capacity(held.len());
     for camera in &held {
         scored.push(scored_frames(input, camera, correspondence.as_ref().map(|(p, c)| (*p, c)))?);
@@ -233,7 +233,7 @@ pub fn prepare(
         Reconstruction::Dataset => (None, 1.0),
         Reconstruction::Folder(dir) => {
             let path = dir.join(&scene.scene_id);
-            let recon = datagen::io::sequence::read_sequence(&path)?;
+            let recon = datagen::api::read_sequence(&path, None)?;
             if recon.len() != input.sequence.len() {
                 return Err(Error::InvalidInput {
                     path,
@@ -369,7 +369,7 @@ fn write_generic(sequence: &Sequence, dir: &Path) -> Result<()> {
             // zeros keep the file plain.
             values: depth.values.iter().map(|&d| if d.is_finite() && d > 0.0 { d } else { 0.0 }).collect(),
         };
-        write_file(&dir.join(format!("depth/{i:05}.exr")), &datagen::io::depth_exr::encode_depth_exr(&depth)?)?;
+        write_file(&dir.join(format!("depth/{i:05}.exr")), &datagen::api::encode_depth_exr(&depth)?)?;
     }
     let cameras = serde_json::json!({
         "intrinsics": sequence.cameras.iter().map(|c| mat3_to_row_major(&c.intrinsics).to_vec()).collect::<Vec<_>>(),

@@ -135,3 +135,33 @@ pub fn all_reduce_bandwidth(pg: &ProcessGroup, device: Device, mib: u64, iterati
     seconds.sort_by(f64::total_cmp);
     Ok(Bandwidth { mib, world_size: pg.world_size, device, seconds })
 }
+
+/// `trainer comm-check`: joins the process group the launcher describes (a world of one
+/// included: a backend check on one GPU), checks every collective and measures the all-reduce
+/// bandwidth of `mib` MiB over `iterations`; `line` hears rank 0's report lines. Without
+/// launcher variables there is nothing to check: one line says so.
+pub fn run_launched(
+    device: Device,
+    timeout_seconds: f64,
+    mib: u64,
+    iterations: usize,
+    mut line: impl FnMut(&str),
+) -> Result<()> {
+    let launch = super::Launch::from_env_any_size()?;
+    let (device, pg) = super::join(launch, device, timeout_seconds)?;
+    let Some(pg) = pg else {
+        line("no launcher variables (torchrun, srun, RANK/WORLD_SIZE): nothing to check");
+        return Ok(());
+    };
+    let lead = pg.rank == 0;
+    check_collectives(&pg, device, |name| {
+        if lead {
+            line(&format!("{name} ok"))
+        }
+    })?;
+    let bandwidth = all_reduce_bandwidth(&pg, device, mib, iterations)?;
+    if lead {
+        line(&bandwidth.to_string());
+    }
+    Ok(())
+}

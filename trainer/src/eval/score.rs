@@ -369,10 +369,10 @@ pub fn bundle_pairs(bundle: &Bundle) -> Result<(Protocol, Vec<Pair>, Vec<String>
                 preds.len().min(targets.len())
             ));
         }
-        let correspondence_file = dataset_dir.join(datagen::io::dycheck::correspondence_file_name(&scene));
+        let correspondence_file = dataset_dir.join(datagen::api::correspondence_file_name(&scene));
         let correspondence = (CORRESPONDENCE_METHODS.contains(&bundle.method.as_str())
             && correspondence_file.is_file())
-        .then(|| datagen::io::dycheck::read_correspondence(&correspondence_file))
+        .then(|| datagen::api::read_correspondence(&correspondence_file))
         .transpose()?;
         for (pred, target) in preds.into_iter().zip(targets) {
             let camera = camera_of(&target)?;

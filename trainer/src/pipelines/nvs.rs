@@ -24,8 +24,10 @@
 //! [`crate::training::preempt::EXIT_PREEMPTED`] and the same command continues the job.
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::Instant;
 
+use datagen::api::LayoutName;
 use image::RgbImage;
 use serde::{Deserialize, Serialize};
 use tch::Device;
@@ -33,6 +35,7 @@ use tch::Device;
 use crate::error::{Error, Result};
 use crate::loaders::ModelSource;
 use crate::pipelines::sampling::{CogNvsPipeline, Framing, LoadOptions};
+use crate::training::ReadSequence;
 use crate::training::preempt::Checkpointable;
 use crate::training::{FinetuneRequest, StepMetrics};
 
@@ -40,18 +43,14 @@ use crate::training::{FinetuneRequest, StepMetrics};
 /// §3.3); the lower end, as the public code's default.
 pub const DEFAULT_FINETUNE_STEPS: u64 = 200;
 
-/// Everything `trainer nvs` is asked to do.
+/// How an nvs job finetunes and samples: every setting but its inputs and output folder.
+/// `trainer nvs` and each window of `trainer benchmark` run with one, and both run records
+/// (`nvs.json`, the benchmark's `settings.json`) write it as its [`SettingsRecord`].
 #[derive(Debug, Clone)]
-pub struct NvsRequest {
+pub struct NvsSettings {
     /// The checkpoint to finetune (and sample) and where its other models come from; `lora`,
     /// `text_embedding` and `zero_text_embedding` apply to both phases.
     pub model: ModelSource,
-    /// The video's sequence folder (cog-nvs, MegaSAM npz or generic layout).
-    pub sequence: PathBuf,
-    /// Camera paths (`.npy`, `.json` or `trajs/*.txt`), one output each, named by file stem.
-    pub trajectories: Vec<PathBuf>,
-    /// Output folder.
-    pub out: PathBuf,
     /// Finetuning steps (0: sample the checkpoint as it is).
     pub steps: u64,
     /// Trajectories sampled per clip for the finetuning pairs.
@@ -73,17 +72,30 @@ pub struct NvsRequest {
     pub stack_background: Option<bool>,
 }
 
-/// The settings `nvs.json` records and a re-run must repeat.
+/// Everything `trainer nvs` is asked to do.
+#[derive(Debug, Clone)]
+pub struct NvsRequest {
+    /// The video's sequence folder (cog-nvs, MegaSAM npz or generic layout).
+    pub sequence: PathBuf,
+    /// The sequence folder's layout (None: detected from its files).
+    pub layout: Option<LayoutName>,
+    /// Camera paths (`.npy`, `.json` or `trajs/*.txt`), one output each, named by file stem.
+    pub trajectories: Vec<PathBuf>,
+    /// Output folder.
+    pub out: PathBuf,
+    /// How the job finetunes and samples.
+    pub settings: NvsSettings,
+}
+
+/// [`NvsSettings`] as the run records write them (paths as given, enums by their names).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-struct Settings {
+pub struct SettingsRecord {
     init: String,
     base_model: Option<String>,
     vae: Option<String>,
     lora: Option<String>,
     text_embedding: Option<String>,
     zero_text_embedding: bool,
-    sequence: String,
-    trajectories: Vec<String>,
     steps: u64,
     finetune_trajectories: u32,
     config: Option<String>,
@@ -98,6 +110,48 @@ struct Settings {
     restore_size: bool,
     fps: f64,
     stack_background: Option<bool>,
+}
+
+impl NvsSettings {
+    /// The settings as the run records write them.
+    pub fn record(&self) -> SettingsRecord {
+        let show = |p: &Option<PathBuf>| p.as_ref().map(|p| p.display().to_string());
+        SettingsRecord {
+            init: self.model.checkpoint.display().to_string(),
+            base_model: show(&self.model.base_model),
+            vae: show(&self.model.vae),
+            lora: show(&self.model.lora),
+            text_embedding: show(&self.model.text_embedding),
+            zero_text_embedding: self.model.zero_text_embedding,
+            steps: self.steps,
+            finetune_trajectories: self.finetune_trajectories,
+            config: show(&self.config),
+            sample_steps: self.sample_steps,
+            guidance: self.guidance,
+            seed: self.seed,
+            precision: format!("{:?}", self.load.precision),
+            vae_tiling: self.load.vae_tiling,
+            frames: self.framing.frames,
+            resize: format!("{:?}", self.framing.resize),
+            size: self.framing.size,
+            restore_size: self.framing.restore_size,
+            fps: self.framing.fps,
+            stack_background: self.stack_background,
+        }
+    }
+}
+
+/// The settings `nvs.json` records and a re-run must repeat: the job's settings and its inputs'
+/// paths (the layout only when one is named, so that records of detected layouts stay as they
+/// were).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct Settings {
+    #[serde(flatten)]
+    job: SettingsRecord,
+    sequence: String,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    layout: Option<String>,
+    trajectories: Vec<String>,
 }
 
 /// One trajectory's outputs.
@@ -162,6 +216,8 @@ const RECORD_TEMPORARY: &str = "nvs.json.tmp";
 const FINETUNE_DIR: &str = "finetune";
 /// The renders' folder in OUT.
 const RENDERS_DIR: &str = "renders";
+/// The sequence folder's key among the record's input digests.
+const SEQUENCE_INPUT: &str = "sequence";
 
 /// How a call of [`run`] ended.
 #[derive(Debug)]
@@ -176,7 +232,7 @@ pub struct Outcome {
 /// [`crate::distributed::join_job`]) and runs [`run`] as one rank of it; `progress` hears rank 0's
 /// events only.
 pub fn run_launched(request: &NvsRequest, device: Device, progress: &mut dyn FnMut(Progress)) -> Result<Outcome> {
-    let timeout = crate::training::timeout_seconds(request.config.as_deref())?;
+    let timeout = crate::training::timeout_seconds(request.settings.config.as_deref())?;
     let (device, pg) = crate::distributed::join_job(device, timeout)?;
     let lead = pg.as_ref().is_none_or(|pg| pg.rank == 0);
     run(request, device, pg.as_ref(), &mut |event| {
@@ -197,7 +253,7 @@ pub fn run(
     let rank = pg.map_or(0, |pg| pg.rank);
     // Every argument, model folder and input is checked before the first write: a refused
     // command leaves OUT as it was, and the corrected command starts there as if new.
-    let Preflight { names, sequence, settings, inputs, train } = preflight(request)?;
+    let Preflight { names, video, poses, pairs, settings, inputs, train } = preflight(request)?;
     let record_path = request.out.join(RECORD);
     // One job per output folder; the finetuning run below holds its own folder's lock as well.
     let _lock = crate::training::RunLock::acquire_on(&request.out, "trainer nvs", pg)?;
@@ -214,11 +270,11 @@ pub fn run(
     // excepted): the record holds what was done. From then on the job stops between
     // trajectories, each of which is recorded as it ends.
     let mut checkpointable = None;
-    let mut model = request.model.clone();
-    if request.steps > 0 && record.checkpoint.is_none() {
-        progress(Progress::Phase("finetune", request.steps));
+    let mut model = request.settings.model.clone();
+    if request.settings.steps > 0 && record.checkpoint.is_none() {
+        progress(Progress::Phase("finetune", request.settings.steps));
         let started = Instant::now();
-        let finetune = finetune_request(request);
+        let finetune = finetune_request(request, Some(video.clone()));
         let summary = crate::training::finetune_on(&finetune, device, pg, |m| progress(Progress::Step(m)))?;
         checkpointable = Some(Checkpointable::enter());
         if summary.preempted || rank != 0 {
@@ -231,15 +287,15 @@ pub fn run(
         record.checkpoint = Some(checkpoint.display().to_string());
         record.finetune_seconds = Some(started.elapsed().as_secs_f64());
         write_record(&record_path, &record)?;
-    } else if request.steps > 0 {
+    } else if request.settings.steps > 0 {
         progress(Progress::Skipped("finetune"));
         if rank != 0 {
             return Ok(Outcome { record: None, preempted: false });
         }
     } else {
-        record.checkpoint = Some(request.model.checkpoint.display().to_string());
+        record.checkpoint = Some(request.settings.model.checkpoint.display().to_string());
     }
-    if request.steps > 0 {
+    if request.settings.steps > 0 {
         // The finetuned checkpoint brings its run's VAE, text embedding and (for LoRA) base; the
         // adapter given at the start is merged into it already.
         model.checkpoint = PathBuf::from(record.checkpoint.as_ref().expect("set above"));
@@ -254,8 +310,8 @@ pub fn run(
     };
 
     // 2. Renders.
-    let stack = request.stack_background.unwrap_or(sequence.len() > request.framing.frames);
-    let pairs_config = datagen::pairs::generator::PairsConfig::default();
+    let sequence = &video.sequence;
+    let stack = request.settings.stack_background.unwrap_or(sequence.len() > request.settings.framing.frames);
     let to_render: Vec<usize> =
         (0..names.len()).filter(|&i| !record.outputs.iter().any(|o| o.name == names[i])).collect();
     if to_render.is_empty() {
@@ -265,7 +321,7 @@ pub fn run(
     }
     for &i in &to_render {
         let folder = request.out.join(RENDERS_DIR).join(&names[i]);
-        datagen::pairs::generator::render_sequence(&sequence, &request.trajectories[i], &folder, &pairs_config, stack)?;
+        datagen::api::render_sequence(sequence, &poses[i], &folder, &pairs, stack)?;
         record.outputs.push(Output {
             name: names[i].clone(),
             render: relative(&folder, &request.out),
@@ -297,27 +353,32 @@ pub fn run(
         let paths = model.resolve()?;
         crate::training::plan::check_sampling_fits(&crate::training::plan::sampling_plan_for(
             &paths,
-            request.load,
-            &request.framing,
+            request.settings.load,
+            &request.settings.framing,
         )?)?;
-        let pipeline = CogNvsPipeline::load(&paths, request.load)?;
+        let pipeline = CogNvsPipeline::load(&paths, request.settings.load)?;
         for i in pending {
             let name = record.outputs[i].name.clone();
             let render = request.out.join(&record.outputs[i].render);
-            let condition = crate::pipelines::sampling::prepare_condition(&render, &pipeline, &request.framing)?;
+            let condition =
+                crate::pipelines::sampling::prepare_condition(&render, &pipeline, &request.settings.framing)?;
             let video = crate::pipelines::video_processor::frames_to_video(
                 &condition.frames,
                 pipeline.kind(),
-                request.load.device,
+                request.settings.load.device,
             )?;
             let started = Instant::now();
-            let sampled =
-                pipeline.generate(&video, request.sample_steps, request.guidance, request.seed, &mut |s, n| {
-                    progress(Progress::Denoise(s, n))
-                })?;
+            let sampled = pipeline.generate(
+                &video,
+                request.settings.sample_steps,
+                request.settings.guidance,
+                request.settings.seed,
+                &mut |s, n| progress(Progress::Denoise(s, n)),
+            )?;
             let seconds = started.elapsed().as_secs_f64();
-            let frames = crate::pipelines::sampling::finish_frames(&sampled, &condition, &request.framing)?;
-            let output = write_outputs(&request.out, &name, &frames, &sequence.frames, &render, request.framing.fps)?;
+            let frames = crate::pipelines::sampling::finish_frames(&sampled, &condition, &request.settings.framing)?;
+            let output =
+                write_outputs(&request.out, &name, &frames, &sequence.frames, &render, request.settings.framing.fps)?;
             record.outputs[i] = Output { sample_seconds: Some(seconds), ..output.with_render(&record.outputs[i]) };
             write_record(&record_path, &record)?;
             progress(Progress::Trajectory(&name));
@@ -346,8 +407,12 @@ fn preemption_watch(train: &crate::training::LoopConfig) -> Result<crate::traini
 struct Preflight {
     /// The trajectories' output names.
     names: Vec<String>,
-    /// The video.
-    sequence: datagen::io::sequence::Sequence,
+    /// The video, read once for every phase.
+    video: Arc<ReadSequence>,
+    /// Each trajectory's poses, read once.
+    poses: Vec<Vec<datagen::api::DMat4>>,
+    /// The pair settings of finetuning, which the renders share (their mesh and background).
+    pairs: datagen::api::PairsConfig,
     /// The settings `nvs.json` records.
     settings: serde_json::Value,
     /// The inputs' digests.
@@ -386,36 +451,47 @@ fn preflight(request: &NvsRequest) -> Result<Preflight> {
             });
         }
     }
-    let train = match &request.config {
-        Some(path) => crate::training::PretrainConfig::from_toml_file(path)?.train,
-        None => crate::training::LoopConfig::default(),
-    };
-    let sequence = datagen::io::sequence::read_sequence(&request.sequence)?;
-    for path in &request.trajectories {
-        datagen::pairs::trajectory::read_trajectory_file(path, sequence.len(), &sequence.cameras, &sequence.depth[0])?;
-    }
+    let given = request.settings.config.as_deref().map(crate::training::PretrainConfig::from_toml_file).transpose()?;
+    let train = given.as_ref().map(|c| c.train.clone()).unwrap_or_default();
+    let sequence = datagen::api::read_sequence(&request.sequence, request.layout)?;
+    let poses = request
+        .trajectories
+        .iter()
+        .map(|path| datagen::api::read_trajectory(path, &sequence))
+        .collect::<std::result::Result<Vec<_>, _>>()?;
     let inputs = input_digests(request)?;
     job_record(request, &settings, &inputs)?;
-    if request.steps > 0 {
-        if request.finetune_trajectories == 0 {
+    let video = Arc::new(ReadSequence { sequence, content_hash: inputs[SEQUENCE_INPUT].clone() });
+    let mut pairs = match &given {
+        Some(config) => crate::training::finetune_pairs_config(config)?,
+        None => datagen::api::PairsConfig::default(),
+    };
+    if request.settings.steps > 0 {
+        if request.settings.finetune_trajectories == 0 {
             return Err(Error::InvalidArgument {
                 name: "finetune-trajectories".to_string(),
                 reason: "0 trajectories per clip give no finetuning pairs: pass at least 1 (or --steps 0)".to_string(),
             });
         }
-        let (config, source_name) = crate::training::finetune_config(&finetune_request(request))?;
+        let (config, source_name) = crate::training::finetune_config(&finetune_request(request, None))?;
         config.validate(&source_name)?;
         config.model.check_text_embedding()?;
+        pairs = crate::training::finetune_pairs_config(&config)?;
     }
-    let paths = request.model.resolve()?;
+    let paths = request.settings.model.resolve()?;
     let checked = crate::pipelines::sampling::CheckedModels::read(&paths, Device::Cpu)?;
-    checked.check_sampling("sample-steps", request.sample_steps, request.guidance, &request.framing)?;
+    checked.check_sampling(
+        "sample-steps",
+        request.settings.sample_steps,
+        request.settings.guidance,
+        &request.settings.framing,
+    )?;
     crate::training::plan::check_sampling_fits(&crate::training::plan::sampling_plan_for(
         &paths,
-        request.load,
-        &request.framing,
+        request.settings.load,
+        &request.settings.framing,
     )?)?;
-    Ok(Preflight { names, sequence, settings, inputs, train })
+    Ok(Preflight { names, video, poses, pairs, settings, inputs, train })
 }
 
 /// The job `OUT/nvs.json` records (a new one when there is none), refused when it was asked with
@@ -457,20 +533,23 @@ fn job_record(
     }
 }
 
-/// The finetuning phase's request: the job's models and video, its run in `OUT/finetune`.
-fn finetune_request(request: &NvsRequest) -> FinetuneRequest {
+/// The finetuning phase's request: the job's models and video (`read` when read already), its
+/// run in `OUT/finetune`.
+fn finetune_request(request: &NvsRequest, read: Option<Arc<ReadSequence>>) -> FinetuneRequest {
     FinetuneRequest {
-        init: request.model.checkpoint.clone(),
-        base_model: request.model.base_model.clone(),
-        vae: request.model.vae.clone(),
-        text_embedding: request.model.text_embedding.clone(),
-        zero_text_embedding: request.model.zero_text_embedding,
+        init: request.settings.model.checkpoint.clone(),
+        base_model: request.settings.model.base_model.clone(),
+        vae: request.settings.model.vae.clone(),
+        text_embedding: request.settings.model.text_embedding.clone(),
+        zero_text_embedding: request.settings.model.zero_text_embedding,
         sequence: request.sequence.clone(),
+        layout: request.layout,
+        read,
         out: request.out.join(FINETUNE_DIR),
-        steps: request.steps,
-        trajectories: request.finetune_trajectories,
-        config: request.config.clone(),
-        lora: request.model.lora.clone(),
+        steps: request.settings.steps,
+        trajectories: request.settings.finetune_trajectories,
+        config: request.settings.config.clone(),
+        lora: request.settings.model.lora.clone(),
         resume: true,
     }
 }
@@ -604,37 +683,18 @@ fn output_entries(name: &str) -> [String; 3] {
 const NAME_MAX_BYTES: usize = 255;
 
 fn settings(r: &NvsRequest) -> Settings {
-    let show = |p: &Option<PathBuf>| p.as_ref().map(|p| p.display().to_string());
     Settings {
-        init: r.model.checkpoint.display().to_string(),
-        base_model: show(&r.model.base_model),
-        vae: show(&r.model.vae),
-        lora: show(&r.model.lora),
-        text_embedding: show(&r.model.text_embedding),
-        zero_text_embedding: r.model.zero_text_embedding,
+        job: r.settings.record(),
         sequence: r.sequence.display().to_string(),
+        layout: r.layout.map(|l| l.as_str().to_string()),
         trajectories: r.trajectories.iter().map(|p| p.display().to_string()).collect(),
-        steps: r.steps,
-        finetune_trajectories: r.finetune_trajectories,
-        config: show(&r.config),
-        sample_steps: r.sample_steps,
-        guidance: r.guidance,
-        seed: r.seed,
-        precision: format!("{:?}", r.load.precision),
-        vae_tiling: r.load.vae_tiling,
-        frames: r.framing.frames,
-        resize: format!("{:?}", r.framing.resize),
-        size: r.framing.size,
-        restore_size: r.framing.restore_size,
-        fps: r.framing.fps,
-        stack_background: r.stack_background,
     }
 }
 
 fn input_digests(request: &NvsRequest) -> Result<std::collections::BTreeMap<String, String>> {
     let mut digests = std::collections::BTreeMap::new();
-    digests.insert("sequence".to_string(), foundation::hashing::hash_tree(&request.sequence)?);
-    for path in request.trajectories.iter().chain(&request.model.text_embedding) {
+    digests.insert(SEQUENCE_INPUT.to_string(), foundation::hashing::hash_tree(&request.sequence)?);
+    for path in request.trajectories.iter().chain(&request.settings.model.text_embedding) {
         digests.insert(path.display().to_string(), digest(path)?);
     }
     Ok(digests)

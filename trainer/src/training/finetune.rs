@@ -1,12 +1,18 @@
 //! `trainer finetune`: test-time finetuning on one video.
 
 use std::path::PathBuf;
+use std::sync::Arc;
+
+use datagen::api::{ClipConfig, InputDigest, LayoutName, PairsConfig, PairsJob, Sequence};
 
 use tch::Device;
 
 use super::{PretrainConfig, RunSummary, StepMetrics};
 use crate::distributed::ProcessGroup;
 use crate::error::{Error, Result};
+
+/// The dataset name the finetuning pairs are stored with.
+const PAIRS_DATASET: &str = "finetune";
 
 /// What `trainer finetune` trains.
 #[derive(Debug, Clone, Default)]
@@ -25,6 +31,11 @@ pub struct FinetuneRequest {
     pub zero_text_embedding: bool,
     /// The test video's sequence folder.
     pub sequence: PathBuf,
+    /// Its layout (None: detected from its files).
+    pub layout: Option<LayoutName>,
+    /// The video read already (by a job's checks, as `trainer nvs` reads it): the pairs are made
+    /// from it instead of reading `sequence` again.
+    pub read: Option<Arc<ReadSequence>>,
     /// Run folder.
     pub out: PathBuf,
     /// Optimizer steps.
@@ -38,6 +49,27 @@ pub struct FinetuneRequest {
     /// Continue the run in `out` from its newest intact checkpoint (after a preemption), on the
     /// pairs it built; a folder without a run starts one.
     pub resume: bool,
+}
+
+/// A sequence folder read, with the content hash of its files (the shard's input digest).
+#[derive(Debug)]
+pub struct ReadSequence {
+    /// The video.
+    pub sequence: Sequence,
+    /// `foundation::hashing::hash_tree` of the folder.
+    pub content_hash: String,
+}
+
+/// The pair settings of test-time finetuning under `config`: clips of the training length, back
+/// to back, every clip of the video; the rest `datagen pairs`' defaults. `trainer nvs` renders
+/// its trajectories with the same settings (mesh and static background).
+pub fn finetune_pairs_config(config: &PretrainConfig) -> Result<PairsConfig> {
+    // Within `video_processor::MAX_FRAMES` once validated; narrowed checked all the same.
+    let frames = u32::try_from(config.data.frames).map_err(|_| Error::InvalidArgument {
+        name: "data.frames".to_string(),
+        reason: format!("{} frames per clip", config.data.frames),
+    })?;
+    Ok(PairsConfig { clip: ClipConfig { length: frames, stride: frames, max_clips: 0 }, ..Default::default() })
 }
 
 /// `trainer finetune`: test-time finetuning on one video. Its self-supervised pairs
@@ -105,29 +137,29 @@ pub fn finetune_on(
     let pairs_dir = run.join("pairs");
     let built = request.resume && crate::training::data::ClipIndex::open(std::slice::from_ref(&pairs_dir)).is_ok();
     if rank == 0 && !built {
-        let sequence = datagen::io::sequence::read_sequence(sequence_dir)?;
-        // Within `video_processor::MAX_FRAMES` once validated; narrowed checked all the same.
-        let frames = u32::try_from(config.data.frames).map_err(|_| Error::InvalidArgument {
-            name: "data.frames".to_string(),
-            reason: format!("{} frames per clip", config.data.frames),
-        })?;
-        let pairs_config = datagen::pairs::generator::PairsConfig {
-            clip: datagen::pairs::clip::ClipConfig { length: frames, stride: frames, max_clips: 0 },
-            ..Default::default()
+        // `datagen pairs` as the command runs it, into RUN/pairs/.
+        let job = PairsJob {
+            seq_dir: sequence_dir.clone(),
+            layout: request.layout,
+            read_options: Default::default(),
+            out: pairs_dir.clone(),
+            trajectories: Some(trajectories),
+            trajectory_files: Vec::new(),
+            seed: config.data.seed,
+            config: finetune_pairs_config(&config)?,
+            dataset: PAIRS_DATASET.to_string(),
+            second_depth: None,
         };
-        let request = datagen::pairs::generator::TrajectoryRequest { sampled: trajectories, explicit: Vec::new() };
-        let records = datagen::pairs::generator::generate_clips(
-            &sequence,
-            "finetune",
-            &pairs_config,
-            &request,
-            config.data.seed,
-        )?;
-        let digest = schemas::InputDigest {
-            source_path: sequence_dir.display().to_string(),
-            content_hash: foundation::hashing::hash_tree(sequence_dir)?,
+        match &request.read {
+            Some(read) => {
+                let input = InputDigest {
+                    source_path: sequence_dir.display().to_string(),
+                    content_hash: read.content_hash.clone(),
+                };
+                datagen::api::make_pairs_of(&job, &read.sequence, input)?
+            }
+            None => datagen::api::make_pairs(&job)?,
         };
-        datagen::pairs::generator::write_shard(&pairs_dir, &sequence.source_id, &records, digest)?;
     }
     if let Some(pg) = pg {
         pg.barrier("pairs written by rank 0")?;

@@ -58,7 +58,9 @@ pub use config::{
     CheckpointEvery, ConfigSource, DistributedConfig, LoopConfig, ModelConfig, OptimConfig, Precision, PretrainConfig,
     ValidationConfig, timeout_seconds,
 };
-pub use finetune::{FinetuneRequest, finetune, finetune_config, finetune_launched, finetune_on};
+pub use finetune::{
+    FinetuneRequest, ReadSequence, finetune, finetune_config, finetune_launched, finetune_on, finetune_pairs_config,
+};
 pub use latent_cache::LatentCache;
 pub use lr_schedule::learning_rate;
 pub use objective::{Backward, CogNvsModel, Draws};

@@ -14,9 +14,9 @@ standing in for downloaded weights (those of scripts/goldens_eval.py):
   step for step: cv2.VideoCapture, cv2.resize to the protocol size, skimage PSNR/SSIM, lpips,
   frames written as PNGs and clean-fid's `compute_kid` on the two folders (its feature extractor
   replaced by the random Inception; FID is `compute_fid`'s value on the same features, its matrix
-  square root's trace taken exactly: see `exact_fid`), every list pooled with np.mean. The
-  script itself is not on PyPI, so its steps are written here from its code; every metric call
-  is the real package's.
+  square root's trace taken exactly: see goldens_eval.py's `exact_fid`), every list pooled with
+  np.mean. The script itself is not on PyPI, so its steps are written here from its code; every
+  metric call is the real package's.
 - OUT_DIR/masked/{pred,target,mask}/<video>/%05d.png: two videos with masks with holes, one
   frame with no co-visible pixel, scored by DyCheck's masked metrics
   (KAIR-BAIR/dycheck `dycheck/core/metrics/image.py`: compute_psnr, compute_ssim,
@@ -164,22 +164,6 @@ def correspondence(path, camera):
     return targets
 
 
-def exact_fid(f1, f2):
-    """compute_fid's value on features f1, f2 ([n, 2048] float64): clean-fid's frechet_distance
-    of the two sets' np.mean and np.cov, |mu1 - mu2|^2 + tr S1 + tr S2 - 2 tr sqrt(S1 S2), with
-    tr sqrt(S1 S2) taken exactly instead of through scipy's 2048 x 2048 sqrtm (which alone cost
-    ~45 s of CPU, and is only approximate on these rank-deficient products): with D1, D2 the
-    centred features, S1 S2 = D1' D1 D2' D2 / ((n1 - 1)(n2 - 1)) has the nonzero eigenvalues of
-    G G' for G = D1 D2', so tr sqrt(S1 S2) is G's singular-value sum over sqrt((n1 - 1)(n2 - 1)).
-    frechet_distance itself is checked against trainer's FID on shared features by
-    goldens_eval.py (tests eval_parity::*)."""
-    d1, d2 = f1 - f1.mean(0), f2 - f2.mean(0)
-    n1, n2 = len(f1) - 1, len(f2) - 1
-    diff = f1.mean(0) - f2.mean(0)
-    tr_covmean = np.linalg.svd(d1 @ d2.T, compute_uv=False).sum() / np.sqrt(n1 * n2)
-    return float(diff @ diff + (d1 * d1).sum() / n1 + (d2 * d2).sum() / n2 - 2 * tr_covmean)
-
-
 def official_table(pairs, size, lpips_fn, feature_model, dycheck_dir=None):
     psnrs, ssims, lpipss = [], [], []
     work = Path(tempfile.mkdtemp())
@@ -224,7 +208,7 @@ def official_table(pairs, size, lpips_fn, feature_model, dycheck_dir=None):
         table["kid"] = float(cfid.compute_kid(str(gt_dir), str(pred_dir), **options))
         cfid.get_folder_features = extract
         t, p = seen["tmp_gt"].astype(np.float64), seen["tmp_pred"].astype(np.float64)
-        table["fid"] = exact_fid(t, p)
+        table["fid"] = goldens_eval.exact_fid(t, p)
         # compute_kid works on float32 features; the random Inception's features are large, so its
         # cubic kernel sums lose digits to float32 rounding (and vary with the subset order).
         # kernel_distance on the same features in float64 is the value without that rounding.

@@ -4,6 +4,7 @@
 Usage:
   goldens_transformer.py OUT_DIR
   goldens_transformer.py --reload MODEL_DIR INPUTS.safetensors OUT.safetensors [LORA.safetensors]
+  goldens_transformer.py --reload-each INPUTS.safetensors MODEL_DIR OUT.safetensors [MODEL_DIR OUT ...]
 
 The first form builds tiny random transformers (fixed seed) with the structure of CogNVS (learned
 + 3D rotary positions) and of CogVideoX-2B (sin-cos positions), runs diffusers on fixed random
@@ -21,7 +22,9 @@ The second form loads a model folder written by the Rust trainer with diffusers'
 runs it on the inputs (`hidden_states`, `encoder_hidden_states`, `timestep`) and writes `sample`,
 so a test can prove our checkpoints load in diffusers and compute the same thing. With a LoRA
 file (our `pytorch_lora_weights.safetensors`), diffusers' own `load_lora_adapter` (through peft)
-attaches it to the loaded model first, as `CogVideoXPipeline.load_lora_weights` does.
+attaches it to the loaded model first, as `CogVideoXPipeline.load_lora_weights` does. The third
+form does the second for several model folders on the same inputs in one process (one import of
+torch and diffusers instead of one per folder).
 
 Nothing here is committed; the tests run it into a temporary folder (a few seconds on a CPU).
 Requires torch and diffusers (the project venv, `scripts/setup.sh`).
@@ -166,6 +169,10 @@ def main() -> None:
     if len(sys.argv) in (5, 6) and sys.argv[1] == "--reload":
         lora = Path(sys.argv[5]) if len(sys.argv) == 6 else None
         reload(Path(sys.argv[2]), Path(sys.argv[3]), Path(sys.argv[4]), lora)
+    elif len(sys.argv) >= 5 and len(sys.argv) % 2 == 1 and sys.argv[1] == "--reload-each":
+        inputs = Path(sys.argv[2])
+        for model_dir, out in zip(sys.argv[3::2], sys.argv[4::2]):
+            reload(Path(model_dir), inputs, Path(out))
     elif len(sys.argv) == 2:
         out = Path(sys.argv[1])
         out.mkdir(parents=True, exist_ok=True)

@@ -591,13 +591,10 @@ mod tests {
         assert!(error.contains("v9.parquet") && error.contains(SCHEMA_VERSION_KEY) && error.contains("`9`"), "{error}");
     }
 
-    #[test]
-    fn an_unknown_mask_rule_is_an_error_naming_the_field() {
-        use arrow_array::cast::AsArray;
-        use arrow_array::{Array, ArrayRef, ListArray, RecordBatch, StringArray, StructArray};
-        use std::sync::Arc;
-        let dir = tempfile::tempdir().unwrap();
-        let record = crate::ClipRecord {
+    /// A one-frame multi-view pair (cam0 to cam1) whose mask follows `mask_rule`, every field of
+    /// the current layout set.
+    fn multiview_record(mask_rule: crate::MaskRule) -> ClipRecord {
+        ClipRecord {
             clip_id: "synth/a/0".into(),
             source_id: "a".into(),
             dataset: "synth".into(),
@@ -626,12 +623,21 @@ mod tests {
                 condition: Some(vec![vec![6]]),
                 covisible_fraction: 0.5,
                 bank_entry: None,
-                mask_rule: crate::MaskRule::Exact,
+                mask_rule,
             }],
             pair_kind: PairKind::Multiview,
             source_camera: Some("cam0".into()),
             target_camera: Some("cam1".into()),
-        };
+        }
+    }
+
+    #[test]
+    fn an_unknown_mask_rule_is_an_error_naming_the_field() {
+        use arrow_array::cast::AsArray;
+        use arrow_array::{Array, ArrayRef, ListArray, RecordBatch, StringArray, StructArray};
+        use std::sync::Arc;
+        let dir = tempfile::tempdir().unwrap();
+        let record = multiview_record(crate::MaskRule::Exact);
         // This version's layout with the rule's value replaced by one no version knows.
         let batch = records_to_batch(std::slice::from_ref(&record)).unwrap();
         let index = batch.schema().index_of("trajectories").unwrap();
@@ -668,43 +674,9 @@ mod tests {
     #[test]
     fn version_2_and_3_shards_read_with_the_rules_they_used() {
         let dir = tempfile::tempdir().unwrap();
-        let mut record = ClipRecord {
-            clip_id: "synth/a/0".into(),
-            source_id: "a".into(),
-            dataset: "synth".into(),
-            source_path: "/a".into(),
-            clip_start: 0,
-            fps: 24.0,
-            width: 2,
-            height: 2,
-            seed: 1,
-            tool_version: "datagen 0.1.0".into(),
-            frames: vec![vec![1, 2, 3]],
-            depth: vec![vec![4]],
-            intrinsics: vec![[1.0; 9]],
-            world_from_camera: vec![[2.0; 16]],
-            dynamic_mask: None,
-            trajectories: vec![crate::TrajectoryRecord {
-                index: 0,
-                kind: crate::TrajectoryKind::Camera,
-                pivot_distance: 0.0,
-                azimuth_deg: Vec::new(),
-                elevation_deg: Vec::new(),
-                radius_frac: Vec::new(),
-                rejected_samples: 0,
-                world_from_camera: vec![[3.0; 16]],
-                covisible_mask: vec![vec![5]],
-                condition: Some(vec![vec![6]]),
-                covisible_fraction: 0.5,
-                bank_entry: None,
-                mask_rule: crate::MaskRule::Dataset,
-            }],
-            // Written with the v3 fields set: the v2 layout must drop them, and reading must not
-            // invent them.
-            pair_kind: PairKind::Multiview,
-            source_camera: Some("cam0".into()),
-            target_camera: Some("cam1".into()),
-        };
+        // Written with the v3 fields set: the v2 layout must drop them, and reading must not invent
+        // them.
+        let mut record = multiview_record(crate::MaskRule::Dataset);
         let current = dir.path().join("v3.parquet");
         let mut writer = ShardWriter::create(&current, ShardWriterOptions::default()).unwrap();
         writer.write(&record).unwrap();

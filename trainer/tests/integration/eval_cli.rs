@@ -1,7 +1,17 @@
 //! `trainer eval` against scikit-image: PSNR, SSIM and their masked variants on frames generated
 //! by `scripts/goldens_metrics.py`, and named errors for mismatched inputs.
 
+use std::path::Path;
+use std::sync::OnceLock;
+
 use super::parity::run_script;
+
+/// Output of `scripts/goldens_metrics.py`, generated once per test binary (read only: a test
+/// that changes the frames works on its own copy).
+fn goldens() -> &'static Path {
+    static DIR: OnceLock<tempfile::TempDir> = OnceLock::new();
+    DIR.get_or_init(|| run_script("goldens_metrics.py")).path()
+}
 
 fn eval(args: &[&std::path::Path]) -> std::process::Output {
     let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_trainer"));
@@ -14,8 +24,7 @@ fn eval(args: &[&std::path::Path]) -> std::process::Output {
 
 #[test]
 fn eval_matches_scikit_image() {
-    let dir = run_script("goldens_metrics.py");
-    let root = dir.path();
+    let root = goldens();
     let output = eval(&[&root.join("pred"), &root.join("target"), &root.join("mask")]);
     assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
     let ours: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
@@ -37,8 +46,15 @@ fn eval_matches_scikit_image() {
 
 #[test]
 fn mismatched_inputs_are_named_errors() {
-    let dir = run_script("goldens_metrics.py");
+    let dir = tempfile::tempdir().unwrap();
     let root = dir.path();
+    for folder in ["pred", "target", "mask"] {
+        std::fs::create_dir_all(root.join(folder)).unwrap();
+        for entry in std::fs::read_dir(goldens().join(folder)).unwrap() {
+            let entry = entry.unwrap();
+            std::fs::copy(entry.path(), root.join(folder).join(entry.file_name())).unwrap();
+        }
+    }
     std::fs::remove_file(root.join("pred/00002.png")).unwrap();
     let output = eval(&[&root.join("pred"), &root.join("target")]);
     let stderr = String::from_utf8_lossy(&output.stderr);

@@ -17,8 +17,7 @@ const FEATURE_TOL: f64 = 1e-4;
 /// FID / KID relative tolerance.
 const SET_TOL: f64 = 1e-3;
 
-/// The goldens, generated once per test run (the script takes a minute or two on two cores)
-/// into the target's temporary folder.
+/// The goldens, generated once per test run into the target's temporary folder.
 pub fn goldens() -> &'static Path {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     DIR.get_or_init(|| {
@@ -80,7 +79,9 @@ fn eval_inception_features_match_clean_fid() {
     }
 }
 
-/// Goldens: `cleanfid.fid.frechet_distance` and `kernel_distance` on clean-fid's own features;
+/// Goldens: `cleanfid.fid.frechet_distance`'s value (the trace of its matrix square root taken
+/// exactly, the script checking that against frechet_distance itself) and `kernel_distance` on
+/// clean-fid's own features;
 /// ours run end to end from the PNG folders through `trainer eval`. With 6 frames a set, KID's
 /// subsets are the whole sets (clean-fid clamps its 1000 to 6), so `--kid-subset-size 6` is the
 /// same estimator.

@@ -5,11 +5,19 @@
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
+use std::sync::OnceLock;
 
 use trainer::models::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
 use trainer::tch::{Device, Kind, Tensor};
 
-use super::parity::{assert_success, python, read_tensors, repo_root, run_python};
+use super::parity::{assert_success, python, read_tensors, repo_root, run_script};
+
+/// Output of `scripts/goldens_text_embedding.py` (the tiny text stack and its reference
+/// embeddings), generated once per test binary; read only, tests write beside it.
+fn text_stack() -> &'static Path {
+    static DIR: OnceLock<tempfile::TempDir> = OnceLock::new();
+    DIR.get_or_init(|| run_script("goldens_text_embedding.py")).path()
+}
 
 fn encode_prompt(model: &Path, prompt: &str, dtype: &str, out: &Path) {
     let output = Command::new(python())
@@ -26,8 +34,7 @@ fn encode_prompt(model: &Path, prompt: &str, dtype: &str, out: &Path) {
 #[test]
 fn encode_prompt_equals_the_cogvideox_prompt_encoder() {
     let dir = tempfile::tempdir().unwrap();
-    let model = dir.path();
-    run_python("goldens_text_embedding.py", &[model.as_os_str()]);
+    let model = text_stack();
     let prompts: Vec<String> =
         serde_json::from_str(&std::fs::read_to_string(model.join("prompts.json")).unwrap()).unwrap();
     let reference = read_tensors(&model.join("reference.safetensors"));
@@ -87,8 +94,7 @@ fn copy_folder(from: &Path, to: &Path) -> PathBuf {
 #[test]
 fn encode_prompt_refuses_incomplete_or_mismatched_folders_naming_what_is_missing() {
     let dir = tempfile::tempdir().unwrap();
-    let model = dir.path().join("model");
-    run_python("goldens_text_embedding.py", &[model.as_os_str()]);
+    let model = text_stack();
     let (encoder, tokenizer) = (model.join("text_encoder"), model.join("tokenizer"));
     let out = dir.path().join("out.safetensors");
     // The complete pair encodes.

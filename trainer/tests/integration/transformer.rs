@@ -119,16 +119,20 @@ fn saved_checkpoints_load_in_diffusers_and_compute_the_same() {
         .map(|n| (*n, &io[&format!("cognvs.{n}")]))
         .collect();
     Tensor::write_safetensors(&named, &inputs).unwrap();
-    for (name, shard_bytes) in [("single", weights::DEFAULT_MAX_SHARD_BYTES), ("sharded", 50_000)] {
+    let cases = [("single", weights::DEFAULT_MAX_SHARD_BYTES), ("sharded", 50_000)];
+    // Both folders saved first, then run by diffusers in one Python process.
+    let mut reload_args: Vec<std::ffi::OsString> = vec!["--reload-each".into(), inputs.into_os_string()];
+    for (name, shard_bytes) in cases {
         let folder = dir.path().join(name);
         weights::save(&vs, &config, transformer::CLASS_NAME, &folder, shard_bytes).unwrap();
         assert_eq!(folder.join(weights::WEIGHTS_INDEX_NAME).exists(), name == "sharded");
-        let out = dir.path().join(format!("{name}_out.safetensors"));
-        run_python(
-            "goldens_transformer.py",
-            &["--reload".as_ref(), folder.as_os_str(), inputs.as_os_str(), out.as_os_str()],
-        );
-        let theirs = read_tensors(&out);
+        reload_args.extend([folder.into_os_string(), dir.path().join(format!("{name}_out.safetensors")).into()]);
+    }
+    let reload_args: Vec<&std::ffi::OsStr> = reload_args.iter().map(|a| a.as_os_str()).collect();
+    run_python("goldens_transformer.py", &reload_args);
+    for (name, _) in cases {
+        let folder = dir.path().join(name);
+        let theirs = read_tensors(&dir.path().join(format!("{name}_out.safetensors")));
         assert_close(&format!("our {name} checkpoint run by diffusers"), &ours, &theirs["sample"], 1e-4);
         // And back: our loader reads our own output.
         let (again, _) = load_model(&folder, Kind::Float);

@@ -75,29 +75,40 @@ fn tiny_presets_equal_the_golden_configs() {
     }
 }
 
+/// Relative tolerance of an fp32 forward against diffusers' fp32 output (the same ops; room for
+/// another reduction order).
+const FORWARD_TOL: f64 = 1e-4;
+
+/// Runs each `(case, label)` of `transformer_io.safetensors` through the model of golden folder
+/// `folder` and compares it with diffusers' output of that case.
+fn assert_forwards_match(folder: &str, cases: &[(&str, &str)]) {
+    let (_vs, model) = load_model(&goldens().join(folder));
+    let io = transformer_io();
+    for (case, label) in cases {
+        assert_close(label, &forward(&model, &io, case), &io[&format!("{case}.sample")], FORWARD_TOL);
+    }
+}
+
 #[test]
 fn text_to_video_forward_matches_diffusers() {
-    let (_vs, model) = load_model(&goldens().join("transformer_t2v"));
-    let io = transformer_io();
-    let out = forward(&model, &io, "t2v");
-    assert_close("wan transformer t2v (batch 2, 3x6x8 latents)", &out, &io["t2v.sample"], 1e-4);
-    // Wan2.2 TI2V: one timestep per token, the first frame's tokens at 0.
-    let out = forward(&model, &io, "ti2v");
-    assert_close("wan transformer per-token timesteps", &out, &io["ti2v.sample"], 1e-4);
-    let (_vs, model) = load_model(&goldens().join("transformer_variant"));
-    let out = forward(&model, &io, "variant");
-    assert_close("wan transformer without cross-attention norm, 2x2x2 patches", &out, &io["variant.sample"], 1e-4);
+    assert_forwards_match(
+        "transformer_t2v",
+        &[
+            ("t2v", "wan transformer t2v (batch 2, 3x6x8 latents)"),
+            // Wan2.2 TI2V: one timestep per token, the first frame's tokens at 0.
+            ("ti2v", "wan transformer per-token timesteps"),
+        ],
+    );
+    assert_forwards_match(
+        "transformer_variant",
+        &[("variant", "wan transformer without cross-attention norm, 2x2x2 patches")],
+    );
 }
 
 #[test]
 fn image_to_video_forward_matches_diffusers() {
-    let io = transformer_io();
-    let (_vs, model) = load_model(&goldens().join("transformer_i2v"));
-    let out = forward(&model, &io, "i2v");
-    assert_close("wan transformer i2v (image cross-attention)", &out, &io["i2v.sample"], 1e-4);
-    let (_vs, model) = load_model(&goldens().join("transformer_flf2v"));
-    let out = forward(&model, &io, "flf2v");
-    assert_close("wan transformer flf2v (image positional table)", &out, &io["flf2v.sample"], 1e-4);
+    assert_forwards_match("transformer_i2v", &[("i2v", "wan transformer i2v (image cross-attention)")]);
+    assert_forwards_match("transformer_flf2v", &[("flf2v", "wan transformer flf2v (image positional table)")]);
 }
 
 /// In bf16 the fp32-kept modules stay fp32 as in diffusers' `from_pretrained(torch_dtype=bf16)`,
@@ -395,7 +406,7 @@ fn trainer_forward_runs_wan_configs() {
         ])
     };
     assert_success(&run("transformer", &model, &inputs));
-    assert_close("trainer forward wan i2v", &read_tensors(&out)["sample"], &io["i2v.sample"], 1e-4);
+    assert_close("trainer forward wan i2v", &read_tensors(&out)["sample"], &io["i2v.sample"], FORWARD_TOL);
 
     let vae_io = read_tensors(&goldens().join("vae_io.safetensors"));
     let vae_inputs = dir.path().join("vae_in.safetensors");

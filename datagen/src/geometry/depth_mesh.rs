@@ -379,12 +379,18 @@ impl DepthMesh {
 
     /// Where a point (from another camera's depth) meets this mesh's surface, as the mesh's own
     /// camera sees it: the pixel whose footprint holds the point's image, and whether the point is
-    /// that pixel's surface ([`Footprint`]). The surface of a pixel spans the depths halfway to
-    /// each of its eight neighbours on the same surface (depths within `discontinuity_ratio`;
-    /// none: its own depth), widened by `epsilon` (relative) for round-off: a point at such a
-    /// depth is the surface the pixel samples, whatever the flat triangles between the samples
-    /// say (a concave crease, the bend of a curved surface, or a cut quad beside a foreground
-    /// edge, half of which is the background's).
+    /// that pixel's surface ([`Footprint`]). The surface of a pixel spans the depths its sample's
+    /// plane takes over the footprint, widened by `epsilon` (relative) for round-off: a point at
+    /// such a depth is the surface the pixel samples, whatever the flat triangles between the
+    /// samples say (a concave crease, the bend of a curved surface, or a cut quad beside a
+    /// foreground edge, half of which is the background's).
+    ///
+    /// The plane is known from the eight neighbours on the same surface (depths within
+    /// `discontinuity_ratio`; none: the pixel's own depth), in inverse depth, which is affine in
+    /// the image on a plane: over the footprint it ranges between the values halfway to the
+    /// neighbours in inverse depth (the harmonic mean of the two depths; the arithmetic mean
+    /// overshoots on the near side, leaving out the near part of a slanted pixel's own surface).
+    /// Exact on planes; on curved surfaces and creases it spans the chords to the neighbours.
     pub fn footprint_of(&self, point: DVec3, epsilon: f64) -> Footprint {
         let Some((at, z)) = self.camera.project(point) else { return Footprint::Elsewhere };
         let (u, v) = (at.x.round(), at.y.round());
@@ -398,7 +404,8 @@ impl DepthMesh {
             return Footprint::Elsewhere;
         }
         let own = f64::from(depth);
-        let (mut low, mut high) = (own, own);
+        // The extremes of inverse depth over the footprint: its own, or halfway to a neighbour.
+        let (mut nearest, mut farthest) = (1.0 / own, 1.0 / own);
         for (du, dv) in NEIGHBOURS {
             let (Some(nu), Some(nv)) = (u.checked_add_signed(du), v.checked_add_signed(dv)) else { continue };
             if nu >= self.width || nv >= self.height || !valid(self.depth[nv * self.width + nu]) {
@@ -406,10 +413,12 @@ impl DepthMesh {
             }
             let neighbour = f64::from(self.depth[nv * self.width + nu]);
             if own.max(neighbour) <= own.min(neighbour) * self.discontinuity_ratio {
-                low = low.min((own + neighbour) / 2.0);
-                high = high.max((own + neighbour) / 2.0);
+                let halfway = (1.0 / own + 1.0 / neighbour) / 2.0;
+                nearest = nearest.max(halfway);
+                farthest = farthest.min(halfway);
             }
         }
+        let (low, high) = (1.0 / nearest, 1.0 / farthest);
         if z < low * (1.0 - epsilon) {
             Footprint::Elsewhere
         } else if z <= high * (1.0 + epsilon) {
@@ -419,6 +428,45 @@ impl DepthMesh {
         } else {
             Footprint::Elsewhere
         }
+    }
+
+    /// Whether the surface at pixel `p`'s point shows `eye` its back: `eye` lies behind the plane
+    /// of every surface triangle having `p` as a corner (by more than `epsilon` of its distance,
+    /// for round-off), on the side away from the mesh's own camera, which sees their front.
+    /// False where `p` has no surface triangle (no valid depth, or every quad around it cut):
+    /// there the samples say nothing of the surface's orientation.
+    ///
+    /// Why: an opaque surface seen from behind is not the surface seen from the front. From
+    /// `eye`, the ray to the point arrives through the surface's other side (a closed object's
+    /// body, or the far face of a sheet), so what the mesh's camera sees there is not visible
+    /// from `eye`, however close the points are.
+    pub fn faces_away_from(&self, p: usize, eye: DVec3, epsilon: f64) -> bool {
+        let Some(point) = self.point(p) else { return false };
+        let (u, v) = (p % self.width, p / self.width);
+        let center = self.camera.center();
+        let mut any = false;
+        // The quads having `p` as a corner: those whose corner 0 is `p` or the pixel before it on
+        // each axis; in each, the triangles having `p`'s corner.
+        for (du, dv) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+            let (Some(qu), Some(qv)) = (u.checked_sub(du), v.checked_sub(dv)) else { continue };
+            let quad = qv * self.width + qu;
+            if self.quads[quad] != Quad::Surface {
+                continue;
+            }
+            let corners = corner_indices(quad, self.width);
+            let corner = du + 2 * dv;
+            for triangle in SPLIT.iter().filter(|triangle| triangle.contains(&corner)) {
+                let [a, b, c] = triangle.map(|k| self.points[corners[k]]);
+                let normal = (b - a).cross(c - a);
+                let (front, seen) = (normal.dot(center - point), normal.dot(eye - point));
+                let behind = front * seen < 0.0 && seen.abs() > epsilon * normal.length() * (eye - point).length();
+                if !behind {
+                    return false;
+                }
+                any = true;
+            }
+        }
+        any
     }
 
     /// Whether the quarter of pixel `p`'s footprint that holds the image point `at` has no
@@ -573,9 +621,45 @@ pub(crate) fn segment_ray(from: DVec3, to: DVec3, epsilon: f64) -> Option<Ray> {
 
 #[cfg(test)]
 mod tests {
+    use glam::{DMat3, DMat4, DVec3};
     use rand::{Rng, SeedableRng};
 
-    use super::valid;
+    use super::{DepthMesh, Footprint, MeshConfig, valid};
+    use foundation::camera::PinholeCamera;
+    use foundation::depth::DepthMap;
+
+    #[test]
+    fn a_slanted_planes_own_surface_reaches_the_footprints_near_border() {
+        // A plane x = (z − 5) / 0.8 seen from the origin: its depth 5 / (1 − 0.8 x/z) grows 4 % a
+        // pixel to the right (one surface at the default cut of 5 %).
+        let (width, height, focal) = (16, 12, 20.0);
+        let camera = PinholeCamera {
+            width,
+            height,
+            intrinsics: DMat3::from_cols(
+                DVec3::new(focal, 0.0, 0.0),
+                DVec3::new(0.0, focal, 0.0),
+                DVec3::new(7.5, 5.5, 1.0),
+            ),
+            world_from_camera: DMat4::IDENTITY,
+        };
+        let depth_at = |x: f64| 5.0 / (1.0 - 0.8 * (x - 7.5) / focal);
+        let values = (0..width * height).map(|i| depth_at(f64::from(i % width)) as f32).collect();
+        let mesh = DepthMesh::new(
+            &DepthMap { width: width as usize, height: height as usize, values },
+            &camera,
+            &MeshConfig::default(),
+        );
+        // Just inside pixel (8, 6)'s footprint on its near side, where the plane's depth is the
+        // harmonic mean of the two samples' (the arithmetic mean lies 4e-4 farther, beyond the
+        // epsilon).
+        let x = 7.5 + 1e-3;
+        let point = camera.unproject(x, 6.0, depth_at(x));
+        assert_eq!(mesh.footprint_of(point, 1e-4), Footprint::Own(6 * width + 8));
+        // In front of it by more than the epsilon, it is not that surface.
+        let nearer = camera.unproject(x, 6.0, depth_at(x) * (1.0 - 1e-3));
+        assert_eq!(mesh.footprint_of(nearer, 1e-4), Footprint::Elsewhere);
+    }
 
     #[test]
     fn valid_depth_by_bits_equals_the_comparisons() {

@@ -9,7 +9,7 @@
 //!   lifted along its ray) is the first surface s sees along the ray to it, tested against s's
 //!   depth mesh by the monocular co-visibility kernel itself
 //!   ([`crate::geometry::covisibility::target_visibility_mask`]: the same mesh, skirts, epsilon and
-//!   triangle test);
+//!   triangle test), and dropped when its surface turns its back to s;
 //! - **dataset**, where t has no depth but the dataset ships co-visibility masks of t seen from s
 //!   (DyCheck's `covisible/`, made for its held-out cameras against its input camera): those;
 //! - **coverage** otherwise: the target pixels s's surface covers (the render's non-holes).

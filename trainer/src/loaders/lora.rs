@@ -297,3 +297,26 @@ fn metadata_scale(metadata: &BTreeMap<String, String>, path: &Path) -> Result<f6
         (Some(alpha), Some(r)) => Err(bad(format!("lora_alpha {alpha} and r {r} give no scale"))),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scale(json: &str) -> Result<f64> {
+        metadata_scale(&BTreeMap::from([(ADAPTER_METADATA_KEY.to_string(), json.to_string())]), Path::new("l.st"))
+    }
+
+    #[test]
+    fn peft_metadata_gives_the_scale_or_a_named_refusal() {
+        assert_eq!(metadata_scale(&BTreeMap::new(), Path::new("l.st")).unwrap(), 1.0);
+        assert_eq!(scale(r#"{"transformer.lora_alpha": 2.0, "transformer.r": 4}"#).unwrap(), 0.5);
+        let rs = r#"{"transformer.lora_alpha": 8.0, "transformer.r": 16, "transformer.use_rslora": true}"#;
+        assert_eq!(scale(rs).unwrap(), 2.0);
+        let empty = r#"{"lora_alpha": 4, "r": 4, "rank_pattern": {}, "alpha_pattern": {}, "use_dora": false}"#;
+        assert_eq!(scale(empty).unwrap(), 1.0);
+        let e = scale(r#"{"lora_alpha": 4, "r": 4, "transformer.alpha_pattern": {"to_q": 8}}"#).unwrap_err();
+        assert!(e.to_string().contains("alpha_pattern") && e.to_string().contains("l.st"), "{e}");
+        let e = scale(r#"{"lora_alpha": 4, "r": 4, "use_dora": true}"#).unwrap_err();
+        assert!(e.to_string().contains("use_dora"), "{e}");
+    }
+}

@@ -307,7 +307,12 @@ fn plan_cli_plans_a_wan_preset_with_its_image_tokens() {
         .unwrap();
     let text = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    for row in ["image embedding (frozen)", "width 5120, 40 blocks", "activations with checkpointing", "total"] {
+    for row in [
+        "image embedding (frozen)",
+        "512 text tokens of width 5120, 40 blocks",
+        "activations with checkpointing",
+        "total",
+    ] {
         assert!(text.contains(row), "no `{row}` in\n{text}");
     }
 }

@@ -165,7 +165,7 @@ pub(super) fn counts(
         batch: (d.batch_size as u64).div_ceil(world),
         frames: d.frames as u64,
         video_tokens,
-        text_tokens: TEXT_TOKENS + image_tokens,
+        text_tokens: TEXT_TOKENS,
         unit_tokens: video_tokens,
         width: transformer.inner_dim() as u64,
         blocks: transformer.num_layers as u64,

@@ -235,7 +235,7 @@ if tiny == "1":
     if transformer.startswith("wan"):
         # Wan's tiny structures; gpu_check_wan.py --tiny builds the same (Wan2.2's preset on
         # Wan2.1's VAE structure: no tiny transformer takes the tiny Wan2.2 VAE's channels).
-        config["model"].update(transformer="tiny-i2v" if "i2v" in transformer else "tiny-t2v", vae="tiny")
+        config["model"].update(transformer="tiny-i2v" if "-i2v-" in transformer else "tiny-t2v", vae="tiny")
     else:
         config["model"].update(transformer="tiny", vae="tiny")
     config["loop"]["precision"] = "fp32"
@@ -321,29 +321,39 @@ train_diffusers() {
 stage_lora_ours() { train_ours lora "$HERE/configs/finetune_5b_lora_1gpu.toml"; }
 
 # Each Wan preset at its own clip size (the check's tiny size with --tiny): the plan's predicted
-# peak and a diffusers + peft LoRA step's measured peaks, as `PRESET={...}` fields. A preset that
-# fails (out of memory, say) is recorded and the next one still runs; the stage then fails.
+# peak and a diffusers + peft LoRA step's measured peaks, as `PRESET={...}` fields, all presets in
+# one Python process (one import of torch and diffusers). A preset that runs out of memory is
+# recorded and the next one still runs; the stage then fails.
 stage_wan_lora() {
-    local preset name plan line config failed=0 size=() steps=2
-    # The rehearsal: one step on the tiny shapes (the path, not the figures).
+    local name config plans=() configs=() size=() steps=2 status=0
+    # The rehearsal: every preset's plan, and one step of the image-to-video one on the tiny
+    # shapes (the path, image cross-attention's adapters included; the tiny presets are alike).
     ((TINY)) && size=(--tiny --frames "$FRAMES" --height "$HEIGHT" --width "$WIDTH") steps=1
     for name in finetune_wan21_1.3b_lora_24gb finetune_wan22_ti2v_5b_lora_1gpu finetune_wan21_i2v_14b_lora_80gb; do
-        preset="$HERE/configs/$name.toml" config="$preset"
+        config="$HERE/configs/$name.toml"
+        [[ $TINY == 0 || $name == finetune_wan21_i2v_14b_lora_80gb ]] && configs+=(--config "$config")
         if ((TINY)); then
             config="$WORK/$name.toml"
-            training_config "$preset" lora "$config"
+            training_config "$HERE/configs/$name.toml" lora "$config"
         fi
-        plan="$(plan_gib --config "$config" --world-size 1 --device "$DEVICE")"
-        if line="$(PYTHONPATH="$PYPATH" "$PY" "$HERE/scripts/gpu_check_wan.py" --config "$preset" \
-            --configs-dir "$HERE/configs/wan" --device "$DEVICE" --steps "$steps" "${size[@]}" | tail -n 1)"; then
-            fields "$name=$("$PY" -c 'import json, sys; d = json.loads(sys.argv[1]); d["plan_gib"] = float(sys.argv[2]); print(json.dumps(d))' "$line" "$plan")"
-        else
-            fields "$name={\"plan_gib\": $plan, \"failed\": true}"
-            failed=1
-        fi
+        plans+=("$name=$(plan_gib --config "$config" --world-size 1 --device "$DEVICE")")
     done
-    return "$failed"
+    PYTHONPATH="$PYPATH" "$PY" "$HERE/scripts/gpu_check_wan.py" "${configs[@]}" --configs-dir "$HERE/configs/wan" \
+        --device "$DEVICE" --steps "$steps" "${size[@]}" | tee "$WORK/wan_lora.out" || status=1
+    "$PY" - "$WORK/wan_lora.out" "$WORK/$STAGE.json" "${plans[@]}" <<'PY'
+import json, sys
+out, fields, plans = sys.argv[1], sys.argv[2], dict(p.split("=", 1) for p in sys.argv[3:])
+data = json.load(open(fields))
+for line in open(out):
+    if line.startswith("{"):
+        row = json.loads(line)
+        data[row["preset"]] = dict(row, plan_gib=float(plans.pop(row["preset"])))
+data.update({name: dict(plan_gib=float(gib)) for name, gib in plans.items()})  # planned, not run
+json.dump(data, open(fields, "w"))
+PY
+    return "$status"
 }
+
 stage_lora_diffusers() { train_diffusers lora; }
 stage_full_ours() { train_ours full "$HERE/configs/finetune_5b_full_1gpu.toml"; }
 stage_full_diffusers() { train_diffusers full; }

@@ -4,8 +4,8 @@
 checkpointing, steps of the rectified-flow objective, and the CUDA caching allocator's peaks, to
 set beside `trainer plan`'s prediction for the same config.
 
-Usage: gpu_check_wan.py --config PRESET.toml --configs-dir CONFIGS/wan [--device cuda] [--steps 2]
-           [--frames F --height H --width W] [--tiny]
+Usage: gpu_check_wan.py --config PRESET.toml [--config ...] --configs-dir CONFIGS/wan [--device cuda]
+           [--steps 2] [--frames F --height H --width W] [--tiny]
 
 The preset's `[model]` names (`wan2.1-t2v-1.3b`, `wan2.1-i2v-14b`, `wan2.2-ti2v-5b` and the VAE's
 `wan2.1`, `wan2.2`) map to the released diffusers configs under `--configs-dir`
@@ -14,15 +14,19 @@ materialised on the target one in the working precision (a 14B model never exist
 `_keep_in_fp32_modules` in fp32 as `from_pretrained` keeps them; the VAE encodes the random clip
 once (no autograd) before the steps, as the trainer does per step. With `--tiny` the structures
 are the Rust tests' tiny ones (`tiny-t2v`, `tiny-i2v`, the VAE's `tiny`) on the CPU, a
-rehearsal of the path (no peaks there). Prints one JSON line: peaks in GiB, seconds per step.
+rehearsal of the path (no peaks there). Prints one JSON line per preset, in order, as each ends
+(peaks in GiB, seconds per step; a preset out of memory is a line with `failed`, and the exit
+status is then 1).
 
 The trainer's own Wan LoRA step runs through `trainer pretrain` once it trains Wan; until then
 this is diffusers + peft on the same shapes (the same module tree and operations).
 """
 
 import argparse
+import gc
 import json
 import math
+import sys
 import time
 import tomllib
 from pathlib import Path
@@ -70,7 +74,7 @@ def configs(preset: dict, configs_dir: Path, tiny: bool) -> tuple[dict, dict, bo
     """(transformer config, VAE config, image-to-video) of the preset's `[model]`."""
     name, vae = preset["model"]["transformer"], preset["model"]["vae"]
     if tiny:
-        image = "i2v" in name
+        image = "-i2v-" in name  # not Wan2.2 TI2V's "ti2v"
         # Wan2.2's tiny VAE has 6 latent channels, which no tiny transformer takes: the rehearsal
         # runs its preset on Wan2.1's structure (`trainer plan` is given the same).
         return (TINY_I2V if image else TINY_T2V), TINY_VAE, image
@@ -82,19 +86,9 @@ def configs(preset: dict, configs_dir: Path, tiny: bool) -> tuple[dict, dict, bo
     return transformer, read(VAES[vae], "vae"), transformer.get("image_dim") is not None
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--config", type=Path, required=True)
-    parser.add_argument("--configs-dir", type=Path, required=True)
-    parser.add_argument("--device", default="cuda")
-    parser.add_argument("--steps", type=int, default=2)
-    parser.add_argument("--frames", type=int)
-    parser.add_argument("--height", type=int)
-    parser.add_argument("--width", type=int)
-    parser.add_argument("--tiny", action="store_true")
-    args = parser.parse_args()
-
-    preset = tomllib.loads(args.config.read_text())
+def measure(config_path: Path, args: argparse.Namespace) -> dict:
+    """One preset's steps: sizes, adapter count, seconds per step and (CUDA) the peaks."""
+    preset = tomllib.loads(config_path.read_text())
     data = preset["data"]
     frames, height, width = args.frames or data["frames"], args.height or data["height"], args.width or data["width"]
     t_config, v_config, image = configs(preset, args.configs_dir, args.tiny)
@@ -102,8 +96,6 @@ def main() -> None:
     dtype = torch.float32 if args.tiny else torch.bfloat16
     cuda = device.startswith("cuda")
     torch.manual_seed(0)
-    if cuda:
-        torch.cuda.reset_peak_memory_stats()
 
     with torch.device("meta"):
         transformer = WanTransformer3DModel(**t_config)
@@ -153,12 +145,38 @@ def main() -> None:
             torch.cuda.synchronize()
         seconds.append(time.perf_counter() - start)
     gib = lambda b: round(b / (1 << 30), 3)
-    result = dict(frames=frames, height=height, width=width, tokens=tokens, adapters=sum(p.numel() for p in adapters),
+    result = dict(preset=config_path.stem, frames=frames, height=height, width=width, tokens=tokens, adapters=sum(p.numel() for p in adapters),
                   first_step_s=round(seconds[0], 3), last_step_s=round(seconds[-1], 3), loss=float(loss.detach()))
     if cuda:
         result.update(peak_allocated_gib=gib(torch.cuda.max_memory_allocated()),
                       peak_reserved_gib=gib(torch.cuda.max_memory_reserved()))
-    print(json.dumps(result))
+    return result
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--config", type=Path, action="append", required=True)
+    parser.add_argument("--configs-dir", type=Path, required=True)
+    parser.add_argument("--device", default="cuda")
+    parser.add_argument("--steps", type=int, default=2)
+    parser.add_argument("--frames", type=int)
+    parser.add_argument("--height", type=int)
+    parser.add_argument("--width", type=int)
+    parser.add_argument("--tiny", action="store_true")
+    args = parser.parse_args()
+    failed = False
+    for config_path in args.config:
+        # Each preset's peaks are its own: what the last one left is freed first.
+        gc.collect()
+        if args.device.startswith("cuda"):
+            torch.cuda.empty_cache()
+            torch.cuda.reset_peak_memory_stats()
+        try:
+            result = measure(config_path, args)
+        except torch.OutOfMemoryError as e:
+            result, failed = dict(preset=config_path.stem, failed=f"out of memory: {str(e)[:200]}"), True
+        print(json.dumps(result), flush=True)
+    sys.exit(1 if failed else 0)
 
 
 if __name__ == "__main__":

@@ -33,6 +33,11 @@
 #   lora_ours     5B LoRA test-time-finetune steps, bf16, checkpointing: step, VAE encode and
 #                 transformer time (medians of 5 after a warm-up), allocator peaks, plan [120 s]
 #   lora_diffusers  the same shapes with diffusers + peft (model built on the GPU) [90 s]
+#   wan_lora      the Wan presets (configs/finetune_wan*.toml: Wan2.1-T2V-1.3B, Wan2.2-TI2V-5B,
+#                 Wan2.1-I2V-14B at their own clip sizes): `trainer plan`'s predicted peak beside the
+#                 allocator peaks of LoRA finetune steps on random weights of each preset's shape
+#                 (diffusers + peft, bf16, checkpointing; scripts/gpu_check_wan.py), one preset
+#                 after another, each recorded as it ends [240 s]
 #   full_ours / full_diffusers  the same with all weights trained [150 s / 120 s]
 #   sampling      50 DPM steps with guidance against another embedding and the VAE decode at
 #                 49x480x720, diffusers (the public procedure) then ours on the same random
@@ -123,8 +128,10 @@ bundle_dir() {
     # and stubs of the rest (see the script's docstring).
     python3 "$root/scripts/gpu_check_stub_libs.py" "$bundle/lib" "$torch_lib" "$bundle/bin/trainer" \
         "$bundle/bin/datagen" | tail -1
-    cp "$root"/scripts/{gpu_check.sh,gpu_check_diffusers.py,goldens_sampling.py} "$bundle/scripts/"
+    cp "$root"/scripts/{gpu_check.sh,gpu_check_diffusers.py,gpu_check_wan.py,goldens_sampling.py} "$bundle/scripts/"
     cp "$root"/configs/{finetune_5b_lora_1gpu.toml,finetune_5b_full_1gpu.toml,comm_cost_tiny.toml} "$bundle/configs/"
+    cp "$root"/configs/finetune_wan*.toml "$bundle/configs/"
+    cp -r "$root/configs/wan" "$bundle/configs/"
     if compgen -G "$gc/wheels/diffusers-*.whl" >/dev/null; then cp "$gc"/wheels/diffusers-*.whl "$bundle/"; fi
 }
 
@@ -224,7 +231,13 @@ config["model"].update(zero_text_embedding=True)
 config["data"].update(frames=int(frames), height=int(height), width=int(width), batch_size=1)
 config["loop"].update(steps=int(steps), checkpoint_every=1_000_000, validate_every=0, save_checkpoints=False)
 if tiny == "1":
-    config["model"].update(transformer="tiny", vae="tiny")
+    transformer = config["model"]["transformer"]
+    if transformer.startswith("wan"):
+        # Wan's tiny structures; gpu_check_wan.py --tiny builds the same (Wan2.2's preset on
+        # Wan2.1's VAE structure: no tiny transformer takes the tiny Wan2.2 VAE's channels).
+        config["model"].update(transformer="tiny-i2v" if "-i2v-" in transformer else "tiny-t2v", vae="tiny")
+    else:
+        config["model"].update(transformer="tiny", vae="tiny")
     config["loop"]["precision"] = "fp32"
     if "lora" in config:
         config["lora"].update(rank=4, alpha=2)  # the preset's alpha/rank of 1/2 on 32-wide layers
@@ -306,6 +319,41 @@ train_diffusers() {
 }
 
 stage_lora_ours() { train_ours lora "$HERE/configs/finetune_5b_lora_1gpu.toml"; }
+
+# Each Wan preset at its own clip size (the check's tiny size with --tiny): the plan's predicted
+# peak and a diffusers + peft LoRA step's measured peaks, as `PRESET={...}` fields, all presets in
+# one Python process (one import of torch and diffusers). A preset that runs out of memory is
+# recorded and the next one still runs; the stage then fails.
+stage_wan_lora() {
+    local name config plans=() configs=() size=() steps=2 status=0
+    # The rehearsal: every preset's plan, and one step of the image-to-video one on the tiny
+    # shapes (the path, image cross-attention's adapters included; the tiny presets are alike).
+    ((TINY)) && size=(--tiny --frames "$FRAMES" --height "$HEIGHT" --width "$WIDTH") steps=1
+    for name in finetune_wan21_1.3b_lora_24gb finetune_wan22_ti2v_5b_lora_1gpu finetune_wan21_i2v_14b_lora_80gb; do
+        config="$HERE/configs/$name.toml"
+        [[ $TINY == 0 || $name == finetune_wan21_i2v_14b_lora_80gb ]] && configs+=(--config "$config")
+        if ((TINY)); then
+            config="$WORK/$name.toml"
+            training_config "$HERE/configs/$name.toml" lora "$config"
+        fi
+        plans+=("$name=$(plan_gib --config "$config" --world-size 1 --device "$DEVICE")")
+    done
+    PYTHONPATH="$PYPATH" "$PY" "$HERE/scripts/gpu_check_wan.py" "${configs[@]}" --configs-dir "$HERE/configs/wan" \
+        --device "$DEVICE" --steps "$steps" "${size[@]}" | tee "$WORK/wan_lora.out" || status=1
+    "$PY" - "$WORK/wan_lora.out" "$WORK/$STAGE.json" "${plans[@]}" <<'PY'
+import json, sys
+out, fields, plans = sys.argv[1], sys.argv[2], dict(p.split("=", 1) for p in sys.argv[3:])
+data = json.load(open(fields))
+for line in open(out):
+    if line.startswith("{"):
+        row = json.loads(line)
+        data[row["preset"]] = dict(row, plan_gib=float(plans.pop(row["preset"])))
+data.update({name: dict(plan_gib=float(gib)) for name, gib in plans.items()})  # planned, not run
+json.dump(data, open(fields, "w"))
+PY
+    return "$status"
+}
+
 stage_lora_diffusers() { train_diffusers lora; }
 stage_full_ours() { train_ours full "$HERE/configs/finetune_5b_full_1gpu.toml"; }
 stage_full_diffusers() { train_diffusers full; }
@@ -508,6 +556,7 @@ run() {
     stage data 60
     stage lora_ours 120
     stage lora_diffusers 90
+    stage wan_lora 240
     stage full_ours 150
     stage full_diffusers 120
     stage sampling 300

@@ -13,6 +13,7 @@ use std::path::Path;
 
 use tch::{Kind, Tensor, nn};
 
+use crate::diffusers_config::DiffusersConfig;
 use crate::error::{Error, Result};
 
 /// File name of a LoRA checkpoint (diffusers' `LORA_WEIGHT_NAME_SAFE`).
@@ -227,55 +228,95 @@ pub fn lora_checkpoint(checkpoint: &Path) -> Result<Option<(std::path::PathBuf, 
 }
 
 /// `trainer merge-lora`: the transformer of `base` (a diffusers model folder or a checkpoint
-/// with `transformer/`) with the adapters of `lora` added into its weights, written to `out` as
-/// a full diffusers transformer folder. Everything is read and checked before `out` is written.
-/// Returns the number of layers merged.
+/// with `transformer/`, of either family: its `_class_name` decides) with the adapters of `lora`
+/// added into its weights, written to `out` as a full diffusers transformer folder. Everything is
+/// read and checked before `out` is written. Returns the number of layers merged.
 pub fn merge_lora(base: &Path, lora: &Path, out: &Path) -> Result<usize> {
-    use crate::diffusers_config::DiffusersConfig;
-    use crate::models::cogvideox_transformer_3d::{self as transformer, CogVideoXTransformer3DModelConfig};
+    use crate::models::family::ModelFamily;
     let base = match lora_checkpoint(base)? {
         Some((kept, _)) => kept,
         None => super::transformer_dir(base),
     };
-    let config = CogVideoXTransformer3DModelConfig::from_json_file(&base)?;
-    crate::models::weights::check_against(
-        &transformer::variable_shapes(&config)?,
-        &crate::models::weights::read_checkpoint_info(&base)?,
-        &base,
-    )?;
     let file = LoraFile::read(lora)?;
-    let (vs, _model) = transformer::build(&config, tch::Device::Cpu, Kind::Float)?;
-    crate::models::weights::load(&vs, &base)?;
-    file.merge_into(&vs, lora)?;
-    crate::models::weights::save(
-        &vs,
-        &config,
-        transformer::CLASS_NAME,
-        out,
-        crate::models::weights::DEFAULT_MAX_SHARD_BYTES,
-    )?;
+    let max_shard = crate::models::weights::DEFAULT_MAX_SHARD_BYTES;
+    match ModelFamily::of_transformer(&base)? {
+        ModelFamily::CogVideoX => {
+            use crate::models::cogvideox_transformer_3d::{self as transformer, CogVideoXTransformer3DModelConfig};
+            let config = CogVideoXTransformer3DModelConfig::from_json_file(&base)?;
+            let shapes = transformer::variable_shapes(&config)?;
+            crate::models::weights::check_against(
+                &shapes,
+                &crate::models::weights::read_checkpoint_info(&base)?,
+                &base,
+            )?;
+            let (vs, _model) = transformer::build(&config, tch::Device::Cpu, Kind::Float)?;
+            crate::models::weights::load(&vs, &base)?;
+            file.merge_into(&vs, lora)?;
+            crate::models::weights::save(&vs, &config, transformer::CLASS_NAME, out, max_shard)?;
+        }
+        ModelFamily::Wan => {
+            use crate::models::transformer_wan::{self as transformer, WanTransformer3DModelConfig};
+            let config = WanTransformer3DModelConfig::from_json_file(&base)?;
+            // Built in fp32 (no `keep_in_fp32` split) and loaded with diffusers' ignored keys.
+            let (vs, _model) = transformer::build(&config, tch::Device::Cpu, Kind::Float)?;
+            transformer::load(&vs, &base)?;
+            file.merge_into(&vs, lora)?;
+            crate::models::weights::save(&vs, &config, transformer::CLASS_NAME, out, max_shard)?;
+        }
+    }
     Ok(file.adapters.len())
 }
 
-/// The scale a file's adapter metadata implies (`lora_alpha / r` of the transformer's entry,
-/// diffusers' packing `transformer.lora_alpha`), or 1 where it has none.
+/// The scale a file's adapter metadata implies (peft's: `lora_alpha / r`, or `lora_alpha / √r`
+/// with `use_rslora`; of the transformer's entry, diffusers' packing `transformer.lora_alpha`), or
+/// 1 where it has none. Settings that make the scale differ per layer (`rank_pattern`,
+/// `alpha_pattern`) or the adapter more than `B·A` (`use_dora`) are refused by name.
 fn metadata_scale(metadata: &BTreeMap<String, String>, path: &Path) -> Result<f64> {
     let Some(text) = metadata.get(ADAPTER_METADATA_KEY) else { return Ok(1.0) };
-    let json: serde_json::Value = serde_json::from_str(text).map_err(|e| Error::InvalidConfig {
+    let bad = |reason: String| Error::InvalidConfig {
         source_name: path.display().to_string(),
         field: ADAPTER_METADATA_KEY.to_string(),
-        reason: format!("not JSON: {e}"),
-    })?;
-    let field = |name: &str| {
-        json.get(format!("{LORA_PREFIX}.{name}")).or_else(|| json.get(name)).and_then(serde_json::Value::as_f64)
+        reason,
     };
-    match (field("lora_alpha"), field("r")) {
-        (Some(alpha), Some(r)) if alpha.is_finite() && r > 0.0 => Ok(alpha / r),
+    let json: serde_json::Value = serde_json::from_str(text).map_err(|e| bad(format!("not JSON: {e}")))?;
+    let field = |name: &str| json.get(format!("{LORA_PREFIX}.{name}")).or_else(|| json.get(name));
+    for pattern in ["rank_pattern", "alpha_pattern"] {
+        if field(pattern).and_then(serde_json::Value::as_object).is_some_and(|p| !p.is_empty()) {
+            return Err(bad(format!(
+                "has a non-empty `{pattern}` (per-layer ranks or scales), which is not supported"
+            )));
+        }
+    }
+    if field("use_dora").and_then(serde_json::Value::as_bool) == Some(true) {
+        return Err(bad("is a DoRA adapter (`use_dora`), which is not a LoRA's `B·A`".to_string()));
+    }
+    let rslora = field("use_rslora").and_then(serde_json::Value::as_bool) == Some(true);
+    match (field("lora_alpha").and_then(serde_json::Value::as_f64), field("r").and_then(serde_json::Value::as_f64)) {
+        (Some(alpha), Some(r)) if alpha.is_finite() && r > 0.0 => Ok(if rslora { alpha / r.sqrt() } else { alpha / r }),
         (None, _) | (_, None) => Ok(1.0),
-        (Some(alpha), Some(r)) => Err(Error::InvalidConfig {
-            source_name: path.display().to_string(),
-            field: ADAPTER_METADATA_KEY.to_string(),
-            reason: format!("lora_alpha {alpha} and r {r} give no scale"),
-        }),
+        (Some(alpha), Some(r)) => Err(bad(format!("lora_alpha {alpha} and r {r} give no scale"))),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scale(json: &str) -> Result<f64> {
+        metadata_scale(&BTreeMap::from([(ADAPTER_METADATA_KEY.to_string(), json.to_string())]), Path::new("l.st"))
+    }
+
+    #[test]
+    fn peft_metadata_gives_the_scale_or_a_named_refusal() {
+        assert_eq!(metadata_scale(&BTreeMap::new(), Path::new("l.st")).unwrap(), 1.0);
+        assert_eq!(scale(r#"{"transformer.lora_alpha": 2.0, "transformer.r": 4}"#).unwrap(), 0.5);
+        let rs = r#"{"transformer.lora_alpha": 8.0, "transformer.r": 16, "transformer.use_rslora": true}"#;
+        assert_eq!(scale(rs).unwrap(), 2.0);
+        let empty = r#"{"lora_alpha": 4, "r": 4, "rank_pattern": {}, "alpha_pattern": {}, "use_dora": false}"#;
+        assert_eq!(scale(empty).unwrap(), 1.0);
+        let e = scale(r#"{"lora_alpha": 4, "r": 4, "transformer.alpha_pattern": {"to_q": 8}}"#).unwrap_err();
+        assert!(e.to_string().contains("alpha_pattern") && e.to_string().contains("l.st"), "{e}");
+        let e = scale(r#"{"lora_alpha": 4, "r": 4, "use_dora": true}"#).unwrap_err();
+        assert!(e.to_string().contains("use_dora"), "{e}");
     }
 }

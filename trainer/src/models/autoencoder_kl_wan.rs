@@ -215,6 +215,52 @@ impl AutoencoderKLWanConfig {
         Self::default()
     }
 
+    /// Wan2.2's VAE (`Wan-AI/Wan2.2-TI2V-5B-Diffusers`, `vae/config.json`): residual blocks, 2 × 2
+    /// patches folded into 12 input channels, 160 encoder and 256 decoder base channels, 48 latent
+    /// channels (16× spatial, 4× temporal). The latent statistics are placeholders (0 and 1): only
+    /// the structure is used (memory plans, random-weight checks), never to normalise latents.
+    pub fn wan22() -> Self {
+        Self {
+            base_dim: 160,
+            decoder_base_dim: Some(256),
+            z_dim: 48,
+            latents_mean: vec![0.0; 48],
+            latents_std: vec![1.0; 48],
+            is_residual: true,
+            in_channels: 12,
+            out_channels: 12,
+            patch_size: Some(2),
+            scale_factor_spatial: Some(16),
+            ..Self::default()
+        }
+    }
+
+    /// A preset by name: `wan2.1` (the VAE of every Wan2.1 model and of Wan2.2 A14B), `wan2.2`
+    /// (Wan2.2 TI2V-5B's), `tiny`, `tiny-residual`.
+    pub fn preset(name: &str) -> Result<Self> {
+        match name {
+            "wan2.1" => Ok(Self::wan21()),
+            "wan2.2" => Ok(Self::wan22()),
+            "tiny" => Ok(Self::tiny()),
+            "tiny-residual" => Ok(Self::tiny_residual()),
+            other => Err(Error::InvalidConfig {
+                source_name: "preset".to_string(),
+                field: "name".to_string(),
+                reason: format!("unknown Wan VAE preset `{other}`; expected wan2.1, wan2.2, tiny or tiny-residual"),
+            }),
+        }
+    }
+
+    /// Pixels per latent pixel: the patch size times `2^(levels − 1)` (Wan2.1: 8, Wan2.2: 16).
+    pub fn spatial_compression_ratio(&self) -> i64 {
+        self.patch_size.unwrap_or(1) << self.dim_mult.len().saturating_sub(1)
+    }
+
+    /// Frames per latent frame after the first: 2 per level that halves time (4).
+    pub fn temporal_compression_ratio(&self) -> i64 {
+        1 << self.temperal_downsample.iter().filter(|&&t| t).count()
+    }
+
     /// Wan2.1's structure at small widths for tests: 3 levels of 8, 16, 16 channels (4×
     /// spatial, 4× temporal), one residual block, 4 latent channels.
     pub fn tiny() -> Self {

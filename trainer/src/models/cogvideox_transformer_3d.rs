@@ -930,25 +930,11 @@ pub fn check_lora(config: &CogVideoXTransformer3DModelConfig, lora: &LoraConfig)
 
 /// Every target of `lora` matched at least one layer of the adapters' store; returns their number.
 fn check_lora_targets(lora: &LoraConfig, lora_vs: &nn::VarStore) -> Result<usize> {
-    let modules: Vec<String> = lora_vs
-        .variables()
-        .into_keys()
-        .filter_map(|name| name.strip_suffix(".lora_A.weight").map(str::to_string))
-        .collect();
-    for target in &lora.target_modules {
-        let single = LoraConfig { target_modules: vec![target.clone()], ..lora.clone() };
-        if !modules.iter().any(|m| single.targets(m)) {
-            return Err(Error::InvalidConfig {
-                source_name: "training config".to_string(),
-                field: "lora.target_modules".to_string(),
-                reason: format!(
-                    "`{target}` matches no linear layer of the transformer (attention layers are \
-                     `to_q`, `to_k`, `to_v`, `to_out.0`; feed-forward `ff.net.0.proj`, `ff.net.2`)"
-                ),
-            });
-        }
-    }
-    Ok(modules.len())
+    crate::models::lora::check_targets(
+        lora,
+        lora_vs,
+        "attention layers are `to_q`, `to_k`, `to_v`, `to_out.0`; feed-forward `ff.net.0.proj`, `ff.net.2`",
+    )
 }
 
 /// Name → shape of every variable of the model `config` describes, without allocating it.

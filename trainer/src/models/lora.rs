@@ -87,6 +87,44 @@ impl LoraConfig {
     }
 }
 
+/// The adapted modules of an adapters' store: every `{module}.lora_A.weight`'s module.
+fn adapted_modules(lora_vs: &nn::VarStore) -> Vec<String> {
+    lora_vs.variables().into_keys().filter_map(|name| name.strip_suffix(".lora_A.weight").map(str::to_string)).collect()
+}
+
+/// Checks that every target of `lora` matched at least one layer of the adapters' store (built
+/// with [`crate::models::vars::Vars::with_lora`]); `layers` names the model's linear layers for
+/// the message. Returns the number of adapted layers.
+pub fn check_targets(lora: &LoraConfig, lora_vs: &nn::VarStore, layers: &str) -> Result<usize> {
+    let modules = adapted_modules(lora_vs);
+    for target in &lora.target_modules {
+        let single = LoraConfig { target_modules: vec![target.clone()], ..lora.clone() };
+        if !modules.iter().any(|m| single.targets(m)) {
+            return Err(Error::InvalidConfig {
+                source_name: "training config".to_string(),
+                field: "lora.target_modules".to_string(),
+                reason: format!("`{target}` matches no linear layer of the transformer ({layers})"),
+            });
+        }
+    }
+    Ok(modules.len())
+}
+
+/// Each adapted module of an adapters' store with its parameter count (`r·in + out·r`), by name.
+pub fn adapter_sizes(lora_vs: &nn::VarStore) -> Vec<(String, u64)> {
+    let variables = lora_vs.variables();
+    let mut sizes: Vec<(String, u64)> = adapted_modules(lora_vs)
+        .into_iter()
+        .map(|module| {
+            let numel = |part: &str| variables.get(&format!("{module}.{part}.weight")).map_or(0, |t| t.numel() as u64);
+            let n = numel("lora_A") + numel("lora_B");
+            (module, n)
+        })
+        .collect();
+    sizes.sort();
+    sizes
+}
+
 /// One layer's adapter: `A` `[r, in]`, `B` `[out, r]` and the scale.
 #[derive(Debug)]
 pub struct LoraAdapter {

@@ -923,6 +923,66 @@ pub fn variable_shapes(config: &WanTransformer3DModelConfig) -> Result<BTreeMap<
     Ok(crate::models::weights::variable_shapes(&vs))
 }
 
+// ------------------------------------------------------------------------------------------------
+// LoRA
+// ------------------------------------------------------------------------------------------------
+
+/// The attention projections Wan LoRAs adapt (finetrainers' and diffusers' Wan recipes:
+/// `to_q`, `to_k`, `to_v`, `to_out.0` of every block's self- and cross-attention), as peft
+/// suffixes: files then hold `transformer.blocks.{i}.attn{1,2}.{module}.lora_{A,B}.weight`.
+pub const LORA_TARGET_MODULES: [&str; 4] = ["to_q", "to_k", "to_v", "to_out.0"];
+/// The image cross-attention's key and value projections of image-to-video models, which
+/// diffusers' `WanLoraLoaderMixin` expects beside the text ones (it pads a text-to-video LoRA
+/// with zero adapters on exactly these before loading it into an I2V transformer).
+pub const LORA_IMAGE_TARGET_MODULES: [&str; 2] = ["add_k_proj", "add_v_proj"];
+
+/// The linear layers of a block, for the message of a target that matches none.
+const LORA_LAYER_NAMES: &str = "attention layers are `to_q`, `to_k`, `to_v`, `to_out.0` (and `add_k_proj`, \
+                                `add_v_proj` with image cross-attention); feed-forward `ffn.net.0.proj`, `ffn.net.2`";
+
+/// The LoRA targets of a Wan model: [`LORA_TARGET_MODULES`], plus
+/// [`LORA_IMAGE_TARGET_MODULES`] when the model has image cross-attention (`added_kv_proj_dim`).
+pub fn lora_target_modules(config: &WanTransformer3DModelConfig) -> Vec<String> {
+    let image = config.added_kv_proj_dim.is_some().then_some(LORA_IMAGE_TARGET_MODULES.as_slice());
+    LORA_TARGET_MODULES.iter().chain(image.into_iter().flatten()).map(|m| m.to_string()).collect()
+}
+
+/// A transformer as [`build`] with LoRA adapters on the linear layers `lora` targets, in a second
+/// store: `(base, adapters, model)`. The base store comes back frozen (only the adapters get
+/// gradients); every target must match at least one linear layer.
+pub fn build_with_lora(
+    config: &WanTransformer3DModelConfig,
+    lora: &crate::models::lora::LoraConfig,
+    device: Device,
+    kind: Kind,
+) -> Result<(nn::VarStore, nn::VarStore, WanTransformer3DModel)> {
+    lora.validate("training config")?;
+    let mut vs = nn::VarStore::new(device);
+    let mut lora_vs = nn::VarStore::new(device);
+    let model = WanTransformer3DModel::new(&Vars::new(vs.root()).with_lora(lora_vs.root(), lora), config)?;
+    crate::models::lora::check_targets(lora, &lora_vs, LORA_LAYER_NAMES)?;
+    vs.set_kind(kind);
+    keep_in_fp32(&vs)?;
+    vs.freeze();
+    lora_vs.set_kind(kind);
+    Ok((vs, lora_vs, model))
+}
+
+/// Checks `lora` against the model `config` describes without allocating it (every target
+/// matches a linear layer; the rank fits each); returns the adapters' names and parameter counts
+/// (`r·in + out·r` per adapted layer).
+pub fn lora_shapes(
+    config: &WanTransformer3DModelConfig,
+    lora: &crate::models::lora::LoraConfig,
+) -> Result<Vec<(String, u64)>> {
+    lora.validate("training config")?;
+    let vs = nn::VarStore::new(Device::Cpu);
+    let lora_vs = nn::VarStore::new(Device::Cpu);
+    WanTransformer3DModel::new(&Vars::shapes_only(vs.root()).with_lora(lora_vs.root(), lora), config)?;
+    crate::models::lora::check_targets(lora, &lora_vs, LORA_LAYER_NAMES)?;
+    Ok(crate::models::lora::adapter_sizes(&lora_vs))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -8,9 +8,11 @@ use serde::{Deserialize, Serialize};
 use crate::diffusers_config;
 use crate::error::{Error, Result};
 use crate::models::autoencoder_kl_cogvideox::AutoencoderKLCogVideoXConfig;
+use crate::models::autoencoder_kl_wan::AutoencoderKLWanConfig;
 use crate::models::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
 use crate::models::family::{Job, ModelFamily};
 use crate::models::lora::LoraConfig;
+use crate::models::transformer_wan::WanTransformer3DModelConfig;
 pub use crate::precision::Precision;
 use crate::training::data::DataConfig;
 
@@ -495,6 +497,9 @@ impl PretrainConfig {
             field: field.to_string(),
             reason,
         };
+        if let Some((transformer, vae)) = self.model.wan_configs()? {
+            return self.check_wan_models(source_name, &transformer, &vae);
+        }
         let (transformer, vae) = self.model.configs(false)?;
         // The scheduler's file too: its ranges are checked as it is read. And the text embedding
         // (small: its shape against the transformer, every value finite), so that a bad one
@@ -572,11 +577,76 @@ impl PretrainConfig {
     }
 }
 
+impl PretrainConfig {
+    /// [`Self::check_models`] for Wan models: the LoRA targets and rank against the blocks' linear
+    /// layers, frames and sizes against the VAE's compression and the patch size, and the
+    /// latent channels out. (The conditioning channels in are the training objective's.)
+    fn check_wan_models(
+        &self,
+        source_name: &str,
+        transformer: &WanTransformer3DModelConfig,
+        vae: &AutoencoderKLWanConfig,
+    ) -> Result<()> {
+        let bad = |field: &str, reason: String| Error::InvalidConfig {
+            source_name: source_name.to_string(),
+            field: field.to_string(),
+            reason,
+        };
+        if let Some(lora) = &self.lora {
+            crate::models::transformer_wan::lora_shapes(transformer, lora).map_err(|e| match e {
+                Error::InvalidConfig { field, reason, .. } => {
+                    Error::InvalidConfig { source_name: source_name.to_string(), field, reason }
+                }
+                other => other,
+            })?;
+        }
+        let d = &self.data;
+        let temporal = vae.temporal_compression_ratio() as usize;
+        if !(d.frames - 1).is_multiple_of(temporal) {
+            return Err(bad(
+                "data.frames",
+                format!(
+                    "{} must be {temporal}k + 1 (the VAE compresses time by {temporal} after the first frame)",
+                    d.frames
+                ),
+            ));
+        }
+        let spatial = vae.spatial_compression_ratio();
+        let [_, ph, pw] = transformer.patch_size;
+        for (field, value, patch) in [("data.height", d.height, ph), ("data.width", d.width, pw)] {
+            if i64::from(value) % (spatial * patch) != 0 {
+                return Err(bad(
+                    field,
+                    format!(
+                        "{value} must be a multiple of {} (the VAE's {spatial}x spatial compression times the \
+                         transformer's patch size {patch})",
+                        spatial * patch
+                    ),
+                ));
+            }
+        }
+        if transformer.output_channels() != vae.z_dim {
+            return Err(bad(
+                "model.transformer",
+                format!(
+                    "out_channels {} must equal the VAE's z_dim {} (latent channels)",
+                    transformer.output_channels(),
+                    vae.z_dim
+                ),
+            ));
+        }
+        Ok(())
+    }
+}
+
 impl ModelConfig {
     /// The transformer's and the VAE's configs: presets, or read from their `config.json` (no
     /// weights are read). Errors name the preset or file; with `warn`, the files' warnings
     /// (unknown keys, inconsistent values) go to stderr.
     pub fn configs(&self, warn: bool) -> Result<(CogVideoXTransformer3DModelConfig, AutoencoderKLCogVideoXConfig)> {
+        if WanTransformer3DModelConfig::preset(&self.transformer).is_ok() {
+            ModelFamily::Wan.require(Job::Training, Path::new(&self.transformer))?;
+        }
         let mut warnings = Vec::new();
         let transformer = match Path::new(&self.transformer) {
             p if p.is_dir() || p.is_file() => {
@@ -604,6 +674,43 @@ impl ModelConfig {
         Ok((transformer, vae))
     }
 
+    /// The Wan transformer's and VAE's configs when `transformer` names a Wan model (a Wan preset
+    /// such as `wan2.1-t2v-1.3b`, or a config file or folder whose `_class_name` is Wan's), else
+    /// None. `vae` must then be a Wan VAE: a preset (`wan2.1`, `wan2.2`) or a folder.
+    pub fn wan_configs(&self) -> Result<Option<(WanTransformer3DModelConfig, AutoencoderKLWanConfig)>> {
+        let path = Path::new(&self.transformer);
+        let transformer = if path.is_dir() || path.is_file() {
+            if ModelFamily::of_transformer(path)? != ModelFamily::Wan {
+                return Ok(None);
+            }
+            diffusers_config::read_quiet::<WanTransformer3DModelConfig>(path)?.0
+        } else {
+            match WanTransformer3DModelConfig::preset(&self.transformer) {
+                Ok(config) => config,
+                Err(_) => return Ok(None),
+            }
+        };
+        let vae_path = Path::new(&self.vae);
+        let vae = if vae_path.is_dir() {
+            let family = ModelFamily::of_vae(vae_path)?;
+            if family != ModelFamily::Wan {
+                return Err(Error::InvalidConfig {
+                    source_name: vae_path.display().to_string(),
+                    field: "model.vae".to_string(),
+                    reason: format!("is a {} VAE, but the transformer is a Wan model", family.name()),
+                });
+            }
+            diffusers_config::read_quiet::<AutoencoderKLWanConfig>(vae_path)?.0
+        } else {
+            AutoencoderKLWanConfig::preset(&self.vae).map_err(|e| Error::InvalidConfig {
+                source_name: self.vae.clone(),
+                field: "model.vae".to_string(),
+                reason: format!("the transformer is a Wan model, so the VAE must be a Wan VAE folder or preset: {e}"),
+            })?
+        };
+        Ok(Some((transformer, vae)))
+    }
+
     fn validate(&self, source_name: &str) -> Result<()> {
         let bad = |field: &str, reason: String| Error::InvalidConfig {
             source_name: source_name.to_string(),
@@ -611,12 +718,14 @@ impl ModelConfig {
             reason,
         };
         let transformer = Path::new(&self.transformer);
-        if !(transformer.is_dir() || transformer.is_file())
+        let wan = WanTransformer3DModelConfig::preset(&self.transformer).is_ok();
+        if !(transformer.is_dir() || transformer.is_file() || wan)
             && let Err(e) = CogVideoXTransformer3DModelConfig::preset(&self.transformer)
         {
             return Err(bad("model.transformer", format!("neither a config file, a model folder nor a preset: {e}")));
         }
         if !Path::new(&self.vae).is_dir()
+            && !wan
             && let Err(e) = AutoencoderKLCogVideoXConfig::preset(&self.vae)
         {
             return Err(bad("model.vae", format!("neither a model folder nor a preset: {e}")));

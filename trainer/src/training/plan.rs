@@ -29,6 +29,8 @@ use crate::models::cogvideox_transformer_3d::{CogVideoXTransformer3DModelConfig,
 use crate::models::lora::LoraConfig;
 use crate::training::PretrainConfig;
 
+pub mod wan;
+
 /// Bytes of one fp32 value (AdamW moments, master weights, the loader's frames).
 const FP32_BYTES: u64 = 4;
 /// Feed-forward width as a multiple of the token width (diffusers' `FeedForward` `mult=4`).
@@ -243,6 +245,9 @@ pub struct PlanShape {
     pub video_tokens: u64,
     /// Text tokens.
     pub text_tokens: u64,
+    /// Tokens of one activation unit `[B, L, D]`: video + text for CogVideoX's joint attention,
+    /// video only for Wan (whose text enters through cross-attention).
+    pub unit_tokens: u64,
     /// Token width.
     pub width: u64,
     /// Transformer blocks.
@@ -277,17 +282,53 @@ pub fn check_run(
 
 /// Plans `config` on `options.device` with `options.world_size` ranks. The config must have been
 /// validated ([`PretrainConfig::validate`]); model configs are resolved (presets or
-/// `config.json` files), no weights are read.
+/// `config.json` files), no weights are read. The family of `[model]` picks the counting:
+/// CogVideoX's here, Wan's in [`wan`].
 pub fn plan(config: &PretrainConfig, options: &PlanOptions) -> Result<MemoryPlan> {
     if options.world_size == 0 {
         return Err(Error::InvalidArgument { name: "world-size".to_string(), reason: "must be ≥ 1".to_string() });
     }
-    let (transformer, vae_config) = config.model.configs(false)?;
     let kind = config.train.precision.kind(options.device);
+    let counts = match config.model.wan_configs()? {
+        Some((transformer, vae_config)) => wan::counts(config, &transformer, &vae_config, options, kind)?,
+        None => cogvideox_counts(config, options, kind)?,
+    };
+    Ok(assemble(config, options, kind, counts))
+}
+
+/// What a family's counting gives [`assemble`]: the models' sizes, their rows and peaks.
+struct FamilyCounts {
+    /// Base transformer parameters.
+    transformer_parameters: u64,
+    /// Adapter parameters (0 without LoRA).
+    adapter_parameters: u64,
+    /// The largest base parameter tensor (elements).
+    largest_base: u64,
+    /// The largest adapter tensor pair of one layer (elements).
+    largest_adapter: u64,
+    /// VAE parameters.
+    vae_parameters: u64,
+    /// The transformer weights' row.
+    weights: PlanRow,
+    /// The frozen models' and inputs' rows after the optimizer's (VAE, text, image tokens).
+    frozen: Vec<PlanRow>,
+    /// Bytes of the frozen inputs among `frozen` (held while the models load in fp32).
+    frozen_inputs: u64,
+    /// The activation sizes.
+    shape: PlanShape,
+    /// The transformer's activations.
+    activations: ActivationPlan,
+    /// Peak of the frozen VAE's encode, per step.
+    vae_encode_peak: u64,
+    /// Peak of a VAE decode (validation samples).
+    vae_decode_peak: u64,
+}
+
+/// CogVideoX's counts (see the module docs).
+fn cogvideox_counts(config: &PretrainConfig, options: &PlanOptions, kind: Kind) -> Result<FamilyCounts> {
+    let (transformer, vae_config) = config.model.configs(false)?;
     let working = element_bytes(kind);
     let world = options.world_size as u64;
-    let zero_stage = if world > 1 { config.distributed.zero_stage } else { 0 };
-    let shard = |bytes: u64| if zero_stage == 2 { bytes.div_ceil(world) } else { bytes };
 
     let base_shapes = variable_shapes(&transformer)?;
     let numel = |shape: &Vec<i64>| shape.iter().map(|&d| d.max(0) as u64).product::<u64>();
@@ -298,10 +339,7 @@ pub fn plan(config: &PretrainConfig, options: &PlanOptions) -> Result<MemoryPlan
         None => Vec::new(),
     };
     let adapter_parameters: u64 = adapters.iter().map(|(_, n)| n).sum();
-    let (trainable, largest_trainable) = match &config.lora {
-        Some(_) => (adapter_parameters, adapters.iter().map(|(_, n)| *n).max().unwrap_or(0)),
-        None => (transformer_parameters, largest_base),
-    };
+    let largest_adapter = adapters.iter().map(|(_, n)| *n).max().unwrap_or(0);
     let vae_parameters = vae_parameter_count(&vae_config)?;
 
     let d = &config.data;
@@ -319,26 +357,97 @@ pub fn plan(config: &PretrainConfig, options: &PlanOptions) -> Result<MemoryPlan
         frames: d.frames as u64,
         video_tokens,
         text_tokens: transformer.max_text_seq_length as u64,
+        unit_tokens: video_tokens + transformer.max_text_seq_length as u64,
         width: transformer.inner_dim() as u64,
         blocks: transformer.num_layers as u64,
     };
 
-    // Persistent rows.
-    let mut persistent = Vec::new();
-    let kind_name = kind_name(kind);
-    persistent.push(PlanRow {
+    let weights = PlanRow {
         what: "transformer weights".to_string(),
         bytes: (transformer_parameters + adapter_parameters) * working,
         note: format!(
-            "{} parameters{} × {working} B ({kind_name}), full on every rank",
+            "{} parameters{} × {working} B ({}), full on every rank",
             human_count(transformer_parameters),
             if adapter_parameters > 0 {
                 format!(" + {} adapter", human_count(adapter_parameters))
             } else {
                 String::new()
-            }
+            },
+            kind_name(kind)
         ),
-    });
+    };
+    let text_bytes = shape.text_tokens * transformer.text_embed_dim as u64 * FP32_BYTES;
+    let frozen = vec![
+        PlanRow {
+            what: "VAE weights (frozen)".to_string(),
+            bytes: vae_parameters * working,
+            note: format!("{} parameters × {working} B, no gradients", human_count(vae_parameters)),
+        },
+        PlanRow {
+            what: "text embedding (frozen)".to_string(),
+            bytes: text_bytes,
+            note: format!("[{}, {}] fp32, no gradients", shape.text_tokens, transformer.text_embed_dim),
+        },
+    ];
+
+    let activations = activation_plan(config.lora.as_ref(), &shape, working, config.train.gradient_checkpointing);
+    let pixels = shape.frames * u64::from(d.height) * u64::from(d.width);
+    let video_bytes = shape.batch * RGB * pixels * FP32_BYTES;
+    let first_batch = first_temporal_batch(shape.frames, vae::SAMPLE_FRAMES_BATCH_SIZE as u64);
+    let level0 = vae_config.block_out_channels.first().copied().unwrap_or(0) as u64;
+    let frame_plane = shape.batch * level0 * u64::from(d.height) * u64::from(d.width) * working;
+    let vae_encode_peak = ENCODE_VIDEO_TENSORS * video_bytes
+        + shape.batch * RGB * pixels * working
+        + encoder_live_frames(first_batch) * frame_plane;
+    let decode_first = first_temporal_batch(latent_frames, vae::LATENT_FRAMES_BATCH_SIZE as u64);
+    let decode_frames = (decode_first - 1) * temporal + 1;
+    let vae_decode_peak =
+        (encoder_live_frames(decode_frames) + DECODER_EXTRA_TENSORS * decode_frames) * frame_plane + video_bytes;
+    Ok(FamilyCounts {
+        transformer_parameters,
+        adapter_parameters,
+        largest_base,
+        largest_adapter,
+        vae_parameters,
+        weights,
+        frozen,
+        frozen_inputs: text_bytes,
+        shape,
+        activations,
+        vae_encode_peak,
+        vae_decode_peak,
+    })
+}
+
+/// The rows and peaks every family shares around its `counts`: gradients, master weights and
+/// AdamW moments of what trains (ZeRO-2 sharded), the loader's batches on the CPU, the optimizer
+/// step, the fp32 load, checkpoint writes and the CPU runtime.
+fn assemble(config: &PretrainConfig, options: &PlanOptions, kind: Kind, counts: FamilyCounts) -> MemoryPlan {
+    let FamilyCounts {
+        transformer_parameters,
+        adapter_parameters,
+        largest_base,
+        largest_adapter,
+        vae_parameters,
+        weights,
+        frozen,
+        frozen_inputs,
+        shape,
+        activations,
+        vae_encode_peak,
+        vae_decode_peak,
+    } = counts;
+    let working = element_bytes(kind);
+    let world = options.world_size as u64;
+    let zero_stage = if world > 1 { config.distributed.zero_stage } else { 0 };
+    let shard = |bytes: u64| if zero_stage == 2 { bytes.div_ceil(world) } else { bytes };
+    let (trainable, largest_trainable) = match &config.lora {
+        Some(_) => (adapter_parameters, largest_adapter),
+        None => (transformer_parameters, largest_base),
+    };
+
+    let mut persistent = vec![weights];
+    let kind_name = kind_name(kind);
     let grads = trainable * working;
     let (grad_bytes, grad_note) = if zero_stage == 2 {
         (
@@ -368,17 +477,8 @@ pub fn plan(config: &PretrainConfig, options: &PlanOptions) -> Result<MemoryPlan
         bytes: moments,
         note: format!("AdamW exp_avg + exp_avg_sq, fp32{}", shard_note(zero_stage, world)),
     });
-    persistent.push(PlanRow {
-        what: "VAE weights (frozen)".to_string(),
-        bytes: vae_parameters * working,
-        note: format!("{} parameters × {working} B, no gradients", human_count(vae_parameters)),
-    });
-    let text_bytes = shape.text_tokens * transformer.text_embed_dim as u64 * FP32_BYTES;
-    persistent.push(PlanRow {
-        what: "text embedding (frozen)".to_string(),
-        bytes: text_bytes,
-        note: format!("[{}, {}] fp32, no gradients", shape.text_tokens, transformer.text_embed_dim),
-    });
+    persistent.extend(frozen);
+    let d = &config.data;
     let pixels = shape.frames * u64::from(d.height) * u64::from(d.width);
     if options.device == Device::Cpu {
         // The loader's prefetched batches live in host memory, which on the CPU is the device.
@@ -390,18 +490,6 @@ pub fn plan(config: &PretrainConfig, options: &PlanOptions) -> Result<MemoryPlan
         });
     }
 
-    let activations = activation_plan(config.lora.as_ref(), &shape, working, config.train.gradient_checkpointing);
-    let video_bytes = shape.batch * RGB * pixels * FP32_BYTES;
-    let first_batch = first_temporal_batch(shape.frames, vae::SAMPLE_FRAMES_BATCH_SIZE as u64);
-    let level0 = vae_config.block_out_channels.first().copied().unwrap_or(0) as u64;
-    let frame_plane = shape.batch * level0 * u64::from(d.height) * u64::from(d.width) * working;
-    let vae_encode_peak = ENCODE_VIDEO_TENSORS * video_bytes
-        + shape.batch * RGB * pixels * working
-        + encoder_live_frames(first_batch) * frame_plane;
-    let decode_first = first_temporal_batch(latent_frames, vae::LATENT_FRAMES_BATCH_SIZE as u64);
-    let decode_frames = (decode_first - 1) * temporal + 1;
-    let vae_decode_peak =
-        (encoder_live_frames(decode_frames) + DECODER_EXTRA_TENSORS * decode_frames) * frame_plane + video_bytes;
     let validation = config.train.validate_every > 0;
     let bucket_elements = ((config.distributed.bucket_mib * (1u64 << 20) as f64) as u64 / working).min(trainable);
     let optimizer_step_peak = OPTIMIZER_TEMPORARIES * largest_trainable.max(bucket_elements) * FP32_BYTES;
@@ -415,7 +503,7 @@ pub fn plan(config: &PretrainConfig, options: &PlanOptions) -> Result<MemoryPlan
     // Loading: both models in fp32, then the optimizer's moments and (bf16) master copies, all
     // before the cast to the working precision.
     let load_peak =
-        (transformer_parameters + adapter_parameters + vae_parameters) * FP32_BYTES + moments + master + text_bytes;
+        (transformer_parameters + adapter_parameters + vae_parameters) * FP32_BYTES + moments + master + frozen_inputs;
     // A checkpoint write (every `checkpoint_every` steps and at the end) stages the trained
     // weights and then the optimizer file in host memory: on the CPU that is the device.
     let saved_weights = if config.lora.is_some() { trainable } else { transformer_parameters } * FP32_BYTES;
@@ -423,7 +511,7 @@ pub fn plan(config: &PretrainConfig, options: &PlanOptions) -> Result<MemoryPlan
     let host_checkpoint = if options.device == Device::Cpu { checkpoint_write } else { 0 };
     let runtime = if options.device == Device::Cpu { CPU_RUNTIME_BYTES } else { 0 };
     let total = step_peak.max(load_peak).max(persistent_total + host_checkpoint) + runtime;
-    Ok(MemoryPlan {
+    MemoryPlan {
         device: options.device,
         world_size: options.world_size,
         zero_stage,
@@ -442,7 +530,7 @@ pub fn plan(config: &PretrainConfig, options: &PlanOptions) -> Result<MemoryPlan
         checkpoint_write,
         runtime,
         total,
-    })
+    }
 }
 
 /// The activation peaks for `shape` in the working precision (`working` bytes per element).
@@ -458,7 +546,7 @@ fn activation_plan(lora: Option<&LoraConfig>, shape: &PlanShape, working: u64, c
         Needs::FfOut => trains("ff.net.2"),
     };
     let block_units: u64 = BLOCK_TERMS.iter().filter(|t| needed(t.needs)).map(|t| t.units).sum();
-    let tokens = shape.video_tokens + shape.text_tokens;
+    let tokens = shape.unit_tokens;
     let unit_bytes = shape.batch * tokens * shape.width * working;
     // An adapter's down-projection output `[B, L, r]` is saved for its up-projection.
     let adapter_bytes = lora.map_or(0, |l| {
@@ -645,13 +733,7 @@ impl fmt::Display for MemoryPlan {
             f,
             "activations, per block",
             a.per_block_bytes,
-            &format!(
-                "{} saved [{}, {}, {}] tensors + adapters",
-                a.block_units,
-                s.batch,
-                s.video_tokens + s.text_tokens,
-                s.width
-            ),
+            &format!("{} saved [{}, {}, {}] tensors + adapters", a.block_units, s.batch, s.unit_tokens, s.width),
         )?;
         line(
             f,
@@ -696,7 +778,8 @@ mod tests {
 
     #[test]
     fn full_and_lora_block_terms_follow_what_trains() {
-        let shape = PlanShape { batch: 1, frames: 9, video_tokens: 60, text_tokens: 8, width: 32, blocks: 2 };
+        let shape =
+            PlanShape { batch: 1, frames: 9, video_tokens: 60, text_tokens: 8, unit_tokens: 68, width: 32, blocks: 2 };
         let full = activation_plan(None, &shape, 4, false);
         // Every term when everything trains.
         assert_eq!(full.block_units, BLOCK_TERMS.iter().map(|t| t.units).sum::<u64>());

@@ -211,3 +211,108 @@ fn count_of(config: &CogVideoXTransformer3DModelConfig) -> u64 {
         .map(|s| s.iter().map(|&d| d as u64).product::<u64>())
         .sum()
 }
+
+/// The Wan test-time finetuning presets: file, its model folder under `configs/wan/` (the
+/// released diffusers configs' shapes) and the memory of the GPU it is for.
+const WAN_PRESETS: [(&str, &str, u64); 3] = [
+    ("finetune_wan21_1.3b_lora_24gb.toml", "Wan2.1-T2V-1.3B", 24_000_000_000),
+    ("finetune_wan21_i2v_14b_lora_80gb.toml", "Wan2.1-I2V-14B-480P", EIGHTY_GB),
+    ("finetune_wan22_ti2v_5b_lora_1gpu.toml", "Wan2.2-TI2V-5B", ONE_GPU_BYTES),
+];
+
+#[test]
+fn wan_presets_are_the_released_shapes_and_fit_their_gpus_as_the_readme_states() {
+    use trainer::diffusers_config::DiffusersConfig;
+    use trainer::models::autoencoder_kl_wan::AutoencoderKLWanConfig;
+    use trainer::models::transformer_wan::WanTransformer3DModelConfig;
+    let readme = std::fs::read_to_string(repo_root().join("README.md")).unwrap();
+    for (name, folder, capacity) in WAN_PRESETS {
+        let config = preset(name);
+        let (mut transformer, mut vae) = config.model.wan_configs().unwrap().expect("a Wan preset");
+        let dir = repo_root().join("configs/wan").join(folder);
+        let mut released = WanTransformer3DModelConfig::from_json_file(dir.join("transformer")).unwrap();
+        let mut released_vae = AutoencoderKLWanConfig::from_json_file(dir.join("vae")).unwrap();
+        for extra in [&mut transformer.extra, &mut released.extra, &mut vae.extra, &mut released_vae.extra] {
+            extra.clear();
+        }
+        assert_eq!(transformer, released, "{name}: the preset's transformer is {folder}'s");
+        assert_eq!(vae, released_vae, "{name}: the preset's VAE is {folder}'s");
+
+        let plan = plan_of(&config, 1, Device::Cuda(0));
+        assert!(plan.total <= capacity, "{name} plans {} B > {capacity}:\n{plan}", plan.total);
+        assert!(plan.trainable_parameters * 20 < plan.transformer_parameters, "{name}: LoRA trains adapters only");
+        assert!(plan.activations.checkpointing, "{name}");
+        // The README's table states each preset's predicted peak as `trainer plan` prints it.
+        let row = readme.lines().find(|l| l.contains(&format!("`configs/{name}`"))).unwrap_or_else(|| {
+            panic!("README.md has no row for configs/{name}");
+        });
+        let peak = trainer::training::plan::human_bytes(plan.total);
+        assert!(row.contains(&peak), "README row for {name} must state {peak}:\n{row}\n{plan}");
+    }
+}
+
+/// A tiny Wan training config: `transformer` and `vae` presets and `lora` appended to the tiny
+/// CogVideoX preset's settings.
+fn tiny_wan(dir: &Path, transformer: &str, lora: &str) -> PretrainConfig {
+    let text = std::fs::read_to_string(repo_root().join("configs/pretrain_tiny.toml"))
+        .unwrap()
+        .replace("transformer = \"tiny\"", &format!("transformer = \"{transformer}\""));
+    let path = dir.join(format!("{transformer}.toml"));
+    std::fs::write(&path, format!("{text}\n{lora}\n")).unwrap();
+    PretrainConfig::from_toml_file(&path).unwrap()
+}
+
+#[test]
+fn wan_parameter_counts_equal_the_built_models_and_lora_shrinks_what_it_should() {
+    use trainer::models::autoencoder_kl_wan::{self as wan_vae, AutoencoderKLWanConfig};
+    use trainer::models::transformer_wan::{self as wan, WanTransformer3DModelConfig};
+    let dir = tempfile::tempdir().unwrap();
+    let count = |vs: &tch::nn::VarStore| vs.variables().values().map(|t| t.numel() as u64).sum::<u64>();
+    let c = WanTransformer3DModelConfig::tiny_i2v();
+    let full = plan_of(&tiny_wan(dir.path(), "tiny-i2v", ""), 1, Device::Cpu);
+    let (vs, _) = wan::build(&c, Device::Cpu, Kind::Float).unwrap();
+    assert_eq!(full.transformer_parameters, count(&vs));
+    assert_eq!(full.trainable_parameters, count(&vs));
+    let (vae_vs, _) = wan_vae::build(&AutoencoderKLWanConfig::tiny(), Device::Cpu, Kind::Float).unwrap();
+    assert_eq!(full.vae_parameters, count(&vae_vs));
+
+    let section = "[lora]\nrank = 4\ntarget_modules = [\"to_q\", \"to_k\", \"to_v\", \"to_out.0\", \"add_k_proj\", \"add_v_proj\"]";
+    let config = tiny_wan(dir.path(), "tiny-i2v", section);
+    let adapted = plan_of(&config, 1, Device::Cpu);
+    let (_, lora_vs, _) = wan::build_with_lora(&c, config.lora.as_ref().unwrap(), Device::Cpu, Kind::Float).unwrap();
+    assert_eq!(adapted.trainable_parameters, count(&lora_vs));
+    assert_eq!(adapted.transformer_parameters, full.transformer_parameters);
+    // Frozen modulation, norms and feed-forward: fewer saved tensors per block, a frozen head.
+    assert!(adapted.activations.per_block_bytes < full.activations.per_block_bytes);
+    assert!(adapted.activations.without_checkpointing < full.activations.without_checkpointing);
+    // Text and image tokens enter through cross-attention: the unit is the video tokens alone.
+    assert_eq!(adapted.shape.unit_tokens, adapted.shape.video_tokens);
+
+    // A target the Wan blocks do not have is refused naming the field.
+    let path = dir.path().join("bad.toml");
+    let text = std::fs::read_to_string(dir.path().join("tiny-i2v.toml")).unwrap().replace("add_v_proj", "to_x");
+    std::fs::write(&path, text).unwrap();
+    let err = PretrainConfig::from_toml_file(&path).unwrap_err().to_string();
+    assert!(err.contains("lora.target_modules") && err.contains("to_x"), "{err}");
+}
+
+#[test]
+fn plan_cli_plans_a_wan_preset_with_its_image_tokens() {
+    let preset = repo_root().join("configs/finetune_wan21_i2v_14b_lora_80gb.toml");
+    let out = Command::new(env!("CARGO_BIN_EXE_trainer"))
+        .args(["plan", "--config"])
+        .arg(&preset)
+        .args(["--world-size", "1", "--device", "cuda"])
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    for row in [
+        "image embedding (frozen)",
+        "512 text tokens of width 5120, 40 blocks",
+        "activations with checkpointing",
+        "total",
+    ] {
+        assert!(text.contains(row), "no `{row}` in\n{text}");
+    }
+}

@@ -1055,7 +1055,7 @@ fn run_plan(args: PlanArgs) -> anyhow::Result<()> {
     let device = trainer::precision::parse_device(&args.device)?;
     if args.sampling {
         let (transformer, vae) = config.model.configs(true)?;
-        let tiles = trainer::models::autoencoder_kl_cogvideox::TilingConfig::for_config(&vae);
+        let tiles = trainer::models::cogvideox::autoencoder_kl_cogvideox::TilingConfig::for_config(&vae);
         let aligned = !args.no_vae_tiling && tiles.lands_on_latent_pixels(vae.spatial_compression_ratio());
         let d = &config.data;
         let plan = trainer::training::plan::sampling_plan(

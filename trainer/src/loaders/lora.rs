@@ -232,7 +232,7 @@ pub fn lora_checkpoint(checkpoint: &Path) -> Result<Option<(std::path::PathBuf, 
 /// Returns the number of layers merged.
 pub fn merge_lora(base: &Path, lora: &Path, out: &Path) -> Result<usize> {
     use crate::diffusers_config::DiffusersConfig;
-    use crate::models::cogvideox_transformer_3d::{self as transformer, CogVideoXTransformer3DModelConfig};
+    use crate::models::cogvideox::cogvideox_transformer_3d::{self as transformer, CogVideoXTransformer3DModelConfig};
     let base = match lora_checkpoint(base)? {
         Some((kept, _)) => kept,
         None => super::transformer_dir(base),

@@ -14,7 +14,7 @@ use tch::{Device, Kind, Tensor};
 
 use crate::diffusers_config::DiffusersConfig;
 use crate::error::{Error, Result};
-use crate::models::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
+use crate::models::cogvideox::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
 use crate::models::weights;
 use crate::schedulers::CogVideoXSchedulerConfig;
 

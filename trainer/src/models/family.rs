@@ -12,7 +12,8 @@ use std::path::Path;
 
 use crate::diffusers_config;
 use crate::error::{Error, Result};
-use crate::models::{autoencoder_kl_cogvideox, autoencoder_kl_wan, cogvideox_transformer_3d, transformer_wan};
+use crate::models::cogvideox::{autoencoder_kl_cogvideox, cogvideox_transformer_3d};
+use crate::models::wan::{autoencoder_kl_wan, transformer_wan};
 
 /// A model family: its transformer and VAE classes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

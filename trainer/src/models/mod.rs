@@ -7,13 +7,11 @@
 //! for every job.
 
 pub mod attention;
-pub mod autoencoder_kl_cogvideox;
-pub mod autoencoder_kl_wan;
-pub mod cogvideox_transformer_3d;
+pub mod cogvideox;
 pub mod embeddings;
 pub mod family;
 pub mod lora;
 pub mod normalization;
-pub mod transformer_wan;
 pub mod vars;
+pub mod wan;
 pub mod weights;

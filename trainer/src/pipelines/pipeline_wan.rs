@@ -33,8 +33,8 @@
 use tch::{Device, Kind, Tensor};
 
 use crate::error::{Error, Result};
-use crate::models::autoencoder_kl_wan::AutoencoderKLWan;
-use crate::models::transformer_wan::{WanTransformer3DModel, WanTransformerInput};
+use crate::models::wan::autoencoder_kl_wan::AutoencoderKLWan;
+use crate::models::wan::transformer_wan::{WanTransformer3DModel, WanTransformerInput};
 use crate::schedulers::scheduling_unipc_multistep::{UniPCMultistepScheduler, UniPCMultistepSchedulerConfig};
 
 /// `AutoencoderKLWan`'s default `scale_factor_temporal` (diffusers' constructor), for configs

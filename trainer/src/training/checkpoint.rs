@@ -24,7 +24,7 @@ use super::consensus;
 use super::parallel::StepOptimizer;
 use crate::distributed::ProcessGroup;
 use crate::error::{Error, Result};
-use crate::models::cogvideox_transformer_3d as transformer;
+use crate::models::cogvideox::cogvideox_transformer_3d as transformer;
 use crate::models::weights::{self, WrittenFile};
 use crate::training::data::DataPosition;
 

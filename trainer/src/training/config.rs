@@ -7,8 +7,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::diffusers_config;
 use crate::error::{Error, Result};
-use crate::models::autoencoder_kl_cogvideox::AutoencoderKLCogVideoXConfig;
-use crate::models::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
+use crate::models::cogvideox::autoencoder_kl_cogvideox::AutoencoderKLCogVideoXConfig;
+use crate::models::cogvideox::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
 use crate::models::family::{Job, ModelFamily};
 use crate::models::lora::LoraConfig;
 pub use crate::precision::Precision;
@@ -505,12 +505,14 @@ impl PretrainConfig {
         }
         if let Some(lora) = &self.lora {
             // Targets and rank against the transformer's layers, before any run folder exists.
-            crate::models::cogvideox_transformer_3d::check_lora(&transformer, lora).map_err(|e| match e {
-                Error::InvalidConfig { field, reason, .. } => {
-                    Error::InvalidConfig { source_name: source_name.to_string(), field, reason }
-                }
-                other => other,
-            })?;
+            crate::models::cogvideox::cogvideox_transformer_3d::check_lora(&transformer, lora).map_err(
+                |e| match e {
+                    Error::InvalidConfig { field, reason, .. } => {
+                        Error::InvalidConfig { source_name: source_name.to_string(), field, reason }
+                    }
+                    other => other,
+                },
+            )?;
         }
         let d = &self.data;
         let temporal = vae.effective_temporal_compression_ratio() as usize;

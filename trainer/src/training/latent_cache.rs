@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use tch::{Device, Kind, Tensor, nn};
 
 use crate::error::{Error, Result};
-use crate::models::autoencoder_kl_cogvideox::AutoencoderKLCogVideoX;
+use crate::models::cogvideox::autoencoder_kl_cogvideox::AutoencoderKLCogVideoX;
 use crate::training::data::{Batch, DataConfig};
 
 /// Precomputed VAE latents, so that small runs encode each pair once and train many epochs:

@@ -8,8 +8,8 @@ use tch::{Device, Kind, Tensor, nn};
 use super::{LatentCache, ModelConfig};
 use crate::error::Result;
 use crate::loaders::lora::LoraFile;
-use crate::models::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoX};
-use crate::models::cogvideox_transformer_3d::{
+use crate::models::cogvideox::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoX};
+use crate::models::cogvideox::cogvideox_transformer_3d::{
     self as transformer, BlockTape, CogVideoXTransformer3DModel, TransformerInput,
 };
 use crate::models::lora::LoraConfig;

@@ -21,7 +21,7 @@ use super::{
 };
 use crate::distributed::ProcessGroup;
 use crate::error::{Error, Result};
-use crate::models::autoencoder_kl_cogvideox as vae;
+use crate::models::cogvideox::autoencoder_kl_cogvideox as vae;
 use crate::models::weights;
 use crate::training::data::{ClipIndex, DataConfig, DataPosition, ShardLoader};
 
@@ -570,7 +570,7 @@ fn write_run_models(run: &Path, config: &PretrainConfig, model: &CogNvsModel) ->
         weights::save(
             &model.vs,
             model.transformer.config(),
-            crate::models::cogvideox_transformer_3d::CLASS_NAME,
+            crate::models::cogvideox::cogvideox_transformer_3d::CLASS_NAME,
             &base_dir,
             weights::DEFAULT_MAX_SHARD_BYTES,
         )?;

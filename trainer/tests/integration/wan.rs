@@ -16,8 +16,8 @@ use std::path::Path;
 use std::sync::OnceLock;
 
 use trainer::diffusers_config::DiffusersConfig;
-use trainer::models::autoencoder_kl_wan::{self as vae, AutoencoderKLWanConfig};
-use trainer::models::transformer_wan::{
+use trainer::models::wan::autoencoder_kl_wan::{self as vae, AutoencoderKLWanConfig};
+use trainer::models::wan::transformer_wan::{
     self as transformer, WanTransformer3DModel, WanTransformer3DModelConfig, WanTransformerInput,
 };
 use trainer::models::weights;

@@ -19,7 +19,7 @@ use tch::{Device, Kind, Tensor, nn};
 
 use crate::diffusers_config::DiffusersConfig;
 use crate::error::{Error, Result};
-use crate::models::autoencoder_kl_cogvideox::DiagonalGaussian;
+use crate::models::cogvideox::autoencoder_kl_cogvideox::DiagonalGaussian;
 use crate::models::vars::{ParamInit, Vars};
 
 /// The class name diffusers writes into the VAE's `config.json` (`_class_name`).

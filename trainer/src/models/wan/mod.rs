@@ -1,0 +1,5 @@
+//! The Wan family (2.1 and 2.2): its transformer (`transformer_wan`) and its VAE
+//! (`autoencoder_kl_wan`), named after the diffusers files they mirror.
+
+pub mod autoencoder_kl_wan;
+pub mod transformer_wan;

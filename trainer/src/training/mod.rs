@@ -61,7 +61,9 @@ pub use config::{
 pub use finetune::{FinetuneRequest, finetune, finetune_config, finetune_launched, finetune_on};
 pub use latent_cache::LatentCache;
 pub use lr_schedule::learning_rate;
-pub use objective::{Backward, CogNvsModel, Draws};
+pub use objective::{
+    Backward, CogNvsModel, Draws, FlowSchedule, TrainingSchedule, flow_matching_loss, flow_noisy_and_target,
+};
 pub use pretrain::{
     RunEvent, RunSummary, StepMetrics, pretrain, pretrain_launched, pretrain_on, read_metrics, read_validation,
 };

@@ -21,7 +21,7 @@ use super::{
 };
 use crate::distributed::ProcessGroup;
 use crate::error::{Error, Result};
-use crate::models::cogvideox::autoencoder_kl_cogvideox as vae;
+use crate::models::family::Job;
 use crate::models::weights;
 use crate::training::data::{ClipIndex, DataConfig, DataPosition, ShardLoader};
 
@@ -100,7 +100,12 @@ pub fn pretrain_launched(
 ) -> Result<RunSummary> {
     let (device, pg) = crate::distributed::join_job(device, config.distributed.timeout_seconds)?;
     config.validate(source_name)?;
-    crate::training::plan::check_run(config, device, pg.as_ref(), source_name, |plan| on_event(RunEvent::Plan(plan)))?;
+    // The memory plan covers the families it runs (a Wan run starts without one so far).
+    if config.model.model_configs(false)?.0.family().runs(Job::MemoryPlan) {
+        crate::training::plan::check_run(config, device, pg.as_ref(), source_name, |plan| {
+            on_event(RunEvent::Plan(plan))
+        })?;
+    }
     let lead = pg.as_ref().is_none_or(|pg| pg.rank == 0);
     pretrain_on(config, shards, run, resume, device, pg.as_ref(), |m| {
         if lead {
@@ -337,7 +342,7 @@ fn start_model(
         let lora_file = dir.join(crate::loaders::lora::LORA_WEIGHTS_NAME);
         match (model.lora_vs.is_some(), lora_file.is_file()) {
             (false, false) => {
-                weights::load(&model.vs, &dir.join("transformer"))?;
+                model.transformer.load(&model.vs, &dir.join("transformer"))?;
             }
             (true, true) => {}
             (lora, _) => {
@@ -560,20 +565,15 @@ fn write_run_models(run: &Path, config: &PretrainConfig, model: &CogNvsModel) ->
     // The frozen VAE goes with the run once (sampling and finetuning find it there).
     let vae_dir = run.join("vae");
     if !vae_dir.join("config.json").exists() {
-        weights::save(&model.vae_vs, model.vae.config(), vae::CLASS_NAME, &vae_dir, weights::DEFAULT_MAX_SHARD_BYTES)?;
+        model.vae.save(&model.vae_vs, &vae_dir, weights::DEFAULT_MAX_SHARD_BYTES)?;
     }
     // A LoRA run's checkpoints hold only adapters: the base they sit on is kept once, unless it is
     // simply the configured model folder.
     let base_is_folder = Path::new(&config.model.transformer).is_dir() && config.model.transformer_lora.is_none();
     let base_dir = run.join(crate::loaders::lora::BASE_TRANSFORMER_DIR);
     if model.lora_vs.is_some() && !base_is_folder && !base_dir.join("config.json").exists() {
-        weights::save(
-            &model.vs,
-            model.transformer.config(),
-            crate::models::cogvideox::cogvideox_transformer_3d::CLASS_NAME,
-            &base_dir,
-            weights::DEFAULT_MAX_SHARD_BYTES,
-        )?;
+        let variables = model.vs.variables().into_iter().collect();
+        model.transformer.save(variables, &base_dir, weights::DEFAULT_MAX_SHARD_BYTES)?;
     }
     Ok(())
 }

@@ -25,3 +25,4 @@ mod transformer;
 mod vae;
 mod validation;
 mod wan;
+mod wan_training;

@@ -45,7 +45,7 @@ fn config(dir: &Path, steps: u64) -> PathBuf {
     path
 }
 
-fn pretrain(config: &Path, shards: &Path, out: &Path, resume: bool) -> std::process::Output {
+pub(super) fn pretrain(config: &Path, shards: &Path, out: &Path, resume: bool) -> std::process::Output {
     let mut cmd = Command::new(env!("CARGO_BIN_EXE_trainer"));
     cmd.arg("pretrain").arg("--config").arg(config).arg("--shards").arg(shards).arg("--out").arg(out);
     if resume {
@@ -54,7 +54,7 @@ fn pretrain(config: &Path, shards: &Path, out: &Path, resume: bool) -> std::proc
     cmd.output().unwrap()
 }
 
-fn ok(output: &std::process::Output) {
+pub(super) fn ok(output: &std::process::Output) {
     assert!(
         output.status.success(),
         "{}{}",

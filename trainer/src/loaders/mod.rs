@@ -14,8 +14,7 @@ use tch::{Device, Kind, Tensor};
 
 use crate::diffusers_config::DiffusersConfig;
 use crate::error::{Error, Result};
-use crate::models::backbone::TextShape;
-use crate::models::cogvideox::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
+use crate::models::backbone::{TextShape, TransformerConfig};
 use crate::models::weights;
 use crate::schedulers::CogVideoXSchedulerConfig;
 
@@ -102,7 +101,7 @@ impl ModelPaths {
     /// Refuses zeros as the text of a transformer trained on T5-XXL text unless asked for (see
     /// [`require_text_embedding`]); reads the transformer's config only.
     pub fn check_text_embedding(&self) -> Result<()> {
-        let config = CogVideoXTransformer3DModelConfig::from_json_file(&self.transformer)?;
+        let (config, _) = TransformerConfig::read_quiet(&self.transformer)?;
         require_text_embedding(&config, self.text_embedding.as_deref(), self.zero_text_embedding, &self.transformer)
     }
 }

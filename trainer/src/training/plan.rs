@@ -268,6 +268,10 @@ pub fn check_run(
     source_name: &str,
     show: impl FnOnce(&MemoryPlan),
 ) -> Result<()> {
+    // The plan covers the families it runs (a Wan run starts without one so far).
+    if !config.model.model_configs(false)?.0.family().runs(crate::models::family::Job::MemoryPlan) {
+        return Ok(());
+    }
     let plan = plan_run(config, pg.map(|pg| pg.world_size), device)?;
     if pg.is_none_or(|pg| pg.rank == 0) {
         show(&plan);

@@ -21,7 +21,6 @@ use super::{
 };
 use crate::distributed::ProcessGroup;
 use crate::error::{Error, Result};
-use crate::models::family::Job;
 use crate::models::weights;
 use crate::training::data::{ClipIndex, DataConfig, DataPosition, ShardLoader};
 
@@ -100,12 +99,7 @@ pub fn pretrain_launched(
 ) -> Result<RunSummary> {
     let (device, pg) = crate::distributed::join_job(device, config.distributed.timeout_seconds)?;
     config.validate(source_name)?;
-    // The memory plan covers the families it runs (a Wan run starts without one so far).
-    if config.model.model_configs(false)?.0.family().runs(Job::MemoryPlan) {
-        crate::training::plan::check_run(config, device, pg.as_ref(), source_name, |plan| {
-            on_event(RunEvent::Plan(plan))
-        })?;
-    }
+    crate::training::plan::check_run(config, device, pg.as_ref(), source_name, |plan| on_event(RunEvent::Plan(plan)))?;
     let lead = pg.as_ref().is_none_or(|pg| pg.rank == 0);
     pretrain_on(config, shards, run, resume, device, pg.as_ref(), |m| {
         if lead {

@@ -1,7 +1,7 @@
 //! Training on Wan: the rectified-flow objective equal to the diffusers-based trainers' formulas
 //! on the same tensors (`scripts/goldens_wan.py`), and `trainer pretrain` end to end on the CPU
 //! with a tiny Wan transformer and VAE, resumed from its checkpoint repeating the uninterrupted
-//! run exactly.
+//! run exactly, and `trainer finetune` continuing a Wan checkpoint.
 
 use std::path::{Path, PathBuf};
 
@@ -101,4 +101,36 @@ fn wan_pretrain_trains_and_resumes_exactly() {
     let first = read_tensors(&full.join("checkpoints/step-00000002/transformer/diffusion_pytorch_model.safetensors"));
     let moved = a.iter().any(|(name, t)| !t.equal(&first[name]));
     assert!(moved, "training must change the weights");
+}
+
+/// `trainer finetune` from a Wan run's checkpoint (family from its folders' config.json, no
+/// flag): the test video's pairs built in-process, the flow objective, a Wan checkpoint out.
+#[test]
+fn wan_finetune_continues_a_wan_checkpoint() {
+    let dir = tempfile::tempdir().unwrap();
+    let shards = super::pretrain::pairs(dir.path());
+    let pretrained = dir.path().join("pretrained");
+    pretrain(&wan_config(dir.path(), 2), &shards, &pretrained, false);
+    let video = dir.path().join("test_video");
+    let scene = datagen::synth::SynthConfig { width: 80, height: 64, frames: 9, seed: 7, ..Default::default() };
+    datagen::synth::write_sequence(&scene, &video, |_| {}).unwrap();
+    let finetuned = dir.path().join("finetuned");
+    let init = pretrained.join("checkpoints/step-00000002");
+    let output = std::process::Command::new(env!("CARGO_BIN_EXE_trainer"))
+        .args(["finetune", "--steps", "2", "--trajectories", "1", "--init"])
+        .arg(&init)
+        .arg("--sequence")
+        .arg(&video)
+        .arg("--out")
+        .arg(&finetuned)
+        .output()
+        .unwrap();
+    super::pretrain::ok(&output);
+    let losses: Vec<f64> = trainer::training::read_metrics(&finetuned).unwrap().iter().map(|m| m.loss).collect();
+    assert_eq!(losses.len(), 2);
+    assert!(losses.iter().all(|l| l.is_finite()), "{losses:?}");
+    let class =
+        trainer::diffusers_config::class_name(&finetuned.join("checkpoints/step-00000002/transformer"), "config.json")
+            .unwrap();
+    assert_eq!(class.as_deref(), Some("WanTransformer3DModel"));
 }

@@ -30,6 +30,10 @@ compare against:
   OUT_DIR/pipeline_io.safetensors       `WanPipeline` videos (output_type="np") for a seed: with
                                         classifier-free guidance, two experts, per-token timesteps;
                                         and `WanImageToVideoPipeline`'s for an image and CLIP tokens
+  OUT_DIR/objective_transformer/        a tiny T2V transformer taking the CogNVS channels (noisy +
+                                        mask + condition latents: `tiny_cognvs()`)
+  OUT_DIR/objective_io.safetensors      the rectified-flow training objective on fixed tensors:
+                                        drawn sigmas and timesteps, noisy latents, target, loss
 
 Nothing here is committed; the tests run it into a temporary folder (a few seconds on a CPU).
 Requires torch and diffusers (the project venv, `scripts/setup.sh`).
@@ -41,6 +45,7 @@ from pathlib import Path
 
 import torch
 from safetensors.torch import save_file
+from diffusers.training_utils import compute_loss_weighting_for_sd3
 from diffusers import (
     AutoencoderKLWan,
     FlowMatchEulerDiscreteScheduler,
@@ -414,6 +419,44 @@ def pipeline_goldens(out: Path) -> None:
     save_file({k: v.contiguous() for k, v in t.items()}, str(out / "pipeline_io.safetensors"))
 
 
+# Must equal `WanTransformer3DModelConfig::tiny_cognvs()`: the T2V structure taking the CogNVS
+# conditioning (4 noisy + 4 mask + 4 condition latent channels), no image tokens.
+TINY_COGNVS = dict(TINY_T2V, in_channels=12)
+# The static flow shift a Wan run trains with by default (the Rust `WAN_FLOW_SHIFT`).
+OBJECTIVE_SHIFT = 3.0
+
+
+def objective_goldens(out: Path) -> None:
+    """The rectified-flow objective as diffusers-based trainers compute it for Wan (finetrainers'
+    `prepare_sigmas` with uniform weighting, `flow_match_xt`, `prepare_target`, and
+    `compute_loss_weighting_for_sd3`), written out from their formulas on fixed draws `u`."""
+    g = torch.Generator().manual_seed(SEED + 5)
+    model = randomized(TINY_COGNVS, g)
+    model.save_pretrained(str(out / "objective_transformer"))
+    b, f, h, w = 3, 2, 4, 6
+    x0 = torch.randn(b, 4, f, h, w, generator=g)
+    condition = torch.randn(b, 8, f, h, w, generator=g)
+    text = torch.randn(b, 7, TINY_T2V["text_dim"], generator=g)
+    noise = torch.randn(b, 4, f, h, w, generator=g)
+    # The ends of [0, 1) and an interior draw.
+    u = torch.tensor([0.0, 0.4567, 0.99995])
+    scheduler = FlowMatchEulerDiscreteScheduler(shift=OBJECTIVE_SHIFT)
+    n = scheduler.config.num_train_timesteps
+    indices = (u * n).long()
+    sigmas = scheduler.sigmas[indices]
+    timesteps = (sigmas * 1000.0).long()
+    sigma = sigmas.view(-1, 1, 1, 1, 1)
+    noisy = (1.0 - sigma) * x0 + sigma * noise
+    target = noise - x0
+    pred = run(model, hidden_states=torch.cat([noisy, condition], dim=1), timestep=timesteps, encoder_hidden_states=text)
+    weights = compute_loss_weighting_for_sd3(weighting_scheme="none", sigmas=sigma)
+    loss = (weights.float() * (pred.float() - target.float()) ** 2).mean(dim=list(range(1, pred.ndim))).mean()
+    save_file({k: v.contiguous() for k, v in {
+        "x0": x0, "condition": condition, "text": text, "noise": noise, "u": u, "sigmas": sigmas,
+        "timesteps": timesteps, "noisy": noisy, "target": target, "pred": pred, "loss": loss.reshape(1),
+    }.items()}, str(out / "objective_io.safetensors"))
+
+
 def main() -> None:
     if len(sys.argv) != 2:
         sys.exit(__doc__)
@@ -424,6 +467,7 @@ def main() -> None:
     scheduler_goldens(out)
     vae_goldens(out)
     pipeline_goldens(out)
+    objective_goldens(out)
 
 
 if __name__ == "__main__":

@@ -12,7 +12,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use trainer::diffusers_config::DiffusersConfig;
-use trainer::models::cogvideox_transformer_3d::{
+use trainer::models::cogvideox::cogvideox_transformer_3d::{
     self as transformer, CogVideoXTransformer3DModelConfig, TransformerInput,
 };
 use trainer::tch::{self, Device, Kind, Tensor};

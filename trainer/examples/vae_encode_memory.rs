@@ -7,7 +7,7 @@
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
-use trainer::models::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoXConfig, TilingConfig};
+use trainer::models::cogvideox::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoXConfig, TilingConfig};
 use trainer::tch::{self, Device, Kind, Tensor};
 
 fn main() -> Result<()> {

@@ -1,13 +1,19 @@
 //! Reading diffusers `config.json` files into serde structs whose fields use the upstream names:
 //! parse, validate (errors name the file and field), and report keys the struct does not know
-//! (kept in its `extra` map, never silently dropped).
+//! (kept in its `extra` map, never silently dropped); and writing them back as diffusers'
+//! `save_config` does, with those keys kept.
 
 use std::collections::BTreeMap;
 use std::path::Path;
 
+use serde::Serialize;
 use serde::de::DeserializeOwned;
 
 use crate::error::{Error, Result};
+
+/// The diffusers version written into saved configs (`_diffusers_version`): the release whose
+/// modules this crate mirrors and whose `from_pretrained` the tests load our output with.
+pub const DIFFUSERS_VERSION: &str = "0.42.1";
 
 /// A diffusers configuration struct.
 pub trait DiffusersConfig: DeserializeOwned {
@@ -66,6 +72,43 @@ pub trait DiffusersConfig: DeserializeOwned {
     fn from_json_file(path: impl AsRef<Path>) -> Result<Self> {
         read(path.as_ref())
     }
+
+    /// The config as diffusers' `save_config` writes it: the fields, the keys this struct does
+    /// not know (kept from the file it was read from), `_class_name` (`class_name`, one of
+    /// [`DiffusersConfig::CLASS_NAMES`]) and `_diffusers_version`.
+    fn to_json_string(&self, class_name: &str) -> Result<String>
+    where
+        Self: Serialize,
+    {
+        to_json_string(self, class_name)
+    }
+}
+
+/// The error for field `field` of the config read from `source_name`, for
+/// [`DiffusersConfig::validate_fields`].
+pub fn field_error(source_name: &str) -> impl Fn(&str, String) -> Error + '_ {
+    move |field, reason| Error::InvalidConfig { source_name: source_name.to_string(), field: field.to_string(), reason }
+}
+
+/// Refuses the first of `sizes` (field, value) that is not positive, naming its field.
+pub fn require_positive(source_name: &str, sizes: &[(&str, i64)]) -> Result<()> {
+    match sizes.iter().find(|(_, value)| *value <= 0) {
+        Some((field, value)) => Err(field_error(source_name)(field, format!("must be positive, got {value}"))),
+        None => Ok(()),
+    }
+}
+
+/// [`DiffusersConfig::to_json_string`].
+pub fn to_json_string<T: DiffusersConfig + Serialize>(config: &T, class_name: &str) -> Result<String> {
+    let bad = |reason: String| Error::InvalidArgument { name: format!("{} config", T::KIND), reason };
+    if !T::CLASS_NAMES.contains(&class_name) {
+        return Err(bad(format!("class `{class_name}` is not one of {:?}", T::CLASS_NAMES)));
+    }
+    let mut json = serde_json::to_value(config).map_err(|e| bad(format!("cannot serialise: {e}")))?;
+    let map = json.as_object_mut().ok_or_else(|| bad("does not serialise to a JSON object".to_string()))?;
+    map.insert("_class_name".to_string(), class_name.into());
+    map.insert("_diffusers_version".to_string(), DIFFUSERS_VERSION.into());
+    Ok(serde_json::to_string_pretty(&json).expect("a JSON value serialises"))
 }
 
 /// The `_class_name` of a diffusers config file (or of `file_name` in a folder), if it has one:

@@ -39,7 +39,7 @@ pub fn plan(args: &PlanArgs) -> crate::Result<String> {
         return Ok(plan.to_string());
     }
     let (transformer, vae) = config.model.configs(true)?;
-    let tiles = crate::models::autoencoder_kl_cogvideox::TilingConfig::for_config(&vae);
+    let tiles = crate::models::cogvideox::autoencoder_kl_cogvideox::TilingConfig::for_config(&vae);
     let aligned = !args.no_vae_tiling && tiles.lands_on_latent_pixels(vae.spatial_compression_ratio());
     let d = &config.data;
     let plan = crate::training::plan::sampling_plan(

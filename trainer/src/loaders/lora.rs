@@ -241,7 +241,7 @@ pub fn merge_lora(base: &Path, lora: &Path, out: &Path) -> Result<usize> {
     let max_shard = crate::models::weights::DEFAULT_MAX_SHARD_BYTES;
     match ModelFamily::of_transformer(&base)? {
         ModelFamily::CogVideoX => {
-            use crate::models::cogvideox_transformer_3d::{self as transformer, CogVideoXTransformer3DModelConfig};
+            use crate::models::cogvideox::cogvideox_transformer_3d::{self as transformer, CogVideoXTransformer3DModelConfig};
             let config = CogVideoXTransformer3DModelConfig::from_json_file(&base)?;
             let shapes = transformer::variable_shapes(&config)?;
             crate::models::weights::check_against(
@@ -255,7 +255,7 @@ pub fn merge_lora(base: &Path, lora: &Path, out: &Path) -> Result<usize> {
             crate::models::weights::save(&vs, &config, transformer::CLASS_NAME, out, max_shard)?;
         }
         ModelFamily::Wan => {
-            use crate::models::transformer_wan::{self as transformer, WanTransformer3DModelConfig};
+            use crate::models::wan::transformer_wan::{self as transformer, WanTransformer3DModelConfig};
             let config = WanTransformer3DModelConfig::from_json_file(&base)?;
             // Built in fp32 (no `keep_in_fp32` split) and loaded with diffusers' ignored keys.
             let (vs, _model) = transformer::build(&config, tch::Device::Cpu, Kind::Float)?;

@@ -14,7 +14,7 @@ use tch::{Device, Kind, Tensor};
 
 use crate::diffusers_config::DiffusersConfig;
 use crate::error::{Error, Result};
-use crate::models::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
+use crate::models::backbone::{TextShape, TransformerConfig};
 use crate::models::weights;
 use crate::schedulers::CogVideoXSchedulerConfig;
 
@@ -101,7 +101,7 @@ impl ModelPaths {
     /// Refuses zeros as the text of a transformer trained on T5-XXL text unless asked for (see
     /// [`require_text_embedding`]); reads the transformer's config only.
     pub fn check_text_embedding(&self) -> Result<()> {
-        let config = CogVideoXTransformer3DModelConfig::from_json_file(&self.transformer)?;
+        let (config, _) = TransformerConfig::read_quiet(&self.transformer)?;
         require_text_embedding(&config, self.text_embedding.as_deref(), self.zero_text_embedding, &self.transformer)
     }
 }
@@ -109,12 +109,12 @@ impl ModelPaths {
 /// Refuses a transformer with the released checkpoints' T5-XXL text shape and no embedding, unless
 /// zeros are asked for explicitly: such a model never saw zero text tokens in training.
 pub fn require_text_embedding(
-    config: &CogVideoXTransformer3DModelConfig,
+    config: &impl TextShape,
     embedding: Option<&Path>,
     zeros_allowed: bool,
     transformer: &Path,
 ) -> Result<()> {
-    let t5_xxl = [config.max_text_seq_length, config.text_embed_dim] == T5_XXL_TEXT_SHAPE;
+    let t5_xxl = config.text_shape() == T5_XXL_TEXT_SHAPE;
     if embedding.is_none() && t5_xxl && !zeros_allowed {
         return Err(Error::InvalidArgument {
             name: "text-embedding".to_string(),
@@ -176,12 +176,8 @@ fn run_text_embedding(checkpoint: &Path) -> Result<Option<PathBuf>> {
 
 /// The text embedding `[1, S, D]` from a safetensors file's `encoder_hidden_states` `[S, D]`
 /// (shape checked against the transformer config), or zeros without a file; f32.
-pub fn load_text_embedding(
-    path: Option<&Path>,
-    config: &CogVideoXTransformer3DModelConfig,
-    device: Device,
-) -> Result<Tensor> {
-    let shape = [config.max_text_seq_length, config.text_embed_dim];
+pub fn load_text_embedding(path: Option<&Path>, config: &impl TextShape, device: Device) -> Result<Tensor> {
+    let shape = config.text_shape();
     match path {
         None => Ok(Tensor::f_zeros([1, shape[0], shape[1]], (Kind::Float, device))?),
         Some(path) => {

@@ -3,7 +3,8 @@
 //! every job (`trainer forward`, sampling, training). A config without a class name is
 //! CogVideoX's, as before a second family existed.
 //!
-//! A family is a transformer class, a VAE class and the jobs that can run it so far. A job asks
+//! A family is a transformer class, a VAE class, its training objective, its default clip, its
+//! LoRA targets and the jobs that can run it so far. A job asks
 //! [`ModelFamily::of_transformer`] (or [`ModelFamily::of_vae`]) and then
 //! [`ModelFamily::require`]: a checkpoint of a family the job does not run yet is refused by
 //! name, before its config is parsed as another family's.
@@ -12,7 +13,8 @@ use std::path::Path;
 
 use crate::diffusers_config;
 use crate::error::{Error, Result};
-use crate::models::{autoencoder_kl_cogvideox, autoencoder_kl_wan, cogvideox_transformer_3d, transformer_wan};
+use crate::models::cogvideox::{autoencoder_kl_cogvideox, cogvideox_transformer_3d};
+use crate::models::wan::{autoencoder_kl_wan, transformer_wan};
 
 /// A model family: its transformer and VAE classes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -21,6 +23,28 @@ pub enum ModelFamily {
     CogVideoX,
     /// Wan2.1 and Wan2.2 (`WanTransformer3DModel`, `AutoencoderKLWan`).
     Wan,
+}
+
+/// How a family is trained.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Objective {
+    /// CogVideoX: v-prediction on its DDPM noise schedule (the scheduler config's), the x̂₀ loss
+    /// weighted by 1/(1 − ᾱ_t).
+    VPrediction,
+    /// Wan: rectified flow, `x_σ = (1 − σ)·x₀ + σ·ε`, the model predicting `ε − x₀`, σ drawn
+    /// uniformly from the shifted training schedule of `FlowMatchEulerDiscreteScheduler`.
+    RectifiedFlow,
+}
+
+/// A clip's frames and size in pixels.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ClipShape {
+    /// Frames.
+    pub frames: usize,
+    /// Height in pixels.
+    pub height: u32,
+    /// Width in pixels.
+    pub width: u32,
 }
 
 /// What a job does with a model, for the refusal's message.
@@ -32,6 +56,8 @@ pub enum Job {
     Sampling,
     /// Training (`pretrain`, `finetune`).
     Training,
+    /// The memory plan of a training run (`trainer plan`, the check before a run).
+    MemoryPlan,
 }
 
 impl Job {
@@ -40,6 +66,7 @@ impl Job {
             Job::Forward => "a forward pass",
             Job::Sampling => "sampling",
             Job::Training => "training",
+            Job::MemoryPlan => "the memory plan",
         }
     }
 }
@@ -72,12 +99,38 @@ impl ModelFamily {
         }
     }
 
-    /// Whether `job` runs this family's models yet. The Wan models are equal to diffusers'
-    /// (`trainer forward`); its sampler and training objective come next.
+    /// Whether `job` runs this family's models yet. Wan trains (the rectified-flow objective)
+    /// and runs `trainer forward`; the CogNVS sampling jobs and the memory plan run CogVideoX only
+    /// so far.
     pub fn runs(self, job: Job) -> bool {
         match self {
             ModelFamily::CogVideoX => true,
-            ModelFamily::Wan => job == Job::Forward,
+            ModelFamily::Wan => matches!(job, Job::Forward | Job::Training | Job::MemoryPlan),
+        }
+    }
+
+    /// How the family is trained.
+    pub fn objective(self) -> Objective {
+        match self {
+            ModelFamily::CogVideoX => Objective::VPrediction,
+            ModelFamily::Wan => Objective::RectifiedFlow,
+        }
+    }
+
+    /// The clip the family's released models were trained on: CogVideoX 49 frames of 480×720
+    /// (CogVideoX-5B-I2V), Wan 81 frames of 480×832 (Wan2.1's 480p setting).
+    pub fn default_clip(self) -> ClipShape {
+        match self {
+            ModelFamily::CogVideoX => ClipShape { frames: 49, height: 480, width: 720 },
+            ModelFamily::Wan => ClipShape { frames: 81, height: 480, width: 832 },
+        }
+    }
+
+    /// The linear layers LoRA adapts by default (peft's `target_modules` as the family's diffusers
+    /// trainers set them): the attention projections of every block.
+    pub fn lora_target_modules(self) -> &'static [&'static str] {
+        match self {
+            ModelFamily::CogVideoX | ModelFamily::Wan => &["to_q", "to_k", "to_v", "to_out.0"],
         }
     }
 
@@ -154,9 +207,16 @@ mod tests {
         let path = Path::new("some/wan/transformer");
         assert!(ModelFamily::CogVideoX.require(Job::Sampling, path).is_ok());
         assert!(ModelFamily::Wan.require(Job::Forward, path).is_ok());
-        for job in [Job::Sampling, Job::Training] {
-            let e = ModelFamily::Wan.require(job, path).unwrap_err().to_string();
-            assert!(e.contains("some/wan/transformer") && e.contains("Wan model") && e.contains("CogVideoX"), "{e}");
-        }
+        assert!(ModelFamily::Wan.require(Job::Training, path).is_ok());
+        let e = ModelFamily::Wan.require(Job::Sampling, path).unwrap_err().to_string();
+        assert!(e.contains("some/wan/transformer") && e.contains("Wan model") && e.contains("CogVideoX"), "{e}");
+    }
+
+    #[test]
+    fn each_family_has_its_clip_and_objective() {
+        assert_eq!(ModelFamily::CogVideoX.default_clip(), ClipShape { frames: 49, height: 480, width: 720 });
+        assert_eq!(ModelFamily::Wan.default_clip(), ClipShape { frames: 81, height: 480, width: 832 });
+        assert_eq!(ModelFamily::CogVideoX.objective(), Objective::VPrediction);
+        assert_eq!(ModelFamily::Wan.objective(), Objective::RectifiedFlow);
     }
 }

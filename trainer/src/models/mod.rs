@@ -3,17 +3,17 @@
 //! VAE, the Wan transformer and VAE (`transformer_wan`, `autoencoder_kl_wan`), the LoRA layer, and
 //! the variables and weight files they are made of (`vars` creates variables at diffusers'
 //! state-dict paths; `weights` reads and writes diffusers model folders, as diffusers'
-//! `modeling_utils` does). `family` tells the families apart from a config's `_class_name`, once
-//! for every job.
+//! `modeling_utils` does). Each family is a folder (`cogvideox/`, `wan/`); `family` tells the
+//! families apart from a config's `_class_name`, once for every job, and `backbone` is the one
+//! interface the pipelines and training loops reach either family through.
 
 pub mod attention;
-pub mod autoencoder_kl_cogvideox;
-pub mod autoencoder_kl_wan;
-pub mod cogvideox_transformer_3d;
+pub mod backbone;
+pub mod cogvideox;
 pub mod embeddings;
 pub mod family;
 pub mod lora;
 pub mod normalization;
-pub mod transformer_wan;
 pub mod vars;
+pub mod wan;
 pub mod weights;

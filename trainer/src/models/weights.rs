@@ -16,6 +16,7 @@ use safetensors::{Dtype, SafeTensors};
 use serde::Serialize;
 use tch::{Device, Kind, Tensor, nn};
 
+use crate::diffusers_config::DiffusersConfig;
 use crate::error::{Error, Result};
 
 /// File name of a single-file checkpoint (diffusers' `SAFETENSORS_WEIGHTS_NAME`).
@@ -24,9 +25,6 @@ pub const WEIGHTS_NAME: &str = "diffusion_pytorch_model.safetensors";
 pub const WEIGHTS_INDEX_NAME: &str = "diffusion_pytorch_model.safetensors.index.json";
 /// Shard size diffusers' `save_pretrained` uses by default (`max_shard_size="10GB"`).
 pub const DEFAULT_MAX_SHARD_BYTES: u64 = 10_000_000_000;
-/// The diffusers version written into saved configs (`_diffusers_version`): the release whose
-/// modules this crate mirrors and whose `from_pretrained` the tests load our output with.
-pub const DIFFUSERS_VERSION: &str = "0.42.1";
 
 // ------------------------------------------------------------------------------------------------
 // Reading checkpoints
@@ -341,16 +339,42 @@ pub fn check_shape(name: &str, tensor: &Tensor, expected: &[i64]) -> Result<()> 
     Ok(())
 }
 
+/// Checks that a model input is of the model's element type `kind` on its `device`, naming it
+/// otherwise (a forward's inputs are cast by the caller, never silently here).
+pub fn check_kind_device(name: &str, tensor: &Tensor, kind: Kind, device: Device) -> Result<()> {
+    if tensor.kind() != kind || tensor.device() != device {
+        return Err(Error::DtypeDevice {
+            tensor: name.to_string(),
+            expected: format!("{kind:?} on {device:?} (the model's weights)"),
+            actual: format!("{:?} on {:?}", tensor.kind(), tensor.device()),
+        });
+    }
+    Ok(())
+}
+
+/// Checks that a model input (a timestep, of any type) is on the model's `device`.
+pub fn check_device(name: &str, tensor: &Tensor, device: Device) -> Result<()> {
+    if tensor.device() != device {
+        return Err(Error::DtypeDevice {
+            tensor: name.to_string(),
+            expected: format!("on {device:?}"),
+            actual: format!("on {:?}", tensor.device()),
+        });
+    }
+    Ok(())
+}
+
 // ------------------------------------------------------------------------------------------------
 // Writing checkpoints
 // ------------------------------------------------------------------------------------------------
 
-/// Writes `vs` as a diffusers model folder: `config.json` (the config with `_class_name` and
+/// Writes `vs` as a diffusers model folder: `config.json` (written by
+/// [`DiffusersConfig::to_json_string`]: the fields, the unknown keys kept, `_class_name` and
 /// `_diffusers_version`) and the weights, in one file or, above `max_shard_bytes`, in shards with
 /// an index. Every file goes to a temporary name first and is renamed when complete; stale weight
 /// files of an earlier save in the same folder are removed. Tensors keep the store's dtype.
 /// Returns the files written, with their sizes and digests.
-pub fn save<C: Serialize>(
+pub fn save<C: DiffusersConfig + Serialize>(
     vs: &nn::VarStore,
     config: &C,
     class_name: &str,
@@ -362,7 +386,7 @@ pub fn save<C: Serialize>(
 
 /// [`save`] for named tensors (a store's variables with some replaced, such as the fp32 master
 /// weights of a bf16 training run).
-pub fn save_tensors<C: Serialize>(
+pub fn save_tensors<C: DiffusersConfig + Serialize>(
     variables: BTreeMap<String, Tensor>,
     config: &C,
     class_name: &str,
@@ -370,13 +394,7 @@ pub fn save_tensors<C: Serialize>(
     max_shard_bytes: u64,
 ) -> Result<Vec<WrittenFile>> {
     std::fs::create_dir_all(dir).map_err(|source| Error::Io { path: dir.to_path_buf(), error: source })?;
-    let mut json = serde_json::to_value(config)
-        .map_err(|e| Error::InvalidArgument { name: "config".to_string(), reason: format!("cannot serialise: {e}") })?;
-    if let Some(map) = json.as_object_mut() {
-        map.insert("_class_name".to_string(), class_name.into());
-        map.insert("_diffusers_version".to_string(), DIFFUSERS_VERSION.into());
-    }
-    let text = serde_json::to_string_pretty(&json).expect("a JSON value serialises");
+    let text = config.to_json_string(class_name)?;
     let mut written = vec![write_file(&dir.join("config.json"), text.as_bytes())?];
 
     let mut shards: Vec<Vec<(String, Tensor)>> = vec![Vec::new()];
@@ -570,13 +588,43 @@ mod tests {
         vs
     }
 
+    /// A config to save beside weights it does not describe (the weights tests read only the
+    /// weights).
+    fn any_config() -> crate::models::wan::autoencoder_kl_wan::AutoencoderKLWanConfig {
+        crate::models::wan::autoencoder_kl_wan::AutoencoderKLWanConfig::tiny()
+    }
+    const ANY_CLASS: &str = crate::models::wan::autoencoder_kl_wan::CLASS_NAME;
+
+    #[test]
+    fn a_saved_config_goes_through_diffusers_config_and_keeps_unknown_keys() {
+        use crate::models::wan::transformer_wan::{CLASS_NAME, WanTransformer3DModelConfig};
+        // A config as another diffusers release wrote it, with a key this port does not know.
+        let file = r#"{"_class_name": "WanTransformer3DModel", "_diffusers_version": "0.30.0",
+            "num_layers": 2, "attention_head_dim": 8, "num_attention_heads": 2, "ffn_dim": 32,
+            "text_dim": 16, "freq_dim": 16, "rope_max_seq_len": 32, "a_future_key": [1, "two"]}"#;
+        let config = WanTransformer3DModelConfig::from_json_str(file, "in.json").unwrap();
+        let dir = tempfile::tempdir().unwrap();
+        save(&tiny_store(Device::Cpu), &config, CLASS_NAME, dir.path(), DEFAULT_MAX_SHARD_BYTES).unwrap();
+        let written = std::fs::read_to_string(dir.path().join("config.json")).unwrap();
+        let value: serde_json::Value = serde_json::from_str(&written).unwrap();
+        assert_eq!(value["a_future_key"], serde_json::json!([1, "two"]), "{written}");
+        assert_eq!(value["_diffusers_version"], crate::diffusers_config::DIFFUSERS_VERSION);
+        let again = WanTransformer3DModelConfig::from_json_str(&written, "out.json").unwrap();
+        let mut expected = config.clone();
+        expected.extra.insert("_diffusers_version".to_string(), crate::diffusers_config::DIFFUSERS_VERSION.into());
+        assert_eq!(again, expected);
+        // A class the config cannot be is refused, not written.
+        let e = config.to_json_string("CogVideoXTransformer3DModel").unwrap_err().to_string();
+        assert!(e.contains("CogVideoXTransformer3DModel") && e.contains("transformer config"), "{e}");
+    }
+
     #[test]
     fn save_then_load_round_trips_single_and_sharded() {
         let vs = tiny_store(Device::Cpu);
         let dir = tempfile::tempdir().unwrap();
         for (name, shard_bytes) in [("single", DEFAULT_MAX_SHARD_BYTES), ("sharded", 40)] {
             let folder = dir.path().join(name);
-            save(&vs, &serde_json::json!({"x": 1}), "Test", &folder, shard_bytes).unwrap();
+            save(&vs, &any_config(), ANY_CLASS, &folder, shard_bytes).unwrap();
             let sharded = folder.join(WEIGHTS_INDEX_NAME).exists();
             assert_eq!(sharded, name == "sharded");
             let other = tiny_store(Device::Cpu);
@@ -618,7 +666,7 @@ mod tests {
     fn mismatches_name_the_tensor_and_both_shapes() {
         let vs = tiny_store(Device::Cpu);
         let dir = tempfile::tempdir().unwrap();
-        save(&vs, &serde_json::json!({}), "Test", dir.path(), DEFAULT_MAX_SHARD_BYTES).unwrap();
+        save(&vs, &any_config(), ANY_CLASS, dir.path(), DEFAULT_MAX_SHARD_BYTES).unwrap();
         let bigger = nn::VarStore::new(Device::Cpu);
         let vars = Vars::new(bigger.root());
         vars.sub("a").linear(3, 5, true).unwrap();

@@ -23,13 +23,13 @@ use tch::{Device, Kind, Tensor};
 
 use crate::diffusers_config::DiffusersConfig;
 use crate::error::{Error, Result};
-use crate::models::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoXConfig, TilingConfig};
-use crate::models::autoencoder_kl_wan::{self as wan_vae, AutoencoderKLWanConfig};
-use crate::models::cogvideox_transformer_3d::{
+use crate::models::cogvideox::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoXConfig, TilingConfig};
+use crate::models::cogvideox::cogvideox_transformer_3d::{
     self as transformer, CogVideoXTransformer3DModelConfig, TransformerInput,
 };
 use crate::models::family::{Job, ModelFamily};
-use crate::models::transformer_wan::{self as wan_transformer, WanTransformer3DModelConfig, WanTransformerInput};
+use crate::models::wan::autoencoder_kl_wan::{self as wan_vae, AutoencoderKLWanConfig};
+use crate::models::wan::transformer_wan::{self as wan_transformer, WanTransformer3DModelConfig, WanTransformerInput};
 use crate::models::weights;
 
 /// Which component runs.

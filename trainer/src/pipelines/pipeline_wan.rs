@@ -33,15 +33,11 @@
 use tch::{Device, Kind, Tensor};
 
 use crate::error::{Error, Result};
-use crate::models::autoencoder_kl_wan::AutoencoderKLWan;
-use crate::models::transformer_wan::{WanTransformer3DModel, WanTransformerInput};
+use crate::models::backbone::{WAN_DEFAULT_SCALE_FACTOR_SPATIAL, WAN_DEFAULT_SCALE_FACTOR_TEMPORAL};
+use crate::models::wan::autoencoder_kl_wan::AutoencoderKLWan;
+use crate::models::wan::cognvs::mask_channels;
+use crate::models::wan::transformer_wan::{WanTransformer3DModel, WanTransformerInput};
 use crate::schedulers::scheduling_unipc_multistep::{UniPCMultistepScheduler, UniPCMultistepSchedulerConfig};
-
-/// `AutoencoderKLWan`'s default `scale_factor_temporal` (diffusers' constructor), for configs
-/// written before the key existed.
-const DEFAULT_SCALE_FACTOR_TEMPORAL: i64 = 4;
-/// `AutoencoderKLWan`'s default `scale_factor_spatial`.
-const DEFAULT_SCALE_FACTOR_SPATIAL: i64 = 8;
 
 /// The denoising models: one transformer (Wan2.1, Wan2.2 TI2V-5B) or Wan2.2 A14B's two experts.
 #[derive(Clone, Copy)]
@@ -101,8 +97,8 @@ pub fn generate(
     let invalid = |name: &str, reason: String| Error::InvalidArgument { name: name.to_string(), reason };
     let config = experts.transformer.config();
     let vae_config = vae.config();
-    let temporal = vae_config.scale_factor_temporal.unwrap_or(DEFAULT_SCALE_FACTOR_TEMPORAL);
-    let spatial = vae_config.scale_factor_spatial.unwrap_or(DEFAULT_SCALE_FACTOR_SPATIAL);
+    let temporal = vae_config.scale_factor_temporal.unwrap_or(WAN_DEFAULT_SCALE_FACTOR_TEMPORAL);
+    let spatial = vae_config.scale_factor_spatial.unwrap_or(WAN_DEFAULT_SCALE_FACTOR_SPATIAL);
     let [_, patch_h, patch_w] = config.patch_size;
     let WanSampling { frames, height, width, steps, guidance_scale, expand_timesteps, .. } = *sampling;
     if frames < 1 || (frames - 1) % temporal != 0 {
@@ -213,17 +209,6 @@ fn condition_channels(
     // The pipeline encodes in the VAE's type (here the models' one type) and normalises in f32.
     let latent = vae.encode(&condition.video.f_to_kind(kind)?)?.f_to_kind(Kind::Float)?;
     let latent = vae.normalize_latents(&latent)?;
-    // Known only where every pixel of the s × s block is: a minimum, as −max(−m).
-    let mask = condition
-        .mask
-        .f_to_kind(Kind::Float)?
-        .f_to_device(latent.device())?
-        .f_neg()?
-        .f_max_pool3d([1, spatial, spatial], [1, spatial, spatial], [0, 0, 0], [1, 1, 1], false)?
-        .f_neg()?;
-    let first = mask.f_narrow(2, 0, 1)?.f_repeat([1, 1, temporal, 1, 1])?;
-    let mask = Tensor::f_cat(&[first, mask.f_narrow(2, 1, frames - 1)?], 2)?;
-    let [_, _, _, h, w] = mask.size()[..] else { unreachable!("5-D mask") };
-    let mask = mask.f_view([1, -1, temporal, h, w])?.f_transpose(1, 2)?;
+    let mask = mask_channels(&condition.mask.f_to_device(latent.device())?, temporal, spatial)?;
     Ok(Tensor::f_cat(&[mask, latent], 1)?)
 }

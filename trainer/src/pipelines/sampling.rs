@@ -32,10 +32,10 @@ use tch::{Device, Kind, Tensor, nn};
 use crate::diffusers_config::DiffusersConfig;
 use crate::error::{Error, Result};
 use crate::loaders::{ModelPaths, ModelSource, load_text_embedding, scheduler_config};
-use crate::models::autoencoder_kl_cogvideox::{
+use crate::models::cogvideox::autoencoder_kl_cogvideox::{
     self as vae, AutoencoderKLCogVideoX, AutoencoderKLCogVideoXConfig, TilingConfig,
 };
-use crate::models::cogvideox_transformer_3d::{
+use crate::models::cogvideox::cogvideox_transformer_3d::{
     self as transformer, CogVideoXTransformer3DModel, CogVideoXTransformer3DModelConfig, TransformerInput,
 };
 use crate::models::embeddings::RotaryEmbedding;

@@ -18,7 +18,7 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 use tch::{Kind, Tensor};
 
-use crate::diffusers_config::DiffusersConfig;
+use crate::diffusers_config::{self, DiffusersConfig};
 use crate::error::{Error, Result};
 
 /// The class name of this scheduler's `scheduler_config.json`.
@@ -58,6 +58,72 @@ pub fn stretch_shift_to_terminal(sigmas: &mut [f64], terminal: f64) {
     for s in sigmas.iter_mut() {
         *s = 1.0 - (1.0 - *s) / scale;
     }
+}
+
+/// How a flow schedule's sigmas are shifted towards the noisy end: the part of
+/// `set_timesteps` that `FlowMatchEulerDiscreteScheduler` and the UniPC scheduler on flow sigmas
+/// share (diffusers copies it between them).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FlowShift {
+    /// Shift by the `mu` given to `set_timesteps` (`use_dynamic_shifting`) instead of `shift`.
+    pub dynamic: bool,
+    /// The dynamic shift's form.
+    pub time_shift_type: TimeShiftType,
+    /// The static shift (`shift`, UniPC's `flow_shift`).
+    pub shift: f64,
+    /// Stretch the shifted schedule to end at this sigma; null or 0 for no stretch.
+    pub shift_terminal: Option<f64>,
+}
+
+impl FlowShift {
+    /// Shifts `sigmas` in place (fp64, as diffusers computes them in numpy); `mu` is required
+    /// exactly when the shift is dynamic.
+    pub fn apply(&self, sigmas: &mut [f64], mu: Option<f64>) -> Result<()> {
+        match (self.dynamic, mu) {
+            (true, Some(mu)) => sigmas.iter_mut().for_each(|s| *s = time_shift(self.time_shift_type, mu, *s)),
+            (true, None) => {
+                return Err(Error::InvalidArgument {
+                    name: "mu".to_string(),
+                    reason: "required when use_dynamic_shifting is set".to_string(),
+                });
+            }
+            (false, _) => sigmas.iter_mut().for_each(|s| *s = static_shift(self.shift, *s)),
+        }
+        if let Some(terminal) = self.shift_terminal.filter(|&t| t != 0.0) {
+            stretch_shift_to_terminal(sigmas, terminal);
+        }
+        Ok(())
+    }
+}
+
+/// Refuses a schedule of no steps (both flow schedulers' `set_timesteps`).
+pub fn check_steps(num_inference_steps: usize) -> Result<()> {
+    if num_inference_steps == 0 {
+        return Err(Error::InvalidArgument {
+            name: "num_inference_steps".to_string(),
+            reason: "must be at least 1".to_string(),
+        });
+    }
+    Ok(())
+}
+
+/// The training schedule's sigmas, `num_train_timesteps` of them from the noisiest down, as
+/// diffusers' constructor builds them (in fp32 torch arithmetic): `t/N` for t = N … 1, statically
+/// shifted unless the shift is dynamic. Flow-matching training draws its sigmas from this grid.
+pub fn training_sigmas(config: &FlowMatchEulerDiscreteSchedulerConfig) -> Vec<f32> {
+    let n = config.num_train_timesteps;
+    (1..=n)
+        .rev()
+        .map(|t| {
+            let s = t as f32 / n as f32;
+            if config.use_dynamic_shifting {
+                s
+            } else {
+                let shift = config.shift as f32;
+                shift * s / (1.0 + (shift - 1.0) * s)
+            }
+        })
+        .collect()
 }
 
 /// `n` evenly spaced values from `start` to `end` inclusive, as `np.linspace` computes them.
@@ -140,11 +206,7 @@ impl DiffusersConfig for FlowMatchEulerDiscreteSchedulerConfig {
     const FILE_NAME: &'static str = "scheduler_config.json";
 
     fn validate_fields(&self, source_name: &str) -> Result<()> {
-        let err = |field: &str, reason: String| Error::InvalidConfig {
-            source_name: source_name.to_string(),
-            field: field.to_string(),
-            reason,
-        };
+        let err = diffusers_config::field_error(source_name);
         if !(1..=MAX_TRAIN_TIMESTEPS).contains(&self.num_train_timesteps) {
             return Err(err(
                 "num_train_timesteps",
@@ -198,19 +260,7 @@ impl FlowMatchEulerDiscreteScheduler {
     pub fn new(config: &FlowMatchEulerDiscreteSchedulerConfig) -> Result<Self> {
         config.validate("scheduler config")?;
         let n = config.num_train_timesteps;
-        // diffusers builds the training grid in fp32 torch arithmetic.
-        let sigmas: Vec<f32> = (1..=n)
-            .rev()
-            .map(|t| {
-                let s = t as f32 / n as f32;
-                if config.use_dynamic_shifting {
-                    s
-                } else {
-                    let shift = config.shift as f32;
-                    shift * s / (1.0 + (shift - 1.0) * s)
-                }
-            })
-            .collect();
+        let sigmas = training_sigmas(config);
         let timesteps = sigmas.iter().map(|s| s * n as f32).collect();
         Ok(Self {
             config: config.clone(),
@@ -232,28 +282,17 @@ impl FlowMatchEulerDiscreteScheduler {
     /// dynamic shift, required exactly when `use_dynamic_shifting` is set.
     pub fn set_timesteps(&mut self, num_inference_steps: usize, mu: Option<f64>) -> Result<()> {
         let c = &self.config;
-        if num_inference_steps == 0 {
-            return Err(Error::InvalidArgument {
-                name: "num_inference_steps".to_string(),
-                reason: "must be at least 1".to_string(),
-            });
-        }
+        check_steps(num_inference_steps)?;
         let n = c.num_train_timesteps as f64;
         let ends = (f64::from(self.sigma_max) * n, f64::from(self.sigma_min) * n);
         let mut sigmas: Vec<f64> = linspace(ends.0, ends.1, num_inference_steps).into_iter().map(|t| t / n).collect();
-        match (c.use_dynamic_shifting, mu) {
-            (true, Some(mu)) => sigmas.iter_mut().for_each(|s| *s = time_shift(c.time_shift_type, mu, *s)),
-            (true, None) => {
-                return Err(Error::InvalidArgument {
-                    name: "mu".to_string(),
-                    reason: "required when use_dynamic_shifting is set".to_string(),
-                });
-            }
-            (false, _) => sigmas.iter_mut().for_each(|s| *s = static_shift(c.shift, *s)),
-        }
-        if let Some(terminal) = c.shift_terminal.filter(|&t| t != 0.0) {
-            stretch_shift_to_terminal(&mut sigmas, terminal);
-        }
+        let shift = FlowShift {
+            dynamic: c.use_dynamic_shifting,
+            time_shift_type: c.time_shift_type,
+            shift: c.shift,
+            shift_terminal: c.shift_terminal,
+        };
+        shift.apply(&mut sigmas, mu)?;
         if c.use_karras_sigmas {
             sigmas = karras(&sigmas);
         } else if c.use_exponential_sigmas {

@@ -18,10 +18,10 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 use tch::{Kind, Tensor};
 
-use crate::diffusers_config::DiffusersConfig;
+use crate::diffusers_config::{self, DiffusersConfig};
 use crate::error::{Error, Result};
 use crate::schedulers::scheduling_flow_match_euler_discrete::{
-    MAX_TRAIN_TIMESTEPS, TimeShiftType, linspace, static_shift, stretch_shift_to_terminal, time_shift,
+    FlowShift, MAX_TRAIN_TIMESTEPS, TimeShiftType, check_steps, linspace,
 };
 
 /// The class name of this scheduler's `scheduler_config.json`.
@@ -196,11 +196,7 @@ impl DiffusersConfig for UniPCMultistepSchedulerConfig {
     const FILE_NAME: &'static str = "scheduler_config.json";
 
     fn validate_fields(&self, source_name: &str) -> Result<()> {
-        let err = |field: &str, reason: String| Error::InvalidConfig {
-            source_name: source_name.to_string(),
-            field: field.to_string(),
-            reason,
-        };
+        let err = diffusers_config::field_error(source_name);
         let unsupported =
             |field: &str, what: &str| err(field, format!("{what} is not supported (no Wan configuration uses it)"));
         if !(1..=MAX_TRAIN_TIMESTEPS).contains(&self.num_train_timesteps) {
@@ -296,28 +292,17 @@ impl UniPCMultistepScheduler {
     /// solver's history; `mu` is the dynamic shift, required exactly with `use_dynamic_shifting`.
     pub fn set_timesteps(&mut self, num_inference_steps: usize, mu: Option<f64>) -> Result<()> {
         let c = &self.config;
-        if num_inference_steps == 0 {
-            return Err(Error::InvalidArgument {
-                name: "num_inference_steps".to_string(),
-                reason: "must be at least 1".to_string(),
-            });
-        }
+        check_steps(num_inference_steps)?;
         let n = c.num_train_timesteps as f64;
         let mut sigmas = linspace(1.0, 1.0 / n, num_inference_steps + 1);
         sigmas.pop();
-        match (c.use_dynamic_shifting, mu) {
-            (true, Some(mu)) => sigmas.iter_mut().for_each(|s| *s = time_shift(c.time_shift_type, mu, *s)),
-            (true, None) => {
-                return Err(Error::InvalidArgument {
-                    name: "mu".to_string(),
-                    reason: "required when use_dynamic_shifting is set".to_string(),
-                });
-            }
-            (false, _) => sigmas.iter_mut().for_each(|s| *s = static_shift(c.flow_shift, *s)),
-        }
-        if let Some(terminal) = c.shift_terminal.filter(|&t| t != 0.0) {
-            stretch_shift_to_terminal(&mut sigmas, terminal);
-        }
+        let shift = FlowShift {
+            dynamic: c.use_dynamic_shifting,
+            time_shift_type: c.time_shift_type,
+            shift: c.flow_shift,
+            shift_terminal: c.shift_terminal,
+        };
+        shift.apply(&mut sigmas, mu)?;
         if (sigmas[0] - 1.0).abs() < FIRST_SIGMA_EPS {
             sigmas[0] -= FIRST_SIGMA_EPS;
         }

@@ -13,7 +13,7 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor};
 
-use crate::diffusers_config::DiffusersConfig;
+use crate::diffusers_config::{self, DiffusersConfig};
 use crate::error::{Error, Result};
 
 /// Scheduler class names a CogVideoX `scheduler_config.json` may carry (`_class_name`): the
@@ -115,11 +115,7 @@ impl DiffusersConfig for CogVideoXSchedulerConfig {
 
     /// Rejects values the schedulers cannot use, naming the field.
     fn validate_fields(&self, source_name: &str) -> Result<()> {
-        let err = |field: &str, reason: String| Error::InvalidConfig {
-            source_name: source_name.to_string(),
-            field: field.to_string(),
-            reason,
-        };
+        let err = diffusers_config::field_error(source_name);
         let t = self.num_train_timesteps;
         // The zero-terminal-SNR rescale divides by √ᾱ_0 − √ᾱ_{T−1}, which one step makes 0.
         let fewest = if self.rescale_betas_zero_snr { 2 } else { 1 };

@@ -24,7 +24,6 @@ use super::consensus;
 use super::parallel::StepOptimizer;
 use crate::distributed::ProcessGroup;
 use crate::error::{Error, Result};
-use crate::models::cogvideox_transformer_3d as transformer;
 use crate::models::weights::{self, WrittenFile};
 use crate::training::data::DataPosition;
 
@@ -398,13 +397,7 @@ fn finish(
                 .into_iter()
                 .map(|(name, t)| Ok((name, if t.is_floating_point() { t.f_to_kind(Kind::Float)? } else { t })))
                 .collect::<Result<_>>()?;
-            weights::save_tensors(
-                variables,
-                model.transformer.config(),
-                transformer::CLASS_NAME,
-                &temp.join("transformer"),
-                weights::DEFAULT_MAX_SHARD_BYTES,
-            )?
+            model.transformer.save(variables, &temp.join("transformer"), weights::DEFAULT_MAX_SHARD_BYTES)?
         }
     };
     files.extend(records(temp, &written));

@@ -7,12 +7,19 @@ use serde::{Deserialize, Serialize};
 
 use crate::diffusers_config;
 use crate::error::{Error, Result};
-use crate::models::autoencoder_kl_cogvideox::AutoencoderKLCogVideoXConfig;
-use crate::models::autoencoder_kl_wan::AutoencoderKLWanConfig;
-use crate::models::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
-use crate::models::family::{Job, ModelFamily};
+use crate::models::backbone::{TransformerConfig, VaeConfig};
+use crate::models::cogvideox::autoencoder_kl_cogvideox::AutoencoderKLCogVideoXConfig;
+use crate::models::cogvideox::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
+use crate::models::wan::autoencoder_kl_wan::AutoencoderKLWanConfig;
+use crate::models::family::{Job, ModelFamily, Objective};
+use crate::schedulers::scheduling_flow_match_euler_discrete::FlowMatchEulerDiscreteSchedulerConfig;
+
+/// The static flow shift a Wan run trains with when no scheduler is configured: diffusers' Wan
+/// documentation's setting for 480p (`flow_shift = 3.0`; 5.0 for 720p), the clip size Wan runs
+/// default to.
+pub const WAN_FLOW_SHIFT: f64 = 3.0;
 use crate::models::lora::LoraConfig;
-use crate::models::transformer_wan::WanTransformer3DModelConfig;
+use crate::models::wan::transformer_wan::WanTransformer3DModelConfig;
 pub use crate::precision::Precision;
 use crate::training::data::DataConfig;
 
@@ -20,12 +27,14 @@ use crate::training::data::DataConfig;
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ModelConfig {
-    /// Transformer: a preset (`tiny`, `cognvs-5b`, `cogvideox-2b`) or a `config.json` file, both
-    /// random init, or a diffusers model folder (config.json + weights) to start from.
-    /// Valid: a preset name or an existing file/folder; `in_channels` twice and `out_channels`
-    /// once the VAE's `latent_channels`.
+    /// Transformer: a preset (CogVideoX: `tiny`, `cognvs-5b`, `cogvideox-2b`; Wan:
+    /// `tiny-cognvs`, `wan2.1-t2v-1.3b`, …) or a `config.json` file, both random init, or a
+    /// diffusers model folder (config.json + weights) to start from; the family is the config's
+    /// `_class_name`'s. Valid: a preset name or an existing file/folder; `in_channels` the VAE's
+    /// `latent_channels` plus the conditioning's channels, `out_channels` the `latent_channels`.
     pub transformer: String,
-    /// VAE: a preset (`tiny` random init with `seed`, `cogvideox-5b`) or a diffusers model folder.
+    /// VAE: a preset (`tiny` random init with `seed`, `cogvideox-5b`; Wan: `tiny-wan`,
+    /// `wan2.1`) or a diffusers model folder, of the transformer's family.
     /// Valid: a preset name or an existing folder.
     pub vae: String,
     /// Optional safetensors file with `encoder_hidden_states` `[S, D]`: the empty prompt's text
@@ -39,7 +48,9 @@ pub struct ModelConfig {
     #[serde(default)]
     pub zero_text_embedding: bool,
     /// Optional diffusers scheduler folder (or its `scheduler_config.json`) whose noise schedule
-    /// training uses; CogVideoX-5B's when unset. Valid: an existing folder or file.
+    /// training uses; CogVideoX-5B's when unset. A Wan run reads a flow-matching scheduler
+    /// (`FlowMatchEulerDiscreteScheduler`, or `UniPCMultistepScheduler`'s `flow_shift`); unset,
+    /// the shift is [`WAN_FLOW_SHIFT`]. Valid: an existing folder or file.
     #[serde(default)]
     pub scheduler: Option<PathBuf>,
     /// Optional LoRA file (`pytorch_lora_weights.safetensors`, ours or another diffusers/peft
@@ -497,28 +508,37 @@ impl PretrainConfig {
             field: field.to_string(),
             reason,
         };
-        if let Some((transformer, vae)) = self.model.wan_configs()? {
-            return self.check_wan_models(source_name, &transformer, &vae);
-        }
-        let (transformer, vae) = self.model.configs(false)?;
+        let (transformer, vae) = self.model.model_configs(false)?;
         // The scheduler's file too: its ranges are checked as it is read. And the text embedding
         // (small: its shape against the transformer, every value finite), so that a bad one
         // stops the run before its folder is written.
-        self.model.scheduler_config()?;
+        match transformer.family().objective() {
+            Objective::VPrediction => drop(self.model.scheduler_config()?),
+            Objective::RectifiedFlow => drop(self.model.flow_schedule_config()?),
+        }
         if let Some(path) = &self.model.text_embedding {
             let _ = crate::loaders::load_text_embedding(Some(path), &transformer, tch::Device::Cpu)?;
         }
         if let Some(lora) = &self.lora {
             // Targets and rank against the transformer's layers, before any run folder exists.
-            crate::models::cogvideox_transformer_3d::check_lora(&transformer, lora).map_err(|e| match e {
+            transformer.check_lora(lora).map_err(|e| match e {
                 Error::InvalidConfig { field, reason, .. } => {
                     Error::InvalidConfig { source_name: source_name.to_string(), field, reason }
                 }
                 other => other,
             })?;
         }
+        if transformer.family() != ModelFamily::CogVideoX && self.train.validate_every > 0 {
+            return Err(bad(
+                "loop.validate_every",
+                format!(
+                    "validation samples CogVideoX models only so far; set it to 0 for a {} run",
+                    transformer.family().name()
+                ),
+            ));
+        }
         let d = &self.data;
-        let temporal = vae.effective_temporal_compression_ratio() as usize;
+        let temporal = vae.temporal_factor() as usize;
         if !(d.frames - 1).is_multiple_of(temporal) {
             return Err(bad(
                 "data.frames",
@@ -528,111 +548,52 @@ impl PretrainConfig {
                 ),
             ));
         }
-        let spatial = vae.spatial_compression_ratio();
-        let multiple = spatial * transformer.patch_size;
-        for (field, value, sample) in
-            [("data.height", d.height, transformer.sample_height), ("data.width", d.width, transformer.sample_width)]
-        {
+        let spatial = vae.spatial_factor();
+        let [patch, _] = transformer.spatial_patch();
+        let multiple = spatial * patch;
+        for (field, value) in [("data.height", d.height), ("data.width", d.width)] {
             if i64::from(value) % multiple != 0 {
                 return Err(bad(
                     field,
                     format!(
                         "{value} must be a multiple of {multiple} (the VAE's {spatial}x spatial compression \
-                         times the transformer's patch size {})",
-                        transformer.patch_size
-                    ),
-                ));
-            }
-            if transformer.use_learned_positional_embeddings && i64::from(value) != sample * spatial {
-                return Err(bad(
-                    field,
-                    format!(
-                        "{value} must be {} pixels: the transformer's learned positional table covers {sample} \
-                         latents of {spatial} pixels",
-                        sample * spatial
+                         times the transformer's patch size {patch})"
                     ),
                 ));
             }
         }
-        if transformer.in_channels != 2 * vae.latent_channels {
-            return Err(bad(
-                "model.transformer",
-                format!(
-                    "in_channels {} must be twice the VAE's latent_channels {} (noisy + condition latents)",
-                    transformer.in_channels, vae.latent_channels
-                ),
-            ));
-        }
-        if transformer.output_channels() != vae.latent_channels {
-            return Err(bad(
-                "model.transformer",
-                format!(
-                    "out_channels {} must equal the VAE's latent_channels {}",
-                    transformer.output_channels(),
-                    vae.latent_channels
-                ),
-            ));
-        }
-        Ok(())
-    }
-}
-
-impl PretrainConfig {
-    /// [`Self::check_models`] for Wan models: the LoRA targets and rank against the blocks' linear
-    /// layers, frames and sizes against the VAE's compression and the patch size, and the
-    /// latent channels out. (The conditioning channels in are the training objective's.)
-    fn check_wan_models(
-        &self,
-        source_name: &str,
-        transformer: &WanTransformer3DModelConfig,
-        vae: &AutoencoderKLWanConfig,
-    ) -> Result<()> {
-        let bad = |field: &str, reason: String| Error::InvalidConfig {
-            source_name: source_name.to_string(),
-            field: field.to_string(),
-            reason,
-        };
-        if let Some(lora) = &self.lora {
-            crate::models::transformer_wan::lora_shapes(transformer, lora).map_err(|e| match e {
-                Error::InvalidConfig { field, reason, .. } => {
-                    Error::InvalidConfig { source_name: source_name.to_string(), field, reason }
+        if let TransformerConfig::CogVideoX(transformer) = &transformer {
+            for (field, value, sample) in [
+                ("data.height", d.height, transformer.sample_height),
+                ("data.width", d.width, transformer.sample_width),
+            ] {
+                if transformer.use_learned_positional_embeddings && i64::from(value) != sample * spatial {
+                    return Err(bad(
+                        field,
+                        format!(
+                            "{value} must be {} pixels: the transformer's learned positional table covers {sample} \
+                             latents of {spatial} pixels",
+                            sample * spatial
+                        ),
+                    ));
                 }
-                other => other,
-            })?;
-        }
-        let d = &self.data;
-        let temporal = vae.temporal_compression_ratio() as usize;
-        if !(d.frames - 1).is_multiple_of(temporal) {
-            return Err(bad(
-                "data.frames",
-                format!(
-                    "{} must be {temporal}k + 1 (the VAE compresses time by {temporal} after the first frame)",
-                    d.frames
-                ),
-            ));
-        }
-        let spatial = vae.spatial_compression_ratio();
-        let [_, ph, pw] = transformer.patch_size;
-        for (field, value, patch) in [("data.height", d.height, ph), ("data.width", d.width, pw)] {
-            if i64::from(value) % (spatial * patch) != 0 {
-                return Err(bad(
-                    field,
-                    format!(
-                        "{value} must be a multiple of {} (the VAE's {spatial}x spatial compression times the \
-                         transformer's patch size {patch})",
-                        spatial * patch
-                    ),
-                ));
             }
         }
-        if transformer.output_channels() != vae.z_dim {
+        let (latent, condition) = (vae.latent_channels(), vae.condition_channels());
+        if transformer.in_channels() != latent + condition {
             return Err(bad(
                 "model.transformer",
                 format!(
-                    "out_channels {} must equal the VAE's z_dim {} (latent channels)",
-                    transformer.output_channels(),
-                    vae.z_dim
+                    "in_channels {} must be the VAE's latent_channels {latent} plus the {condition} channels of \
+                     the conditioning (noisy latents, then the condition)",
+                    transformer.in_channels()
                 ),
+            ));
+        }
+        if transformer.output_channels() != latent {
+            return Err(bad(
+                "model.transformer",
+                format!("out_channels {} must equal the VAE's latent_channels {latent}", transformer.output_channels()),
             ));
         }
         Ok(())
@@ -643,29 +604,38 @@ impl ModelConfig {
     /// The transformer's and the VAE's configs: presets, or read from their `config.json` (no
     /// weights are read). Errors name the preset or file; with `warn`, the files' warnings
     /// (unknown keys, inconsistent values) go to stderr.
-    pub fn configs(&self, warn: bool) -> Result<(CogVideoXTransformer3DModelConfig, AutoencoderKLCogVideoXConfig)> {
-        if WanTransformer3DModelConfig::preset(&self.transformer).is_ok() {
-            ModelFamily::Wan.require(Job::Training, Path::new(&self.transformer))?;
-        }
+    pub fn model_configs(&self, warn: bool) -> Result<(TransformerConfig, VaeConfig)> {
         let mut warnings = Vec::new();
         let transformer = match Path::new(&self.transformer) {
             p if p.is_dir() || p.is_file() => {
-                ModelFamily::of_transformer(p)?.require(Job::Training, p)?;
-                let (config, w) = diffusers_config::read_quiet(p)?;
+                let (config, w) = TransformerConfig::read_quiet(p)?;
+                config.family().require(Job::Training, p)?;
                 warnings.extend(w);
                 config
             }
-            _ => CogVideoXTransformer3DModelConfig::preset(&self.transformer)?,
+            _ => TransformerConfig::preset(&self.transformer)?,
         };
         let vae = match Path::new(&self.vae) {
             p if p.is_dir() => {
-                ModelFamily::of_vae(p)?.require(Job::Training, p)?;
-                let (config, w) = diffusers_config::read_quiet(p)?;
+                let (config, w) = VaeConfig::read_quiet(p)?;
+                config.family().require(Job::Training, p)?;
                 warnings.extend(w);
                 config
             }
-            _ => AutoencoderKLCogVideoXConfig::preset(&self.vae)?,
+            _ => VaeConfig::preset(&self.vae)?,
         };
+        if transformer.family() != vae.family() {
+            return Err(Error::InvalidConfig {
+                source_name: self.vae.clone(),
+                field: "_class_name".to_string(),
+                reason: format!(
+                    "is a {} VAE but the transformer {} is a {} model: both must be of one family",
+                    vae.family().name(),
+                    self.transformer,
+                    transformer.family().name()
+                ),
+            });
+        }
         if warn {
             for warning in warnings {
                 eprintln!("warning: {warning}");
@@ -711,6 +681,44 @@ impl ModelConfig {
         Ok(Some((transformer, vae)))
     }
 
+    /// [`Self::model_configs`] for the jobs that run CogVideoX only so far (the memory plan):
+    /// a Wan model is refused by name.
+    pub fn configs(&self, warn: bool) -> Result<(CogVideoXTransformer3DModelConfig, AutoencoderKLCogVideoXConfig)> {
+        match self.model_configs(warn)? {
+            (TransformerConfig::CogVideoX(transformer), VaeConfig::CogVideoX(vae)) => Ok((transformer, vae)),
+            (transformer, _) => Err(Error::InvalidConfig {
+                source_name: self.transformer.clone(),
+                field: "_class_name".to_string(),
+                reason: format!(
+                    "is a {} model; this job runs CogVideoX models only so far",
+                    transformer.family().name()
+                ),
+            }),
+        }
+    }
+
+    /// The rectified-flow training schedule of a Wan run: the `scheduler` folder's (a
+    /// `FlowMatchEulerDiscreteScheduler` config, or Wan's `UniPCMultistepScheduler` whose
+    /// `flow_shift` it takes), else diffusers' defaults with [`WAN_FLOW_SHIFT`].
+    pub fn flow_schedule_config(&self) -> Result<FlowMatchEulerDiscreteSchedulerConfig> {
+        use crate::diffusers_config::DiffusersConfig;
+        use crate::schedulers::scheduling_unipc_multistep as unipc;
+        let Some(path) = &self.scheduler else {
+            return Ok(FlowMatchEulerDiscreteSchedulerConfig { shift: WAN_FLOW_SHIFT, ..Default::default() });
+        };
+        match diffusers_config::class_name(path, "scheduler_config.json")?.as_deref() {
+            Some(unipc::CLASS_NAME) => {
+                let unipc: unipc::UniPCMultistepSchedulerConfig = diffusers_config::read(path)?;
+                Ok(FlowMatchEulerDiscreteSchedulerConfig {
+                    num_train_timesteps: unipc.num_train_timesteps,
+                    shift: unipc.flow_shift,
+                    ..Default::default()
+                })
+            }
+            _ => FlowMatchEulerDiscreteSchedulerConfig::from_json_file(path),
+        }
+    }
+
     fn validate(&self, source_name: &str) -> Result<()> {
         let bad = |field: &str, reason: String| Error::InvalidConfig {
             source_name: source_name.to_string(),
@@ -718,15 +726,13 @@ impl ModelConfig {
             reason,
         };
         let transformer = Path::new(&self.transformer);
-        let wan = WanTransformer3DModelConfig::preset(&self.transformer).is_ok();
-        if !(transformer.is_dir() || transformer.is_file() || wan)
-            && let Err(e) = CogVideoXTransformer3DModelConfig::preset(&self.transformer)
+        if !(transformer.is_dir() || transformer.is_file())
+            && let Err(e) = TransformerConfig::preset(&self.transformer)
         {
             return Err(bad("model.transformer", format!("neither a config file, a model folder nor a preset: {e}")));
         }
         if !Path::new(&self.vae).is_dir()
-            && !wan
-            && let Err(e) = AutoencoderKLCogVideoXConfig::preset(&self.vae)
+            && let Err(e) = VaeConfig::preset(&self.vae)
         {
             return Err(bad("model.vae", format!("neither a model folder nor a preset: {e}")));
         }
@@ -746,7 +752,7 @@ impl ModelConfig {
     /// Refuses zeros as the text embedding of a transformer that takes T5-XXL text unless
     /// `zero_text_embedding` says so (see [`crate::loaders::require_text_embedding`]).
     pub fn check_text_embedding(&self) -> Result<()> {
-        let (transformer, _) = self.configs(false)?;
+        let (transformer, _) = self.model_configs(false)?;
         crate::loaders::require_text_embedding(
             &transformer,
             self.text_embedding.as_deref(),

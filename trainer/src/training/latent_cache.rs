@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use tch::{Device, Kind, Tensor, nn};
 
 use crate::error::{Error, Result};
-use crate::models::autoencoder_kl_cogvideox::AutoencoderKLCogVideoX;
+use crate::models::backbone::Vae;
 use crate::training::data::{Batch, DataConfig};
 
 /// Precomputed VAE latents, so that small runs encode each pair once and train many epochs:
@@ -24,11 +24,11 @@ pub struct LatentCache {
 
 impl LatentCache {
     /// A cache in `dir` for the VAE `vae` (its weights in `vae_vs`) and the data size.
-    pub fn open(dir: &Path, vae: &AutoencoderKLCogVideoX, vae_vs: &nn::VarStore, data: &DataConfig) -> Result<Self> {
+    pub fn open(dir: &Path, vae: &Vae, vae_vs: &nn::VarStore, data: &DataConfig) -> Result<Self> {
         std::fs::create_dir_all(dir).map_err(|source| Error::Io { path: dir.to_path_buf(), error: source })?;
         let mut hasher = blake3::Hasher::new();
         hasher.update(b"cognvs latent cache v1");
-        hasher.update(serde_json::to_string(vae.config()).expect("config serialises").as_bytes());
+        hasher.update(vae.config_fingerprint().as_bytes());
         let mut variables: Vec<(String, Tensor)> = vae_vs.variables().into_iter().collect();
         variables.sort_by(|a, b| a.0.cmp(&b.0));
         for (name, tensor) in variables {
@@ -49,14 +49,14 @@ impl LatentCache {
         (self.dir.join(format!("{}.safetensors", &hash.to_hex()[..32])), seed)
     }
 
-    /// Sample `i` of `batch`: (posterior mean, log-variance, conditioning latent scaled and laid
-    /// out for the transformer by `scale_latent`), from the cache or encoded with `vae` on
-    /// `device` and stored.
+    /// Sample `i` of `batch`: (posterior mean, log-variance, the transformer's condition channels:
+    /// the conditioning's posterior mean as the model sees it and, for Wan, the mask channels
+    /// before it; see [`Vae::condition_input`]), from the cache or encoded with `vae` on `device`
+    /// and stored.
     pub(super) fn get_or_encode(
         &self,
-        vae: &AutoencoderKLCogVideoX,
+        vae: &Vae,
         device: Device,
-        scale_latent: impl Fn(&Tensor) -> Result<Tensor>,
         batch: &Batch,
         (i, noise_log_mean, noise_log_std): (i64, f64, f64),
     ) -> Result<(Tensor, Tensor, Tensor)> {
@@ -77,10 +77,10 @@ impl LatentCache {
         let target = target.f_to_kind(vae.kind())?;
         let (posterior, cond) = tch::no_grad(|| -> Result<_> {
             let posterior = vae.encode_posterior(&target)?;
-            let cond = vae.encode(&noisy)?;
+            let cond = vae.encode_posterior(&noisy)?.mean;
             Ok((posterior, cond))
         })?;
-        let cond = scale_latent(&cond)?;
+        let cond = vae.condition_input(&vae.to_model_latent(&cond)?, &batch.mask.f_narrow(0, i, 1)?)?;
         let temp = path.with_extension(format!("tmp-{}", std::process::id()));
         Tensor::write_safetensors(
             &[("mean", &posterior.mean), ("logvar", &posterior.logvar), ("condition", &cond)],

@@ -63,7 +63,9 @@ pub use finetune::{
 };
 pub use latent_cache::LatentCache;
 pub use lr_schedule::learning_rate;
-pub use objective::{Backward, CogNvsModel, Draws};
+pub use objective::{
+    Backward, CogNvsModel, Draws, FlowSchedule, TrainingSchedule, flow_matching_loss, flow_noisy_and_target,
+};
 pub use pretrain::{
     RunEvent, RunSummary, StepMetrics, pretrain, pretrain_launched, pretrain_on, read_metrics, read_validation,
 };

@@ -1,5 +1,8 @@
-//! The trained and frozen models and the CogNVS objective (the public CogNVS training code): noise-augmented
-//! condition, v-prediction, x̂₀ loss weighted by 1/(1−ᾱ_t).
+//! The trained and frozen models and the CogNVS objective (the public CogNVS training code):
+//! noise-augmented condition and, per the family's [`Objective`], CogVideoX's v-prediction with
+//! the x̂₀ loss weighted by 1/(1−ᾱ_t), or Wan's rectified flow (the velocity `ε − x₀` at σ drawn
+//! uniformly from the shifted flow-matching training schedule, as diffusers-based trainers such as
+//! finetrainers train Wan). The models are reached through [`crate::models::backbone`] only.
 
 use std::path::Path;
 
@@ -8,27 +11,72 @@ use tch::{Device, Kind, Tensor, nn};
 use super::{LatentCache, ModelConfig};
 use crate::error::Result;
 use crate::loaders::lora::LoraFile;
-use crate::models::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoX};
-use crate::models::cogvideox_transformer_3d::{
-    self as transformer, BlockTape, CogVideoXTransformer3DModel, TransformerInput,
-};
+use crate::models::backbone::{ModelInput, Tape, Transformer, Vae};
+use crate::models::family::Objective;
 use crate::models::lora::LoraConfig;
 use crate::models::weights;
 use crate::schedulers::NoiseSchedule;
+use crate::schedulers::scheduling_flow_match_euler_discrete::{FlowMatchEulerDiscreteSchedulerConfig, training_sigmas};
 use crate::training::data::Batch;
+
+/// The noise schedule a run trains on, per the family's objective.
+pub enum TrainingSchedule {
+    /// CogVideoX's DDPM schedule (v-prediction; boxed, its tables are large beside the sigmas).
+    Ddpm(Box<NoiseSchedule>),
+    /// The flow-matching training sigmas (rectified flow).
+    Flow(FlowSchedule),
+}
+
+/// The rectified-flow training schedule: diffusers' `FlowMatchEulerDiscreteScheduler` training
+/// sigmas (`num_train_timesteps` of them, shifted), from which a step draws one per sample.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FlowSchedule {
+    sigmas: Vec<f32>,
+}
+
+impl FlowSchedule {
+    /// The schedule of a flow-matching scheduler config.
+    pub fn new(config: &FlowMatchEulerDiscreteSchedulerConfig) -> Result<Self> {
+        use crate::diffusers_config::DiffusersConfig;
+        config.validate("flow-matching scheduler config")?;
+        Ok(Self { sigmas: training_sigmas(config) })
+    }
+
+    /// The sigmas `[B]` and the model's timesteps `[B]` (int64) for uniform draws `u` in [0, 1):
+    /// index ⌊u·N⌋ of the training sigmas (noisiest first), timestep ⌊σ·N⌋, as finetrainers'
+    /// `prepare_sigmas` with the uniform weighting and its `(σ · 1000).long()` timesteps.
+    pub fn draw(&self, u: &Tensor) -> Result<(Tensor, Tensor)> {
+        let n = self.sigmas.len() as i64;
+        let table = Tensor::from_slice(&self.sigmas).f_to_device(u.device())?;
+        let index = u.f_mul_scalar(n as f64)?.f_to_kind(Kind::Int64)?.f_clamp(0, n - 1)?;
+        let sigmas = table.f_index_select(0, &index)?;
+        let timesteps = sigmas.f_mul_scalar(n as f64)?.f_to_kind(Kind::Int64)?;
+        Ok((sigmas, timesteps))
+    }
+}
+
+/// The rectified-flow pieces for clean latents `x0`, noise and per-sample sigmas `[B]`:
+/// `(x_σ, target)` with `x_σ = (1 − σ)·x0 + σ·noise` and the velocity target `noise − x0`.
+pub fn flow_noisy_and_target(x0: &Tensor, noise: &Tensor, sigmas: &Tensor) -> Result<(Tensor, Tensor)> {
+    let mut shape = vec![-1];
+    shape.extend(std::iter::repeat_n(1, x0.dim() - 1));
+    let sigma = sigmas.f_to_kind(Kind::Float)?.f_view(shape.as_slice())?;
+    let noisy = x0.f_mul(&sigma.f_neg()?.f_add_scalar(1.0)?)?.f_add(&noise.f_mul(&sigma)?)?;
+    Ok((noisy, noise.f_sub(x0)?))
+}
 
 /// The trained transformer, the frozen VAE, the noise schedule and the text input.
 pub struct CogNvsModel {
     /// The transformer's variables.
     pub vs: nn::VarStore,
     /// The transformer.
-    pub transformer: CogVideoXTransformer3DModel,
+    pub transformer: Transformer,
     /// The VAE's variables (frozen).
     pub vae_vs: nn::VarStore,
     /// The VAE.
-    pub vae: AutoencoderKLCogVideoX,
-    /// The training noise schedule (CogVideoX-5B scheduler).
-    pub schedule: NoiseSchedule,
+    pub vae: Vae,
+    /// The training noise schedule (the family's objective's).
+    pub schedule: TrainingSchedule,
     /// `[1, S, D]` text embedding of the empty prompt (fp32).
     pub text: Tensor,
     /// The LoRA adapters' variables when only adapters train (the base `vs` is then frozen).
@@ -46,26 +94,16 @@ impl CogNvsModel {
     /// `lora`, adds fresh adapters (drawn after the base's initialisation) and freezes the base.
     pub fn load(config: &ModelConfig, lora: Option<&LoraConfig>, seed: u64, device: Device) -> Result<Self> {
         tch::manual_seed(seed as i64);
-        let (transformer_config, vae_config) = config.configs(true)?;
+        let (transformer_config, vae_config) = config.model_configs(true)?;
         // The transformer checkpoint's headers are checked before its 5B variables are allocated.
         let transformer_dir = Path::new(&config.transformer);
         if transformer_dir.is_dir() {
             let found = weights::read_checkpoint_info(transformer_dir)?;
-            weights::check_against(&transformer::variable_shapes(&transformer_config)?, &found, transformer_dir)?;
+            weights::check_against(&transformer_config.variable_shapes()?, &found, transformer_dir)?;
         }
-        let (mut vs, lora_vs, transformer) = match lora {
-            Some(lora) => {
-                let (vs, lora_vs, model) =
-                    transformer::build_with_lora(&transformer_config, lora, device, Kind::Float)?;
-                (vs, Some(lora_vs), model)
-            }
-            None => {
-                let (vs, model) = transformer::build(&transformer_config, device, Kind::Float)?;
-                (vs, None, model)
-            }
-        };
-        if Path::new(&config.transformer).is_dir() {
-            weights::load(&vs, Path::new(&config.transformer))?;
+        let (mut vs, lora_vs, transformer) = Transformer::build(&transformer_config, lora, device, Kind::Float)?;
+        if transformer_dir.is_dir() {
+            transformer.load(&vs, transformer_dir)?;
         }
         if let Some(file) = &config.transformer_lora {
             LoraFile::read(file)?.merge_into(&vs, file)?;
@@ -73,13 +111,18 @@ impl CogNvsModel {
         if lora_vs.is_some() {
             vs.freeze();
         }
-        let (mut vae_vs, vae) = vae::build(&vae_config, device, Kind::Float)?;
+        let (mut vae_vs, vae) = Vae::build(&vae_config, device, Kind::Float)?;
         if Path::new(&config.vae).is_dir() {
             weights::load(&vae_vs, Path::new(&config.vae))?;
         }
         vae_vs.freeze();
         let text = crate::loaders::load_text_embedding(config.text_embedding.as_deref(), &transformer_config, device)?;
-        let schedule = NoiseSchedule::new(&config.scheduler_config()?)?;
+        let schedule = match transformer.family().objective() {
+            Objective::VPrediction => {
+                TrainingSchedule::Ddpm(Box::new(NoiseSchedule::new(&config.scheduler_config()?)?))
+            }
+            Objective::RectifiedFlow => TrainingSchedule::Flow(FlowSchedule::new(&config.flow_schedule_config()?)?),
+        };
         Ok(Self {
             vs,
             transformer,
@@ -115,8 +158,8 @@ impl CogNvsModel {
         self.kind
     }
 
-    /// Scaled fp32 latents `[B, F', C, h, w]` of a video batch `[B, 3, F, H, W]` (a posterior
-    /// sample).
+    /// Latents of a video batch `[B, 3, F, H, W]` as the transformer sees them (a posterior
+    /// sample, scaled and laid out by the family: [`Vae::to_model_latent`]), fp32.
     pub fn encode(&self, video: &Tensor) -> Result<Tensor> {
         let latent = self.timed_encode(|| {
             tch::no_grad(|| -> Result<Tensor> {
@@ -146,22 +189,29 @@ impl CogNvsModel {
         out
     }
 
-    /// A VAE latent `[B, C, F', h, w]` scaled and laid out for the transformer `[B, F', C, h, w]`.
-    /// [`Self::encode`] with the posterior's noise drawn by `pick` (for the global batch).
-    fn encode_with(&self, video: &Tensor, pick: &Picker) -> Result<Tensor> {
+    /// [`Self::encode`] with the posterior's noise drawn by `pick` (for the global batch); for
+    /// the conditioning (`condition`), the family's conditioning latent
+    /// ([`Vae::condition_latent`]).
+    fn encode_with(&self, video: &Tensor, pick: &Picker, condition: bool) -> Result<Tensor> {
         let latent = self.timed_encode(|| {
             tch::no_grad(|| -> Result<Tensor> {
                 let posterior = self.vae.encode_posterior(&video.f_to_kind(self.kind)?)?;
-                let std = posterior.logvar.f_mul_scalar(0.5)?.f_exp()?;
                 let eps = pick.randn(&posterior.mean.size(), posterior.mean.kind())?;
-                Ok(posterior.mean.f_add(&std.f_mul(&eps)?)?.f_to_kind(Kind::Float)?)
+                let latent = if condition {
+                    self.vae.condition_latent(&posterior, &eps)?
+                } else {
+                    let std = posterior.logvar.f_mul_scalar(0.5)?.f_exp()?;
+                    posterior.mean.f_add(&std.f_mul(&eps)?)?
+                };
+                Ok(latent.f_to_kind(Kind::Float)?)
             })
         })?;
         self.scale_latent(&latent)
     }
 
+    /// A VAE latent `[B, C, F', h, w]` as the transformer sees it ([`Vae::to_model_latent`]).
     pub(super) fn scale_latent(&self, latent: &Tensor) -> Result<Tensor> {
-        Ok(latent.f_mul_scalar(self.vae.config().scaling_factor)?.f_permute([0, 2, 1, 3, 4])?.f_contiguous()?)
+        self.vae.to_model_latent(latent)
     }
 
     /// The training loss of one batch (see the module docs); draws from tch's generator. With a
@@ -213,7 +263,7 @@ impl CogNvsModel {
     }
 
     /// The loss and, for training (`taped`: with or without checkpointing), the transformer's
-    /// tape for [`BlockTape::backward`]; without `taped` the plain forward's graph.
+    /// tape for [`Tape::backward`]; without `taped` the plain forward's graph.
     fn loss_graph(
         &self,
         batch: &Batch,
@@ -222,7 +272,7 @@ impl CogNvsModel {
         cache: Option<&LatentCache>,
         taped: Option<bool>,
         draws: Draws,
-    ) -> Result<(Tensor, Option<BlockTape<'_>>)> {
+    ) -> Result<(Tensor, Option<Tape<'_>>)> {
         let device = self.text.device();
         let b = batch.target.size()[0];
         let pick = draws.picker(b, device)?;
@@ -233,7 +283,9 @@ impl CogNvsModel {
                 let sigma = (pick.randn(&[b, 1, 1, 1, 1], Kind::Float)? * noise_log_std + noise_log_mean).f_exp()?;
                 let noise = pick.randn(&condition.size(), condition.kind())?;
                 let noisy_condition = condition.f_add(&noise.f_mul(&sigma)?)?;
-                (self.encode_with(&target, &pick)?, self.encode_with(&noisy_condition, &pick)?)
+                let x0 = self.encode_with(&target, &pick, false)?;
+                let cond = self.encode_with(&noisy_condition, &pick, true)?;
+                (x0, self.vae.condition_input(&cond, &batch.mask)?)
             }
             Some(cache) => {
                 // Cache look-ups and fills draw from their own seeds; the step's generator state is
@@ -243,9 +295,7 @@ impl CogNvsModel {
                 let mut cond = Vec::new();
                 let mut posteriors = Vec::new();
                 for i in 0..b {
-                    let scale = |latent: &Tensor| self.scale_latent(latent);
-                    let entry =
-                        cache.get_or_encode(&self.vae, device, scale, batch, (i, noise_log_mean, noise_log_std))?;
+                    let entry = cache.get_or_encode(&self.vae, device, batch, (i, noise_log_mean, noise_log_std))?;
                     posteriors.push(entry);
                 }
                 tch::manual_seed(resume_seed);
@@ -270,49 +320,78 @@ impl CogNvsModel {
                 (Tensor::f_cat(&x0, 0)?, Tensor::f_cat(&cond, 0)?)
             }
         };
-        let steps = self.schedule.alphas_cumprod().len() as i64;
-        let t = pick.randint(steps, b)?;
-        let noise = pick.randn(&x0.size(), x0.kind())?;
-        let xt = self.schedule.add_noise(&x0, &noise, &t)?;
-        let input = Tensor::f_cat(&[&xt, &cond], 2)?.f_to_kind(self.kind)?;
         let text = self.text.f_to_kind(self.kind)?.f_expand([b, -1, -1], false)?;
-        let transformer_input = TransformerInput {
-            hidden_states: &input,
-            encoder_hidden_states: &text,
-            timestep: &t,
-            ofs: None,
-            image_rotary_emb: None,
-        };
-        let (v, tape) = match taped {
-            Some(checkpointing) => {
-                let (v, tape) = self.transformer.forward_taped(&transformer_input, true, checkpointing)?;
-                (v, Some(tape))
+        match &self.schedule {
+            TrainingSchedule::Ddpm(schedule) => {
+                let steps = schedule.alphas_cumprod().len() as i64;
+                let t = pick.randint(steps, b)?;
+                let noise = pick.randn(&x0.size(), x0.kind())?;
+                let xt = schedule.add_noise(&x0, &noise, &t)?;
+                let (v, tape) = self.predict(&xt, &cond, &text, &t, taped)?;
+                let alphas: Vec<f64> =
+                    (0..b).map(|i| schedule.alpha_cumprod_at(t.int64_value(&[i]))).collect::<Result<_>>()?;
+                let per_sample = |f: fn(f64) -> f64| -> Result<Tensor> {
+                    let values: Vec<f32> = alphas.iter().map(|&a| f(a) as f32).collect();
+                    Ok(Tensor::from_slice(&values).f_view([b, 1, 1, 1, 1])?.f_to_device(device)?)
+                };
+                let sqrt_alpha = per_sample(f64::sqrt)?;
+                let sqrt_one_minus = per_sample(|a| (1.0 - a).sqrt())?;
+                let weight = per_sample(|a| 1.0 / (1.0 - a).max(1e-12))?;
+                let x0_hat = xt.f_mul(&sqrt_alpha)?.f_sub(&v.f_mul(&sqrt_one_minus)?)?;
+                Ok((x0_hat.f_sub(&x0)?.f_square()?.f_mul(&weight)?.f_mean(Kind::Float)?, tape))
             }
-            None => (self.transformer.forward(&transformer_input, true)?, None),
-        };
-        let v = v.f_to_kind(Kind::Float)?;
-        let alphas: Vec<f64> =
-            (0..b).map(|i| self.schedule.alpha_cumprod_at(t.int64_value(&[i]))).collect::<Result<_>>()?;
-        let per_sample = |f: fn(f64) -> f64| -> Result<Tensor> {
-            let values: Vec<f32> = alphas.iter().map(|&a| f(a) as f32).collect();
-            Ok(Tensor::from_slice(&values).f_view([b, 1, 1, 1, 1])?.f_to_device(device)?)
-        };
-        let sqrt_alpha = per_sample(f64::sqrt)?;
-        let sqrt_one_minus = per_sample(|a| (1.0 - a).sqrt())?;
-        let weight = per_sample(|a| 1.0 / (1.0 - a).max(1e-12))?;
-        let x0_hat = xt.f_mul(&sqrt_alpha)?.f_sub(&v.f_mul(&sqrt_one_minus)?)?;
-        Ok((x0_hat.f_sub(&x0)?.f_square()?.f_mul(&weight)?.f_mean(Kind::Float)?, tape))
+            TrainingSchedule::Flow(schedule) => {
+                let u = pick.rand(b)?;
+                let noise = pick.randn(&x0.size(), x0.kind())?;
+                flow_matching_loss(self, schedule, (&x0, &cond, &text), &u, &noise, taped)
+            }
+        }
+    }
+
+    /// The transformer's prediction (fp32) for noisy latents, the condition channels, text and
+    /// timesteps, in the models' element type.
+    fn predict(
+        &self,
+        latents: &Tensor,
+        condition: &Tensor,
+        text: &Tensor,
+        timestep: &Tensor,
+        taped: Option<bool>,
+    ) -> Result<(Tensor, Option<Tape<'_>>)> {
+        let (latents, condition) = (latents.f_to_kind(self.kind)?, condition.f_to_kind(self.kind)?);
+        let input = ModelInput { latents: &latents, condition: &condition, text, timestep };
+        let (out, tape) = self.transformer.forward_taped(&input, true, taped)?;
+        Ok((out.f_to_kind(Kind::Float)?, tape))
     }
 }
 
-/// How [`CogNvsModel::loss_backward`] runs the transformer's backward: block by block (see
-/// [`CogVideoXTransformer3DModel::forward_taped`]), reporting each finished stage.
+/// The rectified-flow loss of clean latents `x0` with the condition channels and text (in the
+/// model's layout), for uniform draws `u` `[B]` and `noise` like `x0`: σ and the timestep from
+/// [`FlowSchedule::draw`], `x_σ` and the target from [`flow_noisy_and_target`], and
+/// `mean((v̂ − (noise − x0))²)` (finetrainers' uniform loss weighting; every sample has the same
+/// size, so its per-sample means averaged are this mean).
+pub fn flow_matching_loss<'a>(
+    model: &'a CogNvsModel,
+    schedule: &FlowSchedule,
+    (x0, condition, text): (&Tensor, &Tensor, &Tensor),
+    u: &Tensor,
+    noise: &Tensor,
+    taped: Option<bool>,
+) -> Result<(Tensor, Option<Tape<'a>>)> {
+    let (sigmas, timesteps) = schedule.draw(u)?;
+    let (noisy, target) = flow_noisy_and_target(x0, noise, &sigmas)?;
+    let (v, tape) = model.predict(&noisy, condition, text, &timesteps, taped)?;
+    Ok((v.f_sub(&target)?.f_square()?.f_mean(Kind::Float)?, tape))
+}
+
+/// How [`CogNvsModel::loss_backward`] runs the transformer's backward: block by block where the
+/// family has a tape ([`Tape`]), reporting each finished stage.
 pub struct Backward<'a> {
     /// Keep only each block's input and recompute the blocks during the backward (gradient
     /// checkpointing): the same gradients for a fraction of the activation memory.
     pub checkpointing: bool,
     /// Called with each stage of the backward once the gradients of its parameters are final
-    /// ([`CogVideoXTransformer3DModel::backward_stage_of`]), in order; a data-parallel step
+    /// ([`Transformer::backward_stage_of`]), in order; a data-parallel step
     /// starts reducing them there.
     pub on_stage: Option<&'a mut dyn FnMut(usize) -> Result<()>>,
 }
@@ -375,6 +454,11 @@ impl Picker {
     /// Standard normal values of `local` shape (batch first).
     fn randn(&self, local: &[i64], kind: Kind) -> Result<Tensor> {
         self.keep(Tensor::f_randn(self.global(local).as_slice(), (kind, self.device))?)
+    }
+
+    /// Uniform values in [0, 1), one per local sample.
+    fn rand(&self, b: i64) -> Result<Tensor> {
+        self.keep(Tensor::f_rand([b * self.world], (Kind::Float, self.device))?)
     }
 
     /// Integers in `0..high`, one per local sample.

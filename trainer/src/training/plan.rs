@@ -16,7 +16,7 @@
 //! - activations per block: what autograd saves for the backward in [`CogVideoXBlock`]'s forward
 //!   (see [`BlockTerm`]), in units of one `[B, L, D]` tensor (L = text + video tokens, D = width).
 //!
-//! [`CogVideoXBlock`]: crate::models::cogvideox_transformer_3d::CogVideoXBlock
+//! [`CogVideoXBlock`]: crate::models::cogvideox::cogvideox_transformer_3d::CogVideoXBlock
 
 use std::fmt;
 
@@ -24,8 +24,8 @@ use tch::{Device, Kind};
 
 use crate::diffusers_config::DiffusersConfig;
 use crate::error::{Error, Result};
-use crate::models::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoXConfig};
-use crate::models::cogvideox_transformer_3d::{CogVideoXTransformer3DModelConfig, variable_shapes};
+use crate::models::cogvideox::autoencoder_kl_cogvideox::{self as vae, AutoencoderKLCogVideoXConfig};
+use crate::models::cogvideox::cogvideox_transformer_3d::{CogVideoXTransformer3DModelConfig, variable_shapes};
 use crate::models::lora::LoraConfig;
 use crate::training::PretrainConfig;
 
@@ -99,7 +99,7 @@ pub enum Needs {
     FfOut,
 }
 
-/// What [`CogVideoXBlock::forward`](crate::models::cogvideox_transformer_3d::CogVideoXBlock::forward)
+/// What [`CogVideoXBlock::forward`](crate::models::cogvideox::cogvideox_transformer_3d::CogVideoXBlock::forward)
 /// keeps for the backward, in order (read off `cogvideox_transformer_3d.rs`, `attention.rs`,
 /// `normalization.rs`; SDPA runs a flash kernel on CUDA and on the CPU, which saves q, k, v, the
 /// output and a per-row log-sum-exp, never the L × L scores). The rotary embedding multiplies by
@@ -273,6 +273,10 @@ pub fn check_run(
     source_name: &str,
     show: impl FnOnce(&MemoryPlan),
 ) -> Result<()> {
+    // The plan covers the families it runs.
+    if !config.model.model_configs(false)?.0.family().runs(crate::models::family::Job::MemoryPlan) {
+        return Ok(());
+    }
     let plan = plan_run(config, pg.map(|pg| pg.world_size), device)?;
     if pg.is_none_or(|pg| pg.rank == 0) {
         show(&plan);

@@ -21,7 +21,6 @@ use super::{
 };
 use crate::distributed::ProcessGroup;
 use crate::error::{Error, Result};
-use crate::models::autoencoder_kl_cogvideox as vae;
 use crate::models::weights;
 use crate::training::data::{ClipIndex, DataConfig, DataPosition, ShardLoader};
 
@@ -337,7 +336,7 @@ fn start_model(
         let lora_file = dir.join(crate::loaders::lora::LORA_WEIGHTS_NAME);
         match (model.lora_vs.is_some(), lora_file.is_file()) {
             (false, false) => {
-                weights::load(&model.vs, &dir.join("transformer"))?;
+                model.transformer.load(&model.vs, &dir.join("transformer"))?;
             }
             (true, true) => {}
             (lora, _) => {
@@ -560,20 +559,15 @@ fn write_run_models(run: &Path, config: &PretrainConfig, model: &CogNvsModel) ->
     // The frozen VAE goes with the run once (sampling and finetuning find it there).
     let vae_dir = run.join("vae");
     if !vae_dir.join("config.json").exists() {
-        weights::save(&model.vae_vs, model.vae.config(), vae::CLASS_NAME, &vae_dir, weights::DEFAULT_MAX_SHARD_BYTES)?;
+        model.vae.save(&model.vae_vs, &vae_dir, weights::DEFAULT_MAX_SHARD_BYTES)?;
     }
     // A LoRA run's checkpoints hold only adapters: the base they sit on is kept once, unless it is
     // simply the configured model folder.
     let base_is_folder = Path::new(&config.model.transformer).is_dir() && config.model.transformer_lora.is_none();
     let base_dir = run.join(crate::loaders::lora::BASE_TRANSFORMER_DIR);
     if model.lora_vs.is_some() && !base_is_folder && !base_dir.join("config.json").exists() {
-        weights::save(
-            &model.vs,
-            model.transformer.config(),
-            crate::models::cogvideox_transformer_3d::CLASS_NAME,
-            &base_dir,
-            weights::DEFAULT_MAX_SHARD_BYTES,
-        )?;
+        let variables = model.vs.variables().into_iter().collect();
+        model.transformer.save(variables, &base_dir, weights::DEFAULT_MAX_SHARD_BYTES)?;
     }
     Ok(())
 }

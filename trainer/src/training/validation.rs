@@ -27,6 +27,7 @@ use super::{CogNvsModel, PretrainConfig, consensus};
 use crate::distributed::ProcessGroup;
 use crate::error::{Error, Result};
 use crate::eval::lpips::Lpips;
+use crate::models::backbone::{Transformer, Vae};
 use crate::training::data::{Batch, ClipIndex, DataConfig, DataPosition, ShardLoader};
 
 /// Means over the validation pairs, as logged (`metrics.jsonl`: `{"step": N, "validation": …}`).
@@ -240,15 +241,17 @@ fn sample_pair(model: &CogNvsModel, batch: &Batch, seed: i64, steps: usize) -> R
     let device = model.text.device();
     let condition = batch.condition.f_narrow(0, 0, 1)?.f_to_device(device)?;
     tch::manual_seed(seed);
-    let video = crate::pipelines::sampling::generate(
-        &model.transformer,
-        &model.vae,
-        &condition,
-        &model.text,
-        None,
-        steps,
-        1.0,
-    )?;
+    // The config check refuses validation for a family the sampler does not run yet.
+    let (Transformer::CogVideoX(transformer), Vae::CogVideoX(vae)) = (&model.transformer, &model.vae) else {
+        return Err(Error::InvalidArgument {
+            name: "validation".to_string(),
+            reason: format!(
+                "validation samples CogVideoX models only so far, not {}",
+                model.transformer.family().name()
+            ),
+        });
+    };
+    let video = crate::pipelines::sampling::generate(transformer, vae, &condition, &model.text, None, steps, 1.0)?;
     let mask = batch.mask.f_narrow(0, 0, 1)?.f_squeeze_dims([0, 1])?;
     let (frames, height, width) = (mask.size()[0], mask.size()[1] as u32, mask.size()[2] as u32);
     let masks = (0..frames)

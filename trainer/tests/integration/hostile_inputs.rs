@@ -12,8 +12,8 @@ use std::process::{Command, Output};
 
 use image::{Rgb, RgbImage};
 use trainer::diffusers_config::DiffusersConfig;
-use trainer::models::autoencoder_kl_cogvideox::AutoencoderKLCogVideoXConfig;
-use trainer::models::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
+use trainer::models::cogvideox::autoencoder_kl_cogvideox::AutoencoderKLCogVideoXConfig;
+use trainer::models::cogvideox::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
 use trainer::models::weights;
 use trainer::tch::{Device, Kind, Tensor};
 use trainer::training::PretrainConfig;

@@ -9,7 +9,7 @@ use std::process::Command;
 
 use tch::{Device, Kind, Tensor};
 use trainer::loaders::lora::LORA_WEIGHTS_NAME;
-use trainer::models::cogvideox_transformer_3d::{
+use trainer::models::cogvideox::cogvideox_transformer_3d::{
     self as transformer, CogVideoXTransformer3DModelConfig, TransformerInput,
 };
 use trainer::models::lora::LoraConfig;

@@ -26,3 +26,4 @@ mod vae;
 mod validation;
 mod wan;
 mod wan_lora;
+mod wan_training;

@@ -7,7 +7,7 @@
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
-use trainer::models::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
+use trainer::models::cogvideox::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
 use trainer::schedulers::CogVideoXSchedulerConfig;
 
 use super::parity::assert_success;

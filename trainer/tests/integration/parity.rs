@@ -69,11 +69,12 @@ pub fn assert_close(name: &str, actual: &Tensor, expected: &Tensor, tol: f64) {
 /// Writes a random transformer of `config` to `transformer_dir` and a tiny random VAE to `vae_dir`,
 /// in the diffusers layout `trainer` reads.
 pub fn save_tiny_models(
-    config: &trainer::models::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig,
+    config: &trainer::models::cogvideox::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig,
     transformer_dir: &Path,
     vae_dir: &Path,
 ) {
-    use trainer::models::{autoencoder_kl_cogvideox as vae, cogvideox_transformer_3d as transformer, weights};
+    use trainer::models::cogvideox::{autoencoder_kl_cogvideox as vae, cogvideox_transformer_3d as transformer};
+    use trainer::models::weights;
     let max = weights::DEFAULT_MAX_SHARD_BYTES;
     let (vs, _model) = transformer::build(config, Device::Cpu, Kind::Float).unwrap();
     weights::save(&vs, config, transformer::CLASS_NAME, transformer_dir, max).unwrap();

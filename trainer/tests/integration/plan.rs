@@ -8,7 +8,7 @@ use std::path::Path;
 use std::process::Command;
 
 use tch::{Device, Kind};
-use trainer::models::cogvideox_transformer_3d::{self as transformer, CogVideoXTransformer3DModelConfig};
+use trainer::models::cogvideox::cogvideox_transformer_3d::{self as transformer, CogVideoXTransformer3DModelConfig};
 use trainer::models::lora::LoraConfig;
 use trainer::training::PretrainConfig;
 use trainer::training::plan::{MemoryPlan, PlanOptions, fits, plan};
@@ -56,7 +56,7 @@ fn parameter_counts_equal_the_built_models() {
     config.lora = Some(lora);
     let adapted = plan_of(&config, 1, Device::Cpu);
     assert_eq!(adapted.trainable_parameters, count(&lora_vs));
-    let (vae_vs, _) = trainer::models::autoencoder_kl_cogvideox::build(
+    let (vae_vs, _) = trainer::models::cogvideox::autoencoder_kl_cogvideox::build(
         &config.model.configs(false).unwrap().1,
         Device::Cpu,
         Kind::Float,
@@ -183,7 +183,7 @@ fn test_time_finetuning_presets_fit_where_they_are_meant_to_run() {
 fn sampling_the_5b_model_in_bf16_fits_a_24_gb_gpu_with_tiles() {
     let config = preset("finetune_5b_lora_1gpu.toml");
     let (transformer, vae) = config.model.configs(false).unwrap();
-    let tiles = trainer::models::autoencoder_kl_cogvideox::TilingConfig::for_config(&vae);
+    let tiles = trainer::models::cogvideox::autoencoder_kl_cogvideox::TilingConfig::for_config(&vae);
     assert!(tiles.lands_on_latent_pixels(vae.spatial_compression_ratio()));
     let plan = |tiling, guided| {
         trainer::training::plan::sampling_plan(
@@ -205,7 +205,7 @@ fn sampling_the_5b_model_in_bf16_fits_a_24_gb_gpu_with_tiles() {
 }
 
 fn count_of(config: &CogVideoXTransformer3DModelConfig) -> u64 {
-    trainer::models::cogvideox_transformer_3d::variable_shapes(config)
+    trainer::models::cogvideox::cogvideox_transformer_3d::variable_shapes(config)
         .unwrap()
         .values()
         .map(|s| s.iter().map(|&d| d as u64).product::<u64>())
@@ -223,8 +223,8 @@ const WAN_PRESETS: [(&str, &str, u64); 3] = [
 #[test]
 fn wan_presets_are_the_released_shapes_and_fit_their_gpus_as_the_readme_states() {
     use trainer::diffusers_config::DiffusersConfig;
-    use trainer::models::autoencoder_kl_wan::AutoencoderKLWanConfig;
-    use trainer::models::transformer_wan::WanTransformer3DModelConfig;
+    use trainer::models::wan::autoencoder_kl_wan::AutoencoderKLWanConfig;
+    use trainer::models::wan::transformer_wan::WanTransformer3DModelConfig;
     let readme = std::fs::read_to_string(repo_root().join("README.md")).unwrap();
     for (name, folder, capacity) in WAN_PRESETS {
         let config = preset(name);
@@ -264,8 +264,8 @@ fn tiny_wan(dir: &Path, transformer: &str, lora: &str) -> PretrainConfig {
 
 #[test]
 fn wan_parameter_counts_equal_the_built_models_and_lora_shrinks_what_it_should() {
-    use trainer::models::autoencoder_kl_wan::{self as wan_vae, AutoencoderKLWanConfig};
-    use trainer::models::transformer_wan::{self as wan, WanTransformer3DModelConfig};
+    use trainer::models::wan::autoencoder_kl_wan::{self as wan_vae, AutoencoderKLWanConfig};
+    use trainer::models::wan::transformer_wan::{self as wan, WanTransformer3DModelConfig};
     let dir = tempfile::tempdir().unwrap();
     let count = |vs: &tch::nn::VarStore| vs.variables().values().map(|t| t.numel() as u64).sum::<u64>();
     let c = WanTransformer3DModelConfig::tiny_i2v();

@@ -45,7 +45,7 @@ fn config(dir: &Path, steps: u64) -> PathBuf {
     path
 }
 
-fn pretrain(config: &Path, shards: &Path, out: &Path, resume: bool) -> std::process::Output {
+pub(super) fn pretrain(config: &Path, shards: &Path, out: &Path, resume: bool) -> std::process::Output {
     let mut cmd = Command::new(env!("CARGO_BIN_EXE_trainer"));
     cmd.arg("pretrain").arg("--config").arg(config).arg("--shards").arg(shards).arg("--out").arg(out);
     if resume {
@@ -54,7 +54,7 @@ fn pretrain(config: &Path, shards: &Path, out: &Path, resume: bool) -> std::proc
     cmd.output().unwrap()
 }
 
-fn ok(output: &std::process::Output) {
+pub(super) fn ok(output: &std::process::Output) {
     assert!(
         output.status.success(),
         "{}{}",
@@ -152,13 +152,18 @@ fn pretrain_learns_and_resume_repeats_the_uninterrupted_run() {
         &["--reload".as_ref(), checkpoint.as_os_str(), inputs.as_os_str(), out.as_os_str()],
     );
     let config =
-        trainer::models::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig::from_json_file(&checkpoint)
-            .unwrap();
-    let (vs, model) =
-        trainer::models::cogvideox_transformer_3d::build(&config, trainer::tch::Device::Cpu, trainer::tch::Kind::Float)
-            .unwrap();
+        trainer::models::cogvideox::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig::from_json_file(
+            &checkpoint,
+        )
+        .unwrap();
+    let (vs, model) = trainer::models::cogvideox::cogvideox_transformer_3d::build(
+        &config,
+        trainer::tch::Device::Cpu,
+        trainer::tch::Kind::Float,
+    )
+    .unwrap();
     trainer::models::weights::load(&vs, &checkpoint).unwrap();
-    let input = trainer::models::cogvideox_transformer_3d::TransformerInput {
+    let input = trainer::models::cogvideox::cogvideox_transformer_3d::TransformerInput {
         hidden_states: &hidden,
         encoder_hidden_states: &text,
         timestep: &t,

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::OnceLock;
 
-use trainer::models::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
+use trainer::models::cogvideox::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
 use trainer::tch::{Device, Kind, Tensor};
 
 use super::parity::{assert_success, python, read_tensors, repo_root, run_script};

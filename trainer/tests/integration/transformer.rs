@@ -10,7 +10,7 @@ use std::path::Path;
 use std::sync::OnceLock;
 
 use trainer::diffusers_config::DiffusersConfig;
-use trainer::models::cogvideox_transformer_3d::{
+use trainer::models::cogvideox::cogvideox_transformer_3d::{
     self as transformer, CogVideoXTransformer3DModel, CogVideoXTransformer3DModelConfig, TransformerInput,
 };
 use trainer::models::weights;

@@ -9,7 +9,7 @@ use std::path::Path;
 use std::sync::OnceLock;
 
 use trainer::diffusers_config::DiffusersConfig;
-use trainer::models::autoencoder_kl_cogvideox::{
+use trainer::models::cogvideox::autoencoder_kl_cogvideox::{
     self as vae, AutoencoderKLCogVideoX, AutoencoderKLCogVideoXConfig, TilingConfig,
 };
 use trainer::tch::{self, Device, Kind, Tensor, nn};

@@ -6,7 +6,7 @@
 //! `AutoencoderKLWan` (Wan2.1's, Wan2.2's residual patchified one) encoding and decoding; whole
 //! sampling runs equal to `WanPipeline` and `WanImageToVideoPipeline` for a seed, the CogNVS
 //! render + mask conditioning reducing to them (I2V checkpoint; T2V widened with zeros), and the
-//! jobs that do not run Wan yet refusing it by family.
+//! jobs that do not run Wan yet refusing it by family (training: `wan_training.rs`).
 //!
 //! Reference values come from `scripts/goldens_wan.py` (diffusers with a fixed seed), run into a
 //! temporary folder once per test binary.
@@ -16,8 +16,8 @@ use std::path::Path;
 use std::sync::OnceLock;
 
 use trainer::diffusers_config::DiffusersConfig;
-use trainer::models::autoencoder_kl_wan::{self as vae, AutoencoderKLWanConfig};
-use trainer::models::transformer_wan::{
+use trainer::models::wan::autoencoder_kl_wan::{self as vae, AutoencoderKLWanConfig};
+use trainer::models::wan::transformer_wan::{
     self as transformer, WanTransformer3DModel, WanTransformer3DModelConfig, WanTransformerInput,
 };
 use trainer::models::weights;
@@ -30,7 +30,7 @@ use trainer::tch::{self, Device, Kind, Tensor, nn};
 use super::parity::{assert_close, assert_success, read_tensors, run_script};
 
 /// Output of `scripts/goldens_wan.py`, generated once per test binary.
-fn goldens() -> &'static Path {
+pub(super) fn goldens() -> &'static Path {
     static DIR: OnceLock<tempfile::TempDir> = OnceLock::new();
     DIR.get_or_init(|| run_script("goldens_wan.py")).path()
 }
@@ -427,8 +427,9 @@ fn trainer_forward_runs_wan_configs() {
     );
 }
 
-/// The jobs that do not run Wan yet (sampling, training) pick the family from the folders'
-/// `_class_name` and refuse a Wan model by name, before anything is parsed as CogVideoX's.
+/// The jobs that do not run Wan yet (sampling) pick the family from the folders' `_class_name`
+/// and refuse a Wan model by name, before anything is parsed as CogVideoX's; training refuses a
+/// mix of families.
 #[test]
 fn sampling_and_training_refuse_wan_folders_by_family() {
     let root = tempfile::tempdir().unwrap();
@@ -460,8 +461,9 @@ fn sampling_and_training_refuse_wan_folders_by_family() {
         scheduler: None,
         transformer_lora: None,
     };
-    let e = model.configs(false).unwrap_err().to_string();
-    assert!(e.contains("is a Wan model; training runs CogVideoX") && e.contains("vae"), "{e}");
+    // Training runs Wan, but one family at a time: a CogVideoX transformer with a Wan VAE is refused.
+    let e = model.model_configs(false).unwrap_err().to_string();
+    assert!(e.contains("is a Wan VAE but the transformer tiny is a CogVideoX model") && e.contains("vae"), "{e}");
 }
 
 /// `WanPipeline`'s videos for a seed (`output_type="np"`, [0, 1]) from ours, within one grey

@@ -12,7 +12,7 @@ use std::process::Command;
 
 use trainer::loaders::lora::{LORA_WEIGHTS_NAME, LoraFile};
 use trainer::models::lora::LoraConfig;
-use trainer::models::transformer_wan::{
+use trainer::models::wan::transformer_wan::{
     self as transformer, WanTransformer3DModel, WanTransformer3DModelConfig, WanTransformerInput,
 };
 use trainer::models::weights;

@@ -2,7 +2,7 @@
 //! their diffusers config shapes: parameters from the built module tree's variable shapes (the
 //! [`KEEP_IN_FP32_MODULES`] stay fp32 in a bf16 run, as diffusers loads them), adapters from the
 //! LoRA targets, and activations per block from what autograd keeps in
-//! [`WanTransformerBlock::forward`](crate::models::transformer_wan::WanTransformerBlock::forward)
+//! [`WanTransformerBlock::forward`](crate::models::wan::transformer_wan::WanTransformerBlock::forward)
 //! (see [`WAN_BLOCK_TERMS`]). Its rows and peaks beside these are the parent's, shared with
 //! CogVideoX.
 //!
@@ -18,9 +18,9 @@ use super::{
     PlanShape, RGB, element_bytes, human_count, kind_name,
 };
 use crate::error::Result;
-use crate::models::autoencoder_kl_wan::{self as vae, AutoencoderKLWanConfig};
+use crate::models::wan::autoencoder_kl_wan::{self as vae, AutoencoderKLWanConfig};
 use crate::models::lora::LoraConfig;
-use crate::models::transformer_wan::{self as transformer, KEEP_IN_FP32_MODULES, WanTransformer3DModelConfig};
+use crate::models::wan::transformer_wan::{self as transformer, KEEP_IN_FP32_MODULES, WanTransformer3DModelConfig};
 use crate::training::PretrainConfig;
 
 /// Text tokens of the cross-attention context: umT5's padded length (`TEXT_CONTEXT_LENGTH`).

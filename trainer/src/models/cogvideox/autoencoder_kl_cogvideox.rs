@@ -25,7 +25,7 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor, nn};
 
-use crate::diffusers_config::DiffusersConfig;
+use crate::diffusers_config::{self, DiffusersConfig};
 use crate::error::{Error, Result};
 
 /// The class name diffusers writes into the VAE's `config.json` (`_class_name`).
@@ -156,11 +156,7 @@ impl DiffusersConfig for AutoencoderKLCogVideoXConfig {
 
     /// Rejects combinations the architecture cannot build, naming the field.
     fn validate_fields(&self, source_name: &str) -> Result<()> {
-        let err = |field: &str, reason: String| Error::InvalidConfig {
-            source_name: source_name.to_string(),
-            field: field.to_string(),
-            reason,
-        };
+        let err = diffusers_config::field_error(source_name);
         let levels = self.block_out_channels.len();
         if levels == 0 {
             return Err(err("block_out_channels", "is empty".to_string()));

@@ -15,7 +15,7 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor, nn};
 
-use crate::diffusers_config::DiffusersConfig;
+use crate::diffusers_config::{self, DiffusersConfig};
 use crate::error::{Error, Result};
 use crate::models::attention::{Activation, Attention, FeedForward};
 use crate::models::embeddings::{
@@ -24,6 +24,7 @@ use crate::models::embeddings::{
 use crate::models::lora::LoraConfig;
 use crate::models::normalization::{AdaLayerNorm, CogVideoXLayerNormZero};
 use crate::models::vars::{LayerNorm, Linear, Vars};
+use crate::models::weights;
 
 /// The class name diffusers writes into the transformer's `config.json` (`_class_name`).
 pub const CLASS_NAME: &str = "CogVideoXTransformer3DModel";
@@ -146,11 +147,7 @@ impl DiffusersConfig for CogVideoXTransformer3DModelConfig {
 
     /// Rejects values and combinations the architecture cannot build, naming the field.
     fn validate_fields(&self, source_name: &str) -> Result<()> {
-        let err = |field: &str, reason: String| Error::InvalidConfig {
-            source_name: source_name.to_string(),
-            field: field.to_string(),
-            reason,
-        };
+        let err = diffusers_config::field_error(source_name);
         let sizes = [
             ("num_attention_heads", self.num_attention_heads),
             ("attention_head_dim", self.attention_head_dim),
@@ -166,11 +163,7 @@ impl DiffusersConfig for CogVideoXTransformer3DModelConfig {
             ("temporal_compression_ratio", self.temporal_compression_ratio),
             ("max_text_seq_length", self.max_text_seq_length),
         ];
-        for (field, value) in sizes {
-            if value <= 0 {
-                return Err(err(field, format!("must be positive, got {value}")));
-            }
-        }
+        diffusers_config::require_positive(source_name, &sizes)?;
         // Token width and the positional table, as the model forms them from several fields.
         let inner = self.num_attention_heads.checked_mul(self.attention_head_dim).filter(|&d| d <= MAX_DIMENSION);
         if inner.is_none() {
@@ -865,21 +858,9 @@ impl CogVideoXTransformer3DModel {
         let kind = self.kind_probe.kind();
         let device = self.kind_probe.device();
         for (name, tensor) in [("hidden_states", hidden), ("encoder_hidden_states", text)] {
-            if tensor.kind() != kind || tensor.device() != device {
-                return Err(Error::DtypeDevice {
-                    tensor: name.to_string(),
-                    expected: format!("{kind:?} on {device:?} (the model's weights)"),
-                    actual: format!("{:?} on {:?}", tensor.kind(), tensor.device()),
-                });
-            }
+            weights::check_kind_device(name, tensor, kind, device)?;
         }
-        if t.device() != device {
-            return Err(Error::DtypeDevice {
-                tensor: "timestep".to_string(),
-                expected: format!("on {device:?}"),
-                actual: format!("on {:?}", t.device()),
-            });
-        }
+        weights::check_device("timestep", t, device)?;
         Ok([b, f, h, w])
     }
 }

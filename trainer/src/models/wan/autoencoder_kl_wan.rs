@@ -17,9 +17,9 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor, nn};
 
-use crate::diffusers_config::DiffusersConfig;
+use crate::diffusers_config::{self, DiffusersConfig};
 use crate::error::{Error, Result};
-use crate::models::autoencoder_kl_cogvideox::DiagonalGaussian;
+use crate::models::cogvideox::autoencoder_kl_cogvideox::DiagonalGaussian;
 use crate::models::vars::{ParamInit, Vars};
 
 /// The class name diffusers writes into the VAE's `config.json` (`_class_name`).
@@ -119,11 +119,7 @@ impl DiffusersConfig for AutoencoderKLWanConfig {
     const FILE_NAME: &'static str = "config.json";
 
     fn validate_fields(&self, source_name: &str) -> Result<()> {
-        let err = |field: &str, reason: String| Error::InvalidConfig {
-            source_name: source_name.to_string(),
-            field: field.to_string(),
-            reason,
-        };
+        let err = diffusers_config::field_error(source_name);
         let mult_max = self.dim_mult.iter().copied().max().unwrap_or(1);
         let sizes = [
             ("base_dim", self.base_dim),
@@ -135,11 +131,7 @@ impl DiffusersConfig for AutoencoderKLWanConfig {
             ("patch_size", self.patch_size.unwrap_or(1)),
             ("dim_mult", self.dim_mult.iter().copied().min().unwrap_or(0)),
         ];
-        for (field, value) in sizes {
-            if value <= 0 {
-                return Err(err(field, format!("must be positive (and dim_mult non-empty), got {value}")));
-            }
-        }
+        diffusers_config::require_positive(source_name, &sizes)?;
         for (field, value) in sizes.into_iter().chain([("dim_mult", mult_max)]) {
             if value > MAX_DIMENSION {
                 return Err(err(field, format!("must be at most {MAX_DIMENSION}, got {value}")));
@@ -938,6 +930,11 @@ impl AutoencoderKLWan {
     /// The configuration the model was built from.
     pub fn config(&self) -> &AutoencoderKLWanConfig {
         &self.config
+    }
+
+    /// The element type of the weights, which inputs must have.
+    pub fn kind(&self) -> Kind {
+        self.quant_conv.conv.weight.kind()
     }
 
     /// Posterior mean `[B, z_dim, 1 + (F − 1)/4, H/s, W/s]` (unnormalised: the pipelines subtract

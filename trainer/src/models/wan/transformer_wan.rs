@@ -21,11 +21,12 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor, nn};
 
-use crate::diffusers_config::DiffusersConfig;
+use crate::diffusers_config::{self, DiffusersConfig};
 use crate::error::{Error, Result};
 use crate::models::attention::{Activation, FeedForward};
 use crate::models::embeddings::{RotaryEmbedding, TimestepEmbedding, timestep_embedding};
 use crate::models::vars::{LayerNorm, Linear, ParamInit, RmsNorm, Vars};
+use crate::models::weights;
 
 /// The class name diffusers writes into the transformer's `config.json` (`_class_name`).
 pub const CLASS_NAME: &str = "WanTransformer3DModel";
@@ -137,11 +138,7 @@ impl DiffusersConfig for WanTransformer3DModelConfig {
 
     /// Rejects values and combinations the architecture cannot build, naming the field.
     fn validate_fields(&self, source_name: &str) -> Result<()> {
-        let err = |field: &str, reason: String| Error::InvalidConfig {
-            source_name: source_name.to_string(),
-            field: field.to_string(),
-            reason,
-        };
+        let err = diffusers_config::field_error(source_name);
         let [pt, ph, pw] = self.patch_size;
         let sizes = [
             ("patch_size", pt.min(ph).min(pw)),
@@ -158,11 +155,7 @@ impl DiffusersConfig for WanTransformer3DModelConfig {
             ("added_kv_proj_dim", self.added_kv_proj_dim.unwrap_or(1)),
             ("pos_embed_seq_len", self.pos_embed_seq_len.unwrap_or(1)),
         ];
-        for (field, value) in sizes {
-            if value <= 0 {
-                return Err(err(field, format!("must be positive, got {value}")));
-            }
-        }
+        diffusers_config::require_positive(source_name, &sizes)?;
         for (field, value) in sizes.into_iter().chain([("patch_size", pt.max(ph).max(pw))]) {
             if value > MAX_DIMENSION {
                 return Err(err(field, format!("must be at most {MAX_DIMENSION}, got {value}")));
@@ -281,8 +274,14 @@ impl WanTransformer3DModelConfig {
         Self { in_channels: 12, image_dim: Some(24), added_kv_proj_dim: Some(32), ..Self::tiny_t2v() }
     }
 
+    /// [`tiny_t2v`](Self::tiny_t2v) taking the CogNVS conditioning without image tokens: 12 input
+    /// channels (4 noisy + 4 mask + 4 condition latents of the tiny Wan VAE), for CPU training runs.
+    pub fn tiny_cognvs() -> Self {
+        Self { in_channels: 12, ..Self::tiny_t2v() }
+    }
+
     /// A preset by name: `wan2.1-t2v-1.3b`, `wan2.1-t2v-14b`, `wan2.1-i2v-14b`, `wan2.2-ti2v-5b`,
-    /// `tiny-t2v`, `tiny-i2v`.
+    /// `tiny-t2v`, `tiny-i2v`, `tiny-cognvs`.
     pub fn preset(name: &str) -> Result<Self> {
         match name {
             "wan2.1-t2v-1.3b" => Ok(Self::wan21_t2v_1_3b()),
@@ -291,12 +290,13 @@ impl WanTransformer3DModelConfig {
             "wan2.2-ti2v-5b" => Ok(Self::wan22_ti2v_5b()),
             "tiny-t2v" => Ok(Self::tiny_t2v()),
             "tiny-i2v" => Ok(Self::tiny_i2v()),
+            "tiny-cognvs" => Ok(Self::tiny_cognvs()),
             other => Err(Error::InvalidConfig {
                 source_name: "preset".to_string(),
                 field: "name".to_string(),
                 reason: format!(
                     "unknown Wan transformer preset `{other}`; expected wan2.1-t2v-1.3b, wan2.1-t2v-14b, \
-                     wan2.1-i2v-14b, wan2.2-ti2v-5b, tiny-t2v or tiny-i2v"
+                     wan2.1-i2v-14b, wan2.2-ti2v-5b, tiny-t2v, tiny-i2v or tiny-cognvs"
                 ),
             }),
         }
@@ -815,23 +815,11 @@ impl WanTransformer3DModel {
             .into_iter()
             .chain([("encoder_hidden_states_image", input.encoder_hidden_states_image)]);
         for (name, tensor) in floats {
-            if let Some(tensor) = tensor
-                && (tensor.kind() != kind || tensor.device() != device)
-            {
-                return Err(Error::DtypeDevice {
-                    tensor: name.to_string(),
-                    expected: format!("{kind:?} on {device:?} (the model's weights)"),
-                    actual: format!("{:?} on {:?}", tensor.kind(), tensor.device()),
-                });
+            if let Some(tensor) = tensor {
+                weights::check_kind_device(name, tensor, kind, device)?;
             }
         }
-        if t.device() != device {
-            return Err(Error::DtypeDevice {
-                tensor: "timestep".to_string(),
-                expected: format!("on {device:?}"),
-                actual: format!("on {:?}", t.device()),
-            });
-        }
+        weights::check_device("timestep", t, device)?;
         Ok([b, f, h, w])
     }
 }

@@ -241,7 +241,9 @@ pub fn merge_lora(base: &Path, lora: &Path, out: &Path) -> Result<usize> {
     let max_shard = crate::models::weights::DEFAULT_MAX_SHARD_BYTES;
     match ModelFamily::of_transformer(&base)? {
         ModelFamily::CogVideoX => {
-            use crate::models::cogvideox::cogvideox_transformer_3d::{self as transformer, CogVideoXTransformer3DModelConfig};
+            use crate::models::cogvideox::cogvideox_transformer_3d::{
+                self as transformer, CogVideoXTransformer3DModelConfig,
+            };
             let config = CogVideoXTransformer3DModelConfig::from_json_file(&base)?;
             let shapes = transformer::variable_shapes(&config)?;
             crate::models::weights::check_against(

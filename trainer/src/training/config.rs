@@ -10,8 +10,8 @@ use crate::error::{Error, Result};
 use crate::models::backbone::{TransformerConfig, VaeConfig};
 use crate::models::cogvideox::autoencoder_kl_cogvideox::AutoencoderKLCogVideoXConfig;
 use crate::models::cogvideox::cogvideox_transformer_3d::CogVideoXTransformer3DModelConfig;
-use crate::models::wan::autoencoder_kl_wan::AutoencoderKLWanConfig;
 use crate::models::family::{Job, ModelFamily, Objective};
+use crate::models::wan::autoencoder_kl_wan::AutoencoderKLWanConfig;
 use crate::schedulers::scheduling_flow_match_euler_discrete::FlowMatchEulerDiscreteSchedulerConfig;
 
 /// The static flow shift a Wan run trains with when no scheduler is configured: diffusers' Wan

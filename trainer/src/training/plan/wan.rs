@@ -18,8 +18,8 @@ use super::{
     PlanShape, RGB, element_bytes, human_count, kind_name,
 };
 use crate::error::Result;
-use crate::models::wan::autoencoder_kl_wan::{self as vae, AutoencoderKLWanConfig};
 use crate::models::lora::LoraConfig;
+use crate::models::wan::autoencoder_kl_wan::{self as vae, AutoencoderKLWanConfig};
 use crate::models::wan::transformer_wan::{self as transformer, KEEP_IN_FP32_MODULES, WanTransformer3DModelConfig};
 use crate::training::PretrainConfig;
 

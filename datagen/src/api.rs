@@ -16,22 +16,33 @@ pub use schemas::InputDigest;
 pub use crate::error::{Error, Result};
 pub use crate::io::depth_exr::encode_depth_exr;
 pub use crate::io::dycheck::{FrameCorrespondence, correspondence_file_name, read_correspondence};
+pub use crate::io::layout::{LayoutName, ReadOptions};
 pub use crate::io::multiview::{CameraView, MultiViewScene};
-pub use crate::io::multiview_layout::MultiViewLayoutName;
-pub use crate::io::sequence::{LayoutName, ReadOptions, Sequence};
+pub use crate::io::sequence::Sequence;
 pub use crate::pairs::clip::ClipConfig;
 pub use crate::pairs::generator::{PairsConfig, RenderSummary};
 pub use crate::pairs::job::{PairsJob, PairsReport, make_pairs};
 
-/// Reads the sequence folder `dir` in layout `layout` (None: detected from its files), as
-/// `datagen pairs --layout` reads it.
+/// Reads one camera's sequence from `dir` in layout `layout` (None: a sequence folder, detected
+/// from its files), as `datagen render --layout` reads it: a scene layout (DyCheck, ...) gives
+/// the scene's input camera, or an error naming the folder and the layout where it has none.
 pub fn read_sequence(dir: &Path, layout: Option<LayoutName>) -> Result<Sequence> {
-    crate::io::sequence::read_sequence_as(dir, layout)
+    Ok(crate::io::layout::read_camera_sequence(dir, layout, &ReadOptions::default())?.0)
 }
 
-/// Reads the multi-camera scene in `dir` in layout `layout` (None: detected from its files).
-pub fn read_multiview(dir: &Path, layout: Option<MultiViewLayoutName>) -> Result<MultiViewScene> {
-    crate::io::multiview_layout::read_multiview_as(dir, layout)
+/// Reads the multi-camera scene in `dir` in layout `layout` (None: detected from its files); a
+/// single-camera layout name is refused, naming the folder.
+pub fn read_multiview(dir: &Path, layout: Option<LayoutName>) -> Result<MultiViewScene> {
+    let layout = layout
+        .map(|name| {
+            name.multiview().ok_or_else(|| Error::InvalidInput {
+                path: dir.to_path_buf(),
+                field: "layout".to_string(),
+                reason: format!("`{name}` is a single-camera layout; a multi-camera scene is needed here"),
+            })
+        })
+        .transpose()?;
+    crate::io::layout::read_multiview_as(dir, layout)
 }
 
 /// The `world_from_camera` pose of every frame of `sequence` along the trajectory file `path`

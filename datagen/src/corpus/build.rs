@@ -91,6 +91,12 @@ pub struct BuildConfig {
     /// The reconstruction filter: inputs below a static depth consistency are skipped.
     #[serde(default)]
     pub check: super::quality::BuildCheckConfig,
+    /// The layout of every input's folder, named instead of detected (`datagen build --layout`
+    /// overrides it): a single-camera name for sequence folders and reconstructions, a
+    /// multi-camera name for scene folders (`generic` names both); inputs of the other kind keep
+    /// detection. Unset: every layout detected from its files.
+    #[serde(default)]
+    pub layout: Option<crate::io::layout::LayoutName>,
 }
 
 fn default_trajectories() -> u32 {

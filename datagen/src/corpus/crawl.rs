@@ -537,15 +537,14 @@ fn tao_frame_folders(source: &SourceConfig, split: &str) -> Result<Vec<VideoEntr
 }
 
 /// Whether `dir` looks like a sequence folder in the cog-nvs, MegaSAM or generic layout, or a
-/// reconstruction tool's output ([`crate::io::sequence`]).
+/// reconstruction tool's output ([`crate::io::layout`]), also where its files are incomplete
+/// (`frames/` and `depth/` without `.exr` files or `cameras.json`): it is then one failed input
+/// whose reader names what is missing.
 pub fn is_sequence_folder(dir: &Path) -> bool {
-    crate::io::sequence::has_layout_files(dir)
-        || dir.join("gt_rgb.mp4").is_file()
-        || dir.join("cam_info").is_dir()
+    crate::io::layout::has_layout_files(dir)
+        || crate::io::layout::cog_nvs::recognised(dir)
         || (dir.join("frames").is_dir() && dir.join("depth").is_dir())
-        || std::fs::read_dir(dir)
-            .map(|entries| entries.filter_map(|e| e.ok()).any(|e| file_name(&e.path()).ends_with("_sgd_cvd_hr.npz")))
-            .unwrap_or(false)
+        || crate::io::layout::megasam::archive(dir).is_ok_and(|archive| archive.is_some())
 }
 
 /// Whether `dir` is a multi-camera scene folder: not a sequence folder itself, and at least one of
@@ -553,7 +552,7 @@ pub fn is_sequence_folder(dir: &Path) -> bool {
 /// then one failed input (the reader names the broken camera), not a single-camera sequence.
 /// A folder in a benchmark dataset's layout (DyCheck, Kubric-4D, ParallelDomain-4D) is one too.
 pub fn is_multiview_folder(dir: &Path) -> bool {
-    use crate::io::multiview_layout::{MultiViewLayoutName, detect_multiview_layout};
+    use crate::io::layout::{MultiViewLayoutName, detect_multiview_layout};
     if detect_multiview_layout(dir).is_ok_and(|layout| layout != MultiViewLayoutName::Generic) {
         return true;
     }

@@ -6,9 +6,9 @@
 
 use super::build::BuildConfig;
 use super::crawl::{FrameSource, crawl_all};
-use super::input::load_entry;
+use super::input::load_entry_as;
 use crate::error::Result;
-use crate::io::multiview_layout::read_multiview_as;
+use crate::io::layout::{LayoutName, read_multiview_as};
 use crate::io::sequence::Sequence;
 use crate::pairs::trajectory_bank::{CollectSummary, collect_from_sequence};
 
@@ -24,12 +24,14 @@ pub fn collect_from_corpus(config: &BuildConfig) -> Result<CollectSummary> {
         }
         // A multi-camera scene gives every camera's own motion.
         let sequences = match &entry.frames {
-            FrameSource::MultiView(dir) => read_multiview_as(dir, None).map(|scene| {
-                let scene_id = &entry.video_id;
-                let cameras = scene.cameras.into_iter();
-                cameras.map(|c| Sequence { source_id: format!("{scene_id}/{}", c.id), ..c.sequence }).collect()
-            }),
-            _ => load_entry(&entry).map(|sequence| vec![sequence]),
+            FrameSource::MultiView(dir) => {
+                read_multiview_as(dir, config.layout.and_then(LayoutName::multiview)).map(|scene| {
+                    let scene_id = &entry.video_id;
+                    let cameras = scene.cameras.into_iter();
+                    cameras.map(|c| Sequence { source_id: format!("{scene_id}/{}", c.id), ..c.sequence }).collect()
+                })
+            }
+            _ => load_entry_as(&entry, config.layout).map(|sequence| vec![sequence]),
         };
         match sequences {
             Ok(sequences) => {

@@ -18,12 +18,20 @@ use crate::error::{Error, Result};
 use crate::io::annotations::{
     box_frame_masks, fill_between_annotations, load_sav_annotation, read_id_png, sav_frame_masks,
 };
-use crate::io::sequence::{Sequence, read_sequence, read_with_frames};
+use crate::io::layout::LayoutName;
+use crate::io::sequence::{Sequence, read_sequence_as, read_with_frames_as};
 use crate::pairs::generator::{PhaseTimes, TrajectoryRequest, generate_clips_timed};
 use foundation::frames::read_frames;
 
 /// Loads everything the pair generator needs for one crawled video.
 pub fn load_entry(entry: &VideoEntry) -> Result<Sequence> {
+    load_entry_as(entry, None)
+}
+
+/// [`load_entry`] with its folder or reconstruction read in `layout` where that is a
+/// single-camera layout (detected otherwise: [`BuildConfig::layout`]).
+pub fn load_entry_as(entry: &VideoEntry, layout: Option<LayoutName>) -> Result<Sequence> {
+    let layout = layout.and_then(LayoutName::sequence);
     let key = entry.key();
     let reconstruction = entry
         .reconstruction
@@ -33,7 +41,7 @@ pub fn load_entry(entry: &VideoEntry) -> Result<Sequence> {
         FrameSource::Sequence(dir) => {
             // The folder's own name is not unique in a nested tree (`a/seq`, `b/seq`); the
             // video id is (keys are checked unique per build), and clip ids and seeds derive from it.
-            let mut sequence = read_sequence(dir)?;
+            let mut sequence = read_sequence_as(dir, layout)?;
             sequence.source_id = entry.video_id.clone();
             return Ok(sequence);
         }
@@ -46,12 +54,12 @@ pub fn load_entry(entry: &VideoEntry) -> Result<Sequence> {
         }
         FrameSource::Video(path) => {
             let video = foundation::video::decode_video(path)?;
-            read_with_frames(&entry.video_id, reconstruction, video.fps, video.frames, path)?
+            read_with_frames_as(&entry.video_id, reconstruction, layout, video.fps, video.frames, path)?
         }
         FrameSource::Images(paths) => {
             let frames = read_frames(paths)?;
             let folder = paths.first().and_then(|p| p.parent()).unwrap_or(reconstruction);
-            read_with_frames(&entry.video_id, reconstruction, 0.0, frames, folder)?
+            read_with_frames_as(&entry.video_id, reconstruction, layout, 0.0, frames, folder)?
         }
     };
     let (width, height) = sequence.size();
@@ -125,7 +133,8 @@ impl SequenceProcessor<'_> {
     /// applied to scenes.
     fn process_scene(&self, entry: &VideoEntry, dir: &std::path::Path) -> Result<Outcome> {
         let started = Instant::now();
-        let mut scene = crate::io::multiview_layout::read_multiview_as(dir, None)?;
+        let layout = self.config.layout.and_then(LayoutName::multiview);
+        let mut scene = crate::io::layout::read_multiview_as(dir, layout)?;
         // Keys, clip ids and seeds derive from the video id, unique in the build.
         scene.scene_id = entry.video_id.clone();
         let load_seconds = started.elapsed().as_secs_f64();
@@ -151,7 +160,7 @@ impl InputProcessor for SequenceProcessor<'_> {
             return self.process_scene(entry, dir);
         }
         let started = Instant::now();
-        let mut sequence = load_entry(entry)?;
+        let mut sequence = load_entry_as(entry, self.config.layout)?;
         let noise = &self.config.pairs.depth_noise;
         noise.load_second_depth(&mut sequence, None, entry.dataset.name(), &entry.dataset_id)?;
         let load_seconds = started.elapsed().as_secs_f64();

@@ -3,7 +3,8 @@
 //! sequence folders in their layouts, including the outputs of the reconstruction tools in use
 //! (ViPE, VGGT, COLMAP, GEN3C, depth-only tools), each converted at the door, and synchronised
 //! multi-camera scenes: made of them, or as the benchmark datasets ship them (DyCheck, Kubric-4D,
-//! ParallelDomain-4D).
+//! ParallelDomain-4D). Every folder layout, single- or multi-camera, is named, recognised and
+//! dispatched by one registry ([`layout`]).
 
 pub mod annotations;
 pub mod colmap;
@@ -13,10 +14,11 @@ pub mod dycheck;
 pub mod gen3c;
 pub(crate) mod json_fields;
 pub mod kubric4d;
+pub mod layout;
 pub mod multiview;
-pub mod multiview_layout;
 pub mod npy;
 pub mod pardom4d;
+pub mod reconstruction;
 pub mod rle;
 pub mod sequence;
 pub mod tool_output;

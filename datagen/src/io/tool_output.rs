@@ -2,7 +2,7 @@
 //! `world_from_camera` poses already converted to the project's conventions (docs/ARCHITECTURE.md,
 //! Conventions), with the files they came from, and the frames when the tool's folder holds them.
 //! The per-tool readers ([`super::vipe`], [`super::vggt`], [`super::colmap`], [`super::gen3c`],
-//! [`super::depth_only`]) build one; [`super::sequence`] checks it against the frames like any
+//! [`super::depth_only`]) build one; [`super::reconstruction`] checks it against the frames like any
 //! other layout. The helpers here are the conversions more than one tool needs.
 
 use std::path::{Path, PathBuf};

@@ -108,11 +108,24 @@ pub fn write_scene_pairs(
     seed: u64,
     progress: &mut dyn FnMut(SceneProgress),
 ) -> Result<SceneShard> {
+    write_scene_pairs_as(dir, None, out, dataset, config, trajectories, seed, progress)
+}
+
+/// [`write_scene_pairs`] with the scene read in `layout` (the detected one when `None`).
+#[allow(clippy::too_many_arguments)] // write_scene_pairs' arguments and the layout
+pub fn write_scene_pairs_as(
+    dir: &Path,
+    layout: Option<crate::io::layout::MultiViewLayoutName>,
+    out: &Path,
+    dataset: &str,
+    config: &PairsConfig,
+    trajectories: u32,
+    seed: u64,
+    progress: &mut dyn FnMut(SceneProgress),
+) -> Result<SceneShard> {
     config.validate()?;
-    let (scene, content_hash) = rayon::join(
-        || crate::io::multiview_layout::read_multiview_as(dir, None),
-        || foundation::hashing::hash_tree(dir),
-    );
+    let (scene, content_hash) =
+        rayon::join(|| crate::io::layout::read_multiview_as(dir, layout), || foundation::hashing::hash_tree(dir));
     let scene = scene?;
     let input = InputDigest { source_path: dir.display().to_string(), content_hash: content_hash? };
     let mut pairs = generate_scene_clips(&scene, dataset, config, trajectories, seed, progress)?;

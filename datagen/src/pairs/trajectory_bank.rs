@@ -157,6 +157,23 @@ fn window_entry(
     })
 }
 
+/// The bank entries of one sequence folder (`datagen trajectories collect SEQ_DIR`): the
+/// sequence read in `layout` (detected when `None`; a multi-camera layout gives its scene's input
+/// camera) and harvested as [`collect_from_sequence`] does.
+pub fn collect_from_folder(
+    dir: &Path,
+    layout: Option<crate::io::layout::LayoutName>,
+    dataset: &str,
+    clip: &ClipConfig,
+    pivot_scale: f64,
+) -> Result<CollectSummary> {
+    let options = crate::io::layout::ReadOptions::default();
+    let (sequence, _) = crate::io::layout::read_camera_sequence(dir, layout, &options)?;
+    let mut summary = CollectSummary::default();
+    collect_from_sequence(&sequence, dataset, clip, pivot_scale, &mut summary);
+    Ok(summary)
+}
+
 /// Adds the bank entries of every clip window (`clip`) of `sequence` to `summary`; R is the
 /// first frame's optical-centre depth × `pivot_scale`, as for sampled trajectories.
 pub fn collect_from_sequence(

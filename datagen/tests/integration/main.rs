@@ -12,6 +12,7 @@ mod hostile_paths;
 mod hostile_runs;
 mod hostile_sequences;
 mod inspect;
+mod layout_registry;
 mod multiview;
 mod multiview_datasets;
 mod multiview_masks;

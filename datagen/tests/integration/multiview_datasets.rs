@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 
 use datagen::io::dycheck::{read_dycheck, read_dycheck_with_info};
 use datagen::io::kubric4d::read_kubric4d;
-use datagen::io::multiview_layout::{MultiViewLayoutName, detect_multiview_layout, read_multiview_as};
+use datagen::io::layout::{MultiViewLayoutName, detect_multiview_layout, read_multiview_as};
 use datagen::synth::{CameraRig, SynthConfig, SynthScene, ground_truth_covisibility, write_multiview};
 use datagen::synth_layouts::{dycheck_frames, dycheck_world_from_camera, write_dycheck, write_kubric4d};
 use foundation::camera::PinholeCamera;

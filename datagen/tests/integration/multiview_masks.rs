@@ -12,7 +12,7 @@ use datagen::geometry::covisibility::{CovisibilityConfig, covisibility_mask};
 use datagen::geometry::depth_mesh::{DepthMesh, MeshConfig};
 use datagen::geometry::render::render_novel_view;
 use datagen::io::multiview::MultiViewScene;
-use datagen::io::multiview_layout::read_multiview_as;
+use datagen::io::layout::read_multiview_as;
 use datagen::pairs::generator::PairsConfig;
 use datagen::pairs::scene::generate_scene_clips;
 use datagen::synth::{CameraRig, SynthConfig, SynthScene, ground_truth_covisibility};

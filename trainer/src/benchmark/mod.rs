@@ -35,7 +35,7 @@ pub mod scene;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use datagen::api::MultiViewLayoutName;
+use datagen::api::LayoutName;
 use serde::{Deserialize, Serialize};
 use tch::Device;
 
@@ -106,7 +106,7 @@ pub struct Request {
     /// Scenes to evaluate, by folder name (empty: every scene of `root`, sorted).
     pub scenes: Vec<String>,
     /// The scenes' layout (None: detected per scene from its files).
-    pub layout: Option<MultiViewLayoutName>,
+    pub layout: Option<LayoutName>,
     /// Input and held-out cameras other than the dataset's split.
     pub split: SplitOverride,
     /// What the source is rendered from.
@@ -415,7 +415,7 @@ fn scene_names(request: &Request) -> Result<Vec<String>> {
 }
 
 /// Reads one scene folder in `layout` (None: detected).
-fn read_scene(dir: &Path, layout: Option<MultiViewLayoutName>) -> Result<datagen::api::MultiViewScene> {
+fn read_scene(dir: &Path, layout: Option<LayoutName>) -> Result<datagen::api::MultiViewScene> {
     Ok(datagen::api::read_multiview(dir, layout)?)
 }
 

@@ -29,7 +29,7 @@ pub struct BenchmarkArgs {
     /// The scenes' layout: dycheck, kubric4d, pardom4d or generic (a sequence folder per camera)
     /// [default: detected per scene from its files].
     #[arg(long)]
-    pub layout: Option<datagen::api::MultiViewLayoutName>,
+    pub layout: Option<datagen::api::LayoutName>,
     /// What the source video is rendered from: `dataset` (the input camera's own depth and
     /// cameras) or a folder with one reconstruction per scene, DIR/<scene>/ (MegaSAM's, MoSca's
     /// exported, any layout datagen reads), scaled to the dataset's units by the median depth

@@ -61,12 +61,4 @@ pub fn make_pairs_of(job: &PairsJob, sequence: &Sequence, input: InputDigest) ->
 /// `datagen render` along poses read already ([`read_trajectory`]): every frame of `sequence`
 /// seen from `poses` into `out/frames/`, `out/holes/` and `out/render.mp4`, holes filled from the
 /// stacked static background with `stacking`.
-pub fn render_sequence(
-    sequence: &Sequence,
-    poses: &[DMat4],
-    out: &Path,
-    config: &PairsConfig,
-    stacking: bool,
-) -> Result<RenderSummary> {
-    crate::pairs::generator::render_sequence_along(sequence, poses, out, config, stacking)
-}
+pub use crate::pairs::generator::render_sequence_along as render_sequence;

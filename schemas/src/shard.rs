@@ -546,40 +546,24 @@ mod tests {
     #[test]
     fn version_1_shards_still_read_and_unknown_versions_do_not() {
         let dir = tempfile::tempdir().unwrap();
+        // A monocular pair with a sampled trajectory: the multi-view record's clip, version 1's
+        // fields only.
+        let multiview = multiview_record(crate::MaskRule::Exact);
         let record = ClipRecord {
-            clip_id: "synth/a/0".into(),
-            source_id: "a".into(),
-            dataset: "synth".into(),
-            source_path: "/a".into(),
-            clip_start: 0,
-            fps: 24.0,
-            width: 2,
-            height: 2,
-            seed: 1,
-            tool_version: "datagen 0.1.0".into(),
-            frames: vec![vec![1, 2, 3]],
-            depth: vec![vec![4]],
-            intrinsics: vec![[1.0; 9]],
-            world_from_camera: vec![[2.0; 16]],
-            dynamic_mask: None,
             trajectories: vec![crate::TrajectoryRecord {
-                index: 0,
                 kind: crate::TrajectoryKind::Sampled,
                 pivot_distance: 2.0,
                 azimuth_deg: vec![1.0; 4],
                 elevation_deg: vec![2.0; 4],
                 radius_frac: vec![0.1; 4],
                 rejected_samples: 1,
-                world_from_camera: vec![[3.0; 16]],
-                covisible_mask: vec![vec![5]],
                 condition: None,
-                covisible_fraction: 0.5,
-                bank_entry: None,
-                mask_rule: crate::MaskRule::Exact,
+                ..multiview.trajectories[0].clone()
             }],
             pair_kind: PairKind::Monocular,
             source_camera: None,
             target_camera: None,
+            ..multiview
         };
         let old = dir.path().join("v1.parquet");
         write_v1(&old, std::slice::from_ref(&record), "1");

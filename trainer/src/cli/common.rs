@@ -217,9 +217,17 @@ impl LpipsNetArg {
     }
 }
 
-/// A sequence folder's layout by the names `datagen pairs --layout` takes.
-pub fn parse_layout(name: &str) -> Result<datagen::api::LayoutName, String> {
-    name.parse()
+/// The video a job reads (`nvs`, `finetune`): its folder and the folder's layout.
+#[derive(Debug, Args)]
+pub struct SequenceArgs {
+    /// The video's sequence folder: any layout `datagen pairs` reads (cog-nvs, MegaSAM npz,
+    /// generic, a reconstruction tool's output, a scene's input camera).
+    #[arg(long)]
+    pub sequence: PathBuf,
+    /// The folder's layout, by the names `datagen pairs --layout` takes [default: detected from
+    /// its files].
+    #[arg(long)]
+    pub layout: Option<datagen::api::LayoutName>,
 }
 
 /// WIDTHxHEIGHT, both at least 1.

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use clap::Args;
 
-use super::common::{DeviceArgs, ModelArgs, parse_layout, show_run, step_bar};
+use super::common::{DeviceArgs, ModelArgs, SequenceArgs, show_run, step_bar};
 use crate::training::FinetuneRequest;
 
 /// `trainer finetune`'s flags.
@@ -13,13 +13,8 @@ pub struct FinetuneArgs {
     /// Checkpoint to start from (RUN/checkpoints/step-N).
     #[arg(long)]
     pub init: PathBuf,
-    /// The test video's sequence folder (cog-nvs, MegaSAM npz or generic layout).
-    #[arg(long)]
-    pub sequence: PathBuf,
-    /// The sequence folder's layout, by the names `datagen pairs --layout` takes [default:
-    /// detected from its files].
-    #[arg(long, value_parser = parse_layout)]
-    pub layout: Option<datagen::api::LayoutName>,
+    #[command(flatten)]
+    pub input: SequenceArgs,
     /// Run folder for the finetuned checkpoints, metrics and the pairs built.
     #[arg(long)]
     pub out: PathBuf,
@@ -54,8 +49,8 @@ impl FinetuneArgs {
             vae: self.model.vae,
             text_embedding: self.model.text_embedding,
             zero_text_embedding: self.model.zero_text_embedding,
-            sequence: self.sequence,
-            layout: self.layout,
+            sequence: self.input.sequence,
+            layout: self.input.layout,
             read: None,
             out: self.out,
             steps: self.steps,

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use clap::Args;
 
-use super::common::{DeviceArgs, ModelArgs, SamplingArgs, SwitchArg, parse_layout, progress_bar, show_step, step_bar};
+use super::common::{DeviceArgs, ModelArgs, SamplingArgs, SequenceArgs, SwitchArg, progress_bar, show_step, step_bar};
 use crate::pipelines::nvs::{DEFAULT_FINETUNE_STEPS, NvsRequest, NvsSettings, Progress};
 
 /// `trainer nvs`'s flags.
@@ -14,13 +14,8 @@ pub struct NvsArgs {
     /// --base-model), a run's checkpoint, or a pipeline folder with transformer/.
     #[arg(long)]
     pub init: PathBuf,
-    /// The video's sequence folder (cog-nvs, MegaSAM npz or generic layout).
-    #[arg(long)]
-    pub sequence: PathBuf,
-    /// The sequence folder's layout, by the names `datagen pairs --layout` takes [default:
-    /// detected from its files].
-    #[arg(long, value_parser = parse_layout)]
-    pub layout: Option<datagen::api::LayoutName>,
+    #[command(flatten)]
+    pub input: SequenceArgs,
     /// A camera path (.npy (N,4,4), .json, or the public trajs/*.txt); repeatable. The outputs
     /// are named after the file's stem.
     #[arg(long = "trajectory", required = true)]
@@ -90,8 +85,8 @@ impl NvsArgs {
     pub fn request(self) -> crate::Result<NvsRequest> {
         let device = self.device.usable()?;
         Ok(NvsRequest {
-            sequence: self.sequence,
-            layout: self.layout,
+            sequence: self.input.sequence,
+            layout: self.input.layout,
             trajectories: self.trajectories,
             out: self.out,
             settings: self.job.settings(self.init, self.finetune_trajectories, device),

@@ -171,7 +171,8 @@ impl VaeConfig {
         })
     }
 
-    /// A preset by name: CogVideoX's (`tiny`, `cogvideox-5b`) or Wan's (`wan2.1`, `tiny-wan`).
+    /// A preset by name: CogVideoX's (`tiny`, `cogvideox-5b`) or Wan's (`wan2.1`, `wan2.2`,
+    /// `tiny-residual`; `tiny-wan` is Wan's `tiny`, whose name CogVideoX's takes).
     pub fn preset(name: &str) -> Result<Self> {
         match name {
             "tiny-wan" => Ok(Self::Wan(AutoencoderKLWanConfig::tiny())),
@@ -182,6 +183,17 @@ impl VaeConfig {
                     reason: format!("{cog}; {wan}"),
                 })
             }),
+        }
+    }
+
+    /// A preset of `family` by name: a CogVideoX VAE preset for a CogVideoX transformer, a Wan one
+    /// (`wan2.1`, `wan2.2`, `tiny`, `tiny-residual`, `tiny-wan`) for a Wan transformer, so that a
+    /// name both families have (`tiny`) means the transformer's.
+    pub fn preset_of(family: ModelFamily, name: &str) -> Result<Self> {
+        match (family, name) {
+            (ModelFamily::CogVideoX, _) => AutoencoderKLCogVideoXConfig::preset(name).map(Self::CogVideoX),
+            (ModelFamily::Wan, "tiny-wan") => Ok(Self::Wan(AutoencoderKLWanConfig::tiny())),
+            (ModelFamily::Wan, _) => AutoencoderKLWanConfig::preset(name).map(Self::Wan),
         }
     }
 

@@ -622,7 +622,7 @@ impl ModelConfig {
                 warnings.extend(w);
                 config
             }
-            _ => VaeConfig::preset(&self.vae)?,
+            _ => VaeConfig::preset_of(transformer.family(), &self.vae)?,
         };
         if transformer.family() != vae.family() {
             return Err(Error::InvalidConfig {
@@ -648,37 +648,10 @@ impl ModelConfig {
     /// such as `wan2.1-t2v-1.3b`, or a config file or folder whose `_class_name` is Wan's), else
     /// None. `vae` must then be a Wan VAE: a preset (`wan2.1`, `wan2.2`) or a folder.
     pub fn wan_configs(&self) -> Result<Option<(WanTransformer3DModelConfig, AutoencoderKLWanConfig)>> {
-        let path = Path::new(&self.transformer);
-        let transformer = if path.is_dir() || path.is_file() {
-            if ModelFamily::of_transformer(path)? != ModelFamily::Wan {
-                return Ok(None);
-            }
-            diffusers_config::read_quiet::<WanTransformer3DModelConfig>(path)?.0
-        } else {
-            match WanTransformer3DModelConfig::preset(&self.transformer) {
-                Ok(config) => config,
-                Err(_) => return Ok(None),
-            }
-        };
-        let vae_path = Path::new(&self.vae);
-        let vae = if vae_path.is_dir() {
-            let family = ModelFamily::of_vae(vae_path)?;
-            if family != ModelFamily::Wan {
-                return Err(Error::InvalidConfig {
-                    source_name: vae_path.display().to_string(),
-                    field: "model.vae".to_string(),
-                    reason: format!("is a {} VAE, but the transformer is a Wan model", family.name()),
-                });
-            }
-            diffusers_config::read_quiet::<AutoencoderKLWanConfig>(vae_path)?.0
-        } else {
-            AutoencoderKLWanConfig::preset(&self.vae).map_err(|e| Error::InvalidConfig {
-                source_name: self.vae.clone(),
-                field: "model.vae".to_string(),
-                reason: format!("the transformer is a Wan model, so the VAE must be a Wan VAE folder or preset: {e}"),
-            })?
-        };
-        Ok(Some((transformer, vae)))
+        Ok(match self.model_configs(false)? {
+            (TransformerConfig::Wan(transformer), VaeConfig::Wan(vae)) => Some((transformer, vae)),
+            _ => None,
+        })
     }
 
     /// [`Self::model_configs`] for the jobs that run CogVideoX only so far (the memory plan):

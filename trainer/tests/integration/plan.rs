@@ -235,6 +235,13 @@ fn wan_presets_are_the_released_shapes_and_fit_their_gpus_as_the_readme_states()
         for extra in [&mut transformer.extra, &mut released.extra, &mut vae.extra, &mut released_vae.extra] {
             extra.clear();
         }
+        // A text-to-video (or TI2V) release is trained widened for the CogNVS condition channels;
+        // everything else is the release's.
+        let condition = vae.z_dim + trainer::models::wan::transformer_wan::COGNVS_MASK_CHANNELS;
+        if released.in_channels != transformer.in_channels {
+            assert_eq!(transformer.in_channels, released.output_channels() + condition, "{name}");
+            released = released.for_cognvs();
+        }
         assert_eq!(transformer, released, "{name}: the preset's transformer is {folder}'s");
         assert_eq!(vae, released_vae, "{name}: the preset's VAE is {folder}'s");
 

@@ -280,11 +280,23 @@ impl WanTransformer3DModelConfig {
         Self { in_channels: 12, ..Self::tiny_t2v() }
     }
 
+    /// This model with the CogNVS conditioning's input channels (noisy latents, the hole mask's
+    /// [`COGNVS_MASK_CHANNELS`], the render's latents): what [`widen_in_channels`] makes of a
+    /// text-to-video (or TI2V) checkpoint before CogNVS training. An image-to-video model has
+    /// them already.
+    pub fn for_cognvs(self) -> Self {
+        let latent = self.output_channels();
+        Self { in_channels: 2 * latent + COGNVS_MASK_CHANNELS, out_channels: Some(latent), ..self }
+    }
+
     /// A preset by name: `wan2.1-t2v-1.3b`, `wan2.1-t2v-14b`, `wan2.1-i2v-14b`, `wan2.2-ti2v-5b`,
-    /// `tiny-t2v`, `tiny-i2v`, `tiny-cognvs`.
+    /// the CogNVS-widened `wan2.1-t2v-1.3b-cognvs` and `wan2.2-ti2v-5b-cognvs`
+    /// ([`Self::for_cognvs`]), `tiny-t2v`, `tiny-i2v`, `tiny-cognvs`.
     pub fn preset(name: &str) -> Result<Self> {
         match name {
             "wan2.1-t2v-1.3b" => Ok(Self::wan21_t2v_1_3b()),
+            "wan2.1-t2v-1.3b-cognvs" => Ok(Self::wan21_t2v_1_3b().for_cognvs()),
+            "wan2.2-ti2v-5b-cognvs" => Ok(Self::wan22_ti2v_5b().for_cognvs()),
             "wan2.1-t2v-14b" => Ok(Self::wan21_t2v_14b()),
             "wan2.1-i2v-14b" => Ok(Self::wan21_i2v_14b()),
             "wan2.2-ti2v-5b" => Ok(Self::wan22_ti2v_5b()),
@@ -296,7 +308,8 @@ impl WanTransformer3DModelConfig {
                 field: "name".to_string(),
                 reason: format!(
                     "unknown Wan transformer preset `{other}`; expected wan2.1-t2v-1.3b, wan2.1-t2v-14b, \
-                     wan2.1-i2v-14b, wan2.2-ti2v-5b, tiny-t2v, tiny-i2v or tiny-cognvs"
+                     wan2.1-i2v-14b, wan2.2-ti2v-5b, wan2.1-t2v-1.3b-cognvs, wan2.2-ti2v-5b-cognvs, tiny-t2v, \
+                     tiny-i2v or tiny-cognvs"
                 ),
             }),
         }
@@ -840,6 +853,11 @@ pub fn build(
     keep_in_fp32(&vs)?;
     Ok((vs, model))
 }
+
+/// Input channels of the CogNVS hole mask on a Wan VAE's latent grid: the mask of each of the 4
+/// frames a latent frame compresses (the VAEs' 4× temporal compression), as the image-to-video
+/// pipeline folds its first-frame mask (`models::wan::cognvs::mask_channels`).
+pub const COGNVS_MASK_CHANNELS: i64 = 4;
 
 /// The patch embedding's weight, `[inner_dim, in_channels, pt, ph, pw]`.
 pub const PATCH_EMBEDDING_WEIGHT: &str = "patch_embedding.weight";

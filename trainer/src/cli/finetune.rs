@@ -13,6 +13,7 @@ pub struct FinetuneArgs {
     /// Checkpoint to start from (RUN/checkpoints/step-N).
     #[arg(long)]
     pub init: PathBuf,
+    /// The video's sequence folder and its layout.
     #[command(flatten)]
     pub input: SequenceArgs,
     /// Run folder for the finetuned checkpoints, metrics and the pairs built.

@@ -14,6 +14,7 @@ pub struct NvsArgs {
     /// --base-model), a run's checkpoint, or a pipeline folder with transformer/.
     #[arg(long)]
     pub init: PathBuf,
+    /// The video's sequence folder and its layout.
     #[command(flatten)]
     pub input: SequenceArgs,
     /// A camera path (.npy (N,4,4), .json, or the public trajs/*.txt); repeatable. The outputs

@@ -351,7 +351,7 @@ pub fn run(
             return stopped(record);
         }
         let paths = model.resolve()?;
-        crate::pipelines::sampling::check_fits(&paths, request.settings.load, &request.settings.framing)?;
+        crate::training::plan::check_sampling_memory(&paths, request.settings.load, &request.settings.framing)?;
         let pipeline = Pipeline::load(&paths, request.settings.load)?;
         for i in pending {
             let name = record.outputs[i].name.clone();
@@ -475,7 +475,7 @@ fn preflight(request: &NvsRequest) -> Result<Preflight> {
         request.settings.guidance,
         &request.settings.framing,
     )?;
-    crate::pipelines::sampling::check_fits(&paths, request.settings.load, &request.settings.framing)?;
+    crate::training::plan::check_sampling_memory(&paths, request.settings.load, &request.settings.framing)?;
     Ok(Preflight { names, video, poses, pairs, settings, inputs, train })
 }
 

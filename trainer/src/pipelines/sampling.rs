@@ -41,7 +41,7 @@ use crate::models::cogvideox::cogvideox_transformer_3d::{
 use crate::models::embeddings::RotaryEmbedding;
 use crate::models::family::{Job, ModelFamily};
 use crate::models::weights;
-use crate::pipelines::sampling_wan::{WanCheckedModels, WanNvsPipeline};
+use crate::pipelines::sampling_wan::{WanCheckedModels, WanFraming, WanNvsPipeline};
 use crate::pipelines::video_processor::{self, ResizeMode};
 use crate::precision::Precision;
 use crate::schedulers::CogVideoXSchedulerConfig;
@@ -544,6 +544,13 @@ impl Default for Framing {
     }
 }
 
+impl Framing {
+    /// What the Wan pipeline checks of the framing.
+    pub fn wan(&self) -> WanFraming {
+        WanFraming { frames: self.frames, size: self.size, fps: self.fps }
+    }
+}
+
 /// Frames the public demo samples.
 pub const DEMO_FRAMES: usize = 49;
 /// Frame rate the public demo writes.
@@ -658,20 +665,8 @@ impl Checked {
     pub fn check_sampling(&self, steps_flag: &str, steps: usize, guidance: f64, framing: &Framing) -> Result<()> {
         match self {
             Self::CogVideoX(c) => c.check_sampling(steps_flag, steps, guidance, framing),
-            Self::Wan(c) => c.check_sampling(steps_flag, steps, guidance, framing),
+            Self::Wan(c) => c.check_sampling(steps_flag, steps, guidance, framing.wan()),
         }
-    }
-}
-
-/// Refuses a sample that does not fit its CUDA device: CogVideoX's sampling memory plan
-/// ([`crate::training::plan::sampling_plan_for`]); Wan has no sampling plan yet and is not
-/// checked.
-pub fn check_fits(paths: &ModelPaths, options: LoadOptions, framing: &Framing) -> Result<()> {
-    match ModelFamily::of_transformer(&paths.transformer)? {
-        ModelFamily::CogVideoX => crate::training::plan::check_sampling_fits(
-            &crate::training::plan::sampling_plan_for(paths, options, framing)?,
-        ),
-        ModelFamily::Wan => Ok(()),
     }
 }
 
@@ -707,7 +702,10 @@ impl Pipeline {
     pub fn load_checked(paths: &ModelPaths, checked: Checked, options: LoadOptions) -> Result<Self> {
         Ok(match checked {
             Checked::CogVideoX(c) => Self::CogVideoX(Box::new(CogNvsPipeline::load_checked(paths, *c, options)?)),
-            Checked::Wan(c) => Self::Wan(Box::new(WanNvsPipeline::load_checked(paths, *c, options)?)),
+            Checked::Wan(c) => {
+                let kind = options.precision.kind(options.device);
+                Self::Wan(Box::new(WanNvsPipeline::load_checked(paths, *c, options.device, kind)?))
+            }
         })
     }
 
@@ -734,13 +732,14 @@ impl Pipeline {
                 (condition, started, sampled)
             }
             Self::Wan(pipeline) => {
-                let size = pipeline.framing_size(framing)?;
+                let size = pipeline.framing_size(framing.wan())?;
                 let condition = prepare_condition_at(path, size, pipeline.temporal_factor(), framing)?;
                 let mask = hole_mask(path, &condition, size, framing, device)?;
                 let video = video_processor::frames_to_video(&condition.frames, pipeline.kind(), device)?;
                 let started = Instant::now();
-                let sampled = pipeline.generate_timed(&video, &mask, steps, guidance, seed, progress)?;
-                (condition, started, sampled)
+                let (sampled, seconds) = pipeline.generate_timed(&video, &mask, steps, guidance, seed, progress)?;
+                // The Wan sampler is timed as a whole.
+                (condition, started, (sampled, Timings { denoise: seconds, ..Timings::default() }))
             }
         };
         let seconds = started.elapsed().as_secs_f64();

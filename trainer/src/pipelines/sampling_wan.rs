@@ -25,7 +25,6 @@ use crate::models::wan::transformer_wan::{
 };
 use crate::models::weights;
 use crate::pipelines::pipeline_wan::{self, WanCondition, WanExperts, WanSampling};
-use crate::pipelines::sampling::{Framing, LoadOptions, Timings};
 use crate::pipelines::video_processor;
 use crate::schedulers::scheduling_unipc_multistep::UniPCMultistepSchedulerConfig;
 
@@ -87,8 +86,9 @@ impl WanCheckedModels {
     }
 
     /// Refuses sampling arguments these models cannot take, naming the flag (as
-    /// [`crate::pipelines::sampling::CheckedModels::check_sampling`] does for CogVideoX).
-    pub fn check_sampling(&self, steps_flag: &str, steps: usize, guidance: f64, framing: &Framing) -> Result<()> {
+    /// [`crate::pipelines::sampling::CheckedModels::check_sampling`] does for CogVideoX): the
+    /// steps, the guidance and the framing (see [`check_framing`]).
+    pub fn check_sampling(&self, steps_flag: &str, steps: usize, guidance: f64, framing: WanFraming) -> Result<()> {
         let timesteps = self.scheduler.num_train_timesteps;
         if steps == 0 || steps as u64 > timesteps as u64 {
             return Err(Error::InvalidArgument {
@@ -116,13 +116,24 @@ fn spatial_factor(vae: &AutoencoderKLWanConfig) -> i64 {
     vae.scale_factor_spatial.unwrap_or(crate::models::backbone::WAN_DEFAULT_SCALE_FACTOR_SPATIAL)
 }
 
+/// What [`check_framing`] checks of a sampling's framing (`pipelines::sampling::Framing`'s fields).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WanFraming {
+    /// Frames sampled.
+    pub frames: usize,
+    /// The model's input size (width, height); None: the family's default clip's.
+    pub size: Option<(u32, u32)>,
+    /// Frame rate of an mp4 output.
+    pub fps: f64,
+}
+
 /// The input size for `framing` (its `size`, else the family's default clip: a Wan transformer has
 /// no positional table of a fixed size), after checking frames, size and frame rate against the
 /// models, naming the flag.
 pub fn check_framing(
     config: &WanTransformer3DModelConfig,
     vae_config: &AutoencoderKLWanConfig,
-    framing: &Framing,
+    framing: WanFraming,
 ) -> Result<(u32, u32)> {
     let temporal = temporal_factor(vae_config) as usize;
     if framing.frames == 0 || !(framing.frames - 1).is_multiple_of(temporal) {
@@ -173,15 +184,15 @@ pub struct WanNvsPipeline {
 impl WanNvsPipeline {
     /// Builds and loads the checked models on the device in the requested arithmetic, the LoRA
     /// adapters merged into the transformer.
-    pub fn load_checked(paths: &ModelPaths, checked: WanCheckedModels, options: LoadOptions) -> Result<Self> {
-        let kind = options.precision.kind(options.device);
+    /// The models are built on `device` in `kind`.
+    pub fn load_checked(paths: &ModelPaths, checked: WanCheckedModels, device: Device, kind: Kind) -> Result<Self> {
         let WanCheckedModels { config, vae_config, scheduler, adapters, text, negative } = checked;
-        let (vs, transformer) = wan_transformer::build(&config, options.device, kind)?;
+        let (vs, transformer) = wan_transformer::build(&config, device, kind)?;
         wan_transformer::load(&vs, &paths.transformer)?;
         for (adapter, file) in &adapters {
             adapter.merge_into(&vs, file)?;
         }
-        let (vae_vs, vae) = wan_vae::build(&vae_config, options.device, kind)?;
+        let (vae_vs, vae) = wan_vae::build(&vae_config, device, kind)?;
         weights::load(&vae_vs, &paths.vae)?;
         Ok(Self {
             transformer,
@@ -194,7 +205,7 @@ impl WanNvsPipeline {
     }
 
     /// The input size the framing gets without a `size` (see [`check_framing`]).
-    pub fn framing_size(&self, framing: &Framing) -> Result<(u32, u32)> {
+    pub fn framing_size(&self, framing: WanFraming) -> Result<(u32, u32)> {
         check_framing(self.transformer.config(), self.vae.config(), framing)
     }
 
@@ -211,8 +222,8 @@ impl WanNvsPipeline {
     /// The video `[1, 3, F, H, W]` (f32, [−1, 1]) sampled for the render `video` (same shape,
     /// zeros in the holes) and its `mask` `[1, 1, F, H, W]` (1 known) with `steps` UniPC steps and
     /// guidance scale `guidance`, tch's generator reseeded with `seed`. The sampler reports no
-    /// step in between: `progress(steps, steps)` is called once at the end, and the whole run
-    /// is timed as denoising.
+    /// step in between: `progress(steps, steps)` is called once at the end. Also returns the
+    /// seconds of the whole run (encode, denoising and decode together).
     pub fn generate_timed(
         &self,
         video: &Tensor,
@@ -221,7 +232,7 @@ impl WanNvsPipeline {
         guidance: f64,
         seed: u64,
         progress: &mut dyn FnMut(usize, usize),
-    ) -> Result<(Tensor, Timings)> {
+    ) -> Result<(Tensor, f64)> {
         let [_, _, frames, height, width] = video.size()[..] else {
             return Err(Error::Shape {
                 tensor: "condition video".to_string(),
@@ -256,8 +267,8 @@ impl WanNvsPipeline {
             tch::Cuda::synchronize(index as i64);
         }
         progress(steps, steps);
-        let timings = Timings { denoise: started.elapsed().as_secs_f64(), ..Timings::default() };
+        let seconds = started.elapsed().as_secs_f64();
         weights::check_finite("sampled video", &sampled)?;
-        Ok((sampled, timings))
+        Ok((sampled, seconds))
     }
 }

@@ -55,6 +55,17 @@ impl WanCheckedModels {
             &weights::read_checkpoint_info(&paths.transformer)?,
             &paths.transformer,
         )?;
+        if let Some(image_dim) = config.image_dim {
+            // Wan2.1 I2V's image cross-attention takes CLIP tokens of a reference image, which
+            // nothing here computes; the CogNVS conditioning is the render and its mask.
+            return Err(Error::InvalidConfig {
+                source_name: paths.transformer.join("config.json").display().to_string(),
+                field: "image_dim".to_string(),
+                reason: format!(
+                    "is {image_dim}: a transformer with CLIP image cross-attention is not sampled here (no image tokens)"
+                ),
+            });
+        }
         let vae_config: AutoencoderKLWanConfig = crate::diffusers_config::read(&paths.vae)?;
         weights::read_checkpoint_info(&paths.vae)?;
         // Noisy latents, then the mask (one channel per folded frame) and the render's latents.

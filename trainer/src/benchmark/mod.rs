@@ -481,7 +481,7 @@ pub fn run(request: &Request, progress: &mut dyn FnMut(Progress)) -> Result<Outc
     }
     // The models are checked once here, so a scene fails only for its own inputs.
     let paths = request.nvs.model.resolve()?;
-    let checked = crate::pipelines::sampling::CheckedModels::read(&paths, Device::Cpu)?;
+    let checked = crate::pipelines::sampling::Checked::read(&paths, Device::Cpu)?;
     checked.check_sampling("sample-steps", request.nvs.sample_steps, request.nvs.guidance, &request.nvs.framing)?;
     for (name, path) in [("lpips-weights", &request.lpips), ("inception-weights", &request.inception)] {
         if let Some(path) = path.as_ref().filter(|p| !p.is_file()) {

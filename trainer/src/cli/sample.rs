@@ -60,11 +60,7 @@ impl SampleArgs {
 /// `on_step` hears each denoising step.
 pub fn sample(request: &SampleRequest, on_step: &mut dyn FnMut(usize, usize)) -> crate::Result<SampleReport> {
     let paths = request.model.resolve()?;
-    crate::training::plan::check_sampling_fits(&crate::training::plan::sampling_plan_for(
-        &paths,
-        request.load,
-        &request.framing,
-    )?)?;
+    crate::training::plan::check_sampling_memory(&paths, request.load, &request.framing)?;
     crate::pipelines::sampling::sample(request, &paths, on_step)
 }
 

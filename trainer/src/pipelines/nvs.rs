@@ -34,7 +34,7 @@ use tch::Device;
 
 use crate::error::{Error, Result};
 use crate::loaders::ModelSource;
-use crate::pipelines::sampling::{CogNvsPipeline, Framing, LoadOptions};
+use crate::pipelines::sampling::{Framing, LoadOptions, Pipeline};
 use crate::training::ReadSequence;
 use crate::training::preempt::Checkpointable;
 use crate::training::{FinetuneRequest, StepMetrics};
@@ -351,32 +351,21 @@ pub fn run(
             return stopped(record);
         }
         let paths = model.resolve()?;
-        crate::training::plan::check_sampling_fits(&crate::training::plan::sampling_plan_for(
-            &paths,
-            request.settings.load,
-            &request.settings.framing,
-        )?)?;
-        let pipeline = CogNvsPipeline::load(&paths, request.settings.load)?;
+        crate::training::plan::check_sampling_memory(&paths, request.settings.load, &request.settings.framing)?;
+        let pipeline = Pipeline::load(&paths, request.settings.load)?;
         for i in pending {
             let name = record.outputs[i].name.clone();
             let render = request.out.join(&record.outputs[i].render);
-            let condition =
-                crate::pipelines::sampling::prepare_condition(&render, &pipeline, &request.settings.framing)?;
-            let video = crate::pipelines::video_processor::frames_to_video(
-                &condition.frames,
-                pipeline.kind(),
-                request.settings.load.device,
-            )?;
-            let started = Instant::now();
-            let sampled = pipeline.generate(
-                &video,
+            let sampled = pipeline.sample(
+                &render,
+                &request.settings.framing,
                 request.settings.sample_steps,
                 request.settings.guidance,
                 request.settings.seed,
+                request.settings.load.device,
                 &mut |s, n| progress(Progress::Denoise(s, n)),
             )?;
-            let seconds = started.elapsed().as_secs_f64();
-            let frames = crate::pipelines::sampling::finish_frames(&sampled, &condition, &request.settings.framing)?;
+            let (frames, seconds) = (sampled.frames, sampled.seconds);
             let output =
                 write_outputs(&request.out, &name, &frames, &sequence.frames, &render, request.settings.framing.fps)?;
             record.outputs[i] = Output { sample_seconds: Some(seconds), ..output.with_render(&record.outputs[i]) };
@@ -479,18 +468,14 @@ fn preflight(request: &NvsRequest) -> Result<Preflight> {
         pairs = crate::training::finetune_pairs_config(&config)?;
     }
     let paths = request.settings.model.resolve()?;
-    let checked = crate::pipelines::sampling::CheckedModels::read(&paths, Device::Cpu)?;
+    let checked = crate::pipelines::sampling::Checked::read(&paths, Device::Cpu)?;
     checked.check_sampling(
         "sample-steps",
         request.settings.sample_steps,
         request.settings.guidance,
         &request.settings.framing,
     )?;
-    crate::training::plan::check_sampling_fits(&crate::training::plan::sampling_plan_for(
-        &paths,
-        request.settings.load,
-        &request.settings.framing,
-    )?)?;
+    crate::training::plan::check_sampling_memory(&paths, request.settings.load, &request.settings.framing)?;
     Ok(Preflight { names, video, poses, pairs, settings, inputs, train })
 }
 

@@ -41,6 +41,7 @@ use crate::models::cogvideox::cogvideox_transformer_3d::{
 use crate::models::embeddings::RotaryEmbedding;
 use crate::models::family::{Job, ModelFamily};
 use crate::models::weights;
+use crate::pipelines::sampling_wan::{WanCheckedModels, WanFraming, WanNvsPipeline};
 use crate::pipelines::video_processor::{self, ResizeMode};
 use crate::precision::Precision;
 use crate::schedulers::CogVideoXSchedulerConfig;
@@ -89,8 +90,18 @@ impl CheckedModels {
     /// embeddings are loaded there), without building a model: a job calls it before it writes
     /// anything.
     pub fn read(paths: &ModelPaths, device: Device) -> Result<Self> {
-        ModelFamily::of_transformer(&paths.transformer)?.require(Job::Sampling, &paths.transformer)?;
-        ModelFamily::of_vae(&paths.vae)?.require(Job::Sampling, &paths.vae)?;
+        // The CogVideoX pipeline's reader: [`Checked::read`] picks the family.
+        let families = [
+            (&paths.transformer, ModelFamily::of_transformer(&paths.transformer)?),
+            (&paths.vae, ModelFamily::of_vae(&paths.vae)?),
+        ];
+        if let Some((path, family)) = families.into_iter().find(|(_, f)| *f != ModelFamily::CogVideoX) {
+            return Err(Error::InvalidConfig {
+                source_name: path.display().to_string(),
+                field: "_class_name".to_string(),
+                reason: format!("is a {} model; the CogVideoX pipeline reads CogVideoX models", family.name()),
+            });
+        }
         paths.check_text_embedding()?;
         let adapters = paths
             .adapters
@@ -533,6 +544,13 @@ impl Default for Framing {
     }
 }
 
+impl Framing {
+    /// What the Wan pipeline checks of the framing.
+    pub fn wan(&self) -> WanFraming {
+        WanFraming { frames: self.frames, size: self.size, fps: self.fps }
+    }
+}
+
 /// Frames the public demo samples.
 pub const DEMO_FRAMES: usize = 49;
 /// Frame rate the public demo writes.
@@ -554,10 +572,20 @@ pub struct PreparedCondition {
 /// Reads a conditioning (a `datagen render` folder, a frame folder or a video) and brings it to
 /// the pipeline's input as `framing` says. Errors name the input.
 pub fn prepare_condition(path: &Path, pipeline: &CogNvsPipeline, framing: &Framing) -> Result<PreparedCondition> {
-    let named = read_condition_named(path)?;
-    let source_size = named.uniform_size()?;
     let size = check_framing(pipeline.transformer_config(), pipeline.vae_config(), framing)?;
     let temporal = pipeline.vae_config().effective_temporal_compression_ratio() as usize;
+    prepare_condition_at(path, size, temporal, framing)
+}
+
+/// [`prepare_condition`] at the model input `size` for a VAE compressing time `temporal`×.
+fn prepare_condition_at(
+    path: &Path,
+    size: (u32, u32),
+    temporal: usize,
+    framing: &Framing,
+) -> Result<PreparedCondition> {
+    let named = read_condition_named(path)?;
+    let source_size = named.uniform_size()?;
     let used = video_processor::take_frames(named.frames.len(), framing.frames, temporal).ok_or_else(|| {
         Error::InvalidInput { path: path.to_path_buf(), what: "frames".to_string(), reason: "no frame".to_string() }
     })?;
@@ -597,6 +625,174 @@ pub fn finish_frames(video: &Tensor, condition: &PreparedCondition, framing: &Fr
     } else {
         frames
     })
+}
+
+/// The checked models of either family: where sampling picks the family (the transformer
+/// folder's `_class_name`) and every job after it follows.
+#[derive(Debug)]
+pub enum Checked {
+    /// A CogVideoX model: [`CogNvsPipeline`].
+    CogVideoX(Box<CheckedModels>),
+    /// A Wan model: [`WanNvsPipeline`].
+    Wan(Box<WanCheckedModels>),
+}
+
+impl Checked {
+    /// Reads and checks the models `paths` names for their family (see [`CheckedModels::read`],
+    /// [`WanCheckedModels::read`]); the VAE must be of the transformer's family.
+    pub fn read(paths: &ModelPaths, device: Device) -> Result<Self> {
+        let family = ModelFamily::of_transformer(&paths.transformer)?.require(Job::Sampling, &paths.transformer)?;
+        let vae_family = ModelFamily::of_vae(&paths.vae)?;
+        if vae_family != family {
+            return Err(Error::InvalidConfig {
+                source_name: paths.vae.join("config.json").display().to_string(),
+                field: "_class_name".to_string(),
+                reason: format!(
+                    "is a {} VAE; the transformer {} is a {} model",
+                    vae_family.name(),
+                    paths.transformer.display(),
+                    family.name()
+                ),
+            });
+        }
+        Ok(match family {
+            ModelFamily::CogVideoX => Self::CogVideoX(Box::new(CheckedModels::read(paths, device)?)),
+            ModelFamily::Wan => Self::Wan(Box::new(WanCheckedModels::read(paths, device)?)),
+        })
+    }
+
+    /// Refuses sampling arguments these models cannot take, naming the flag.
+    pub fn check_sampling(&self, steps_flag: &str, steps: usize, guidance: f64, framing: &Framing) -> Result<()> {
+        match self {
+            Self::CogVideoX(c) => c.check_sampling(steps_flag, steps, guidance, framing),
+            Self::Wan(c) => c.check_sampling(steps_flag, steps, guidance, framing.wan()),
+        }
+    }
+}
+
+/// A loaded sampling pipeline of either family.
+#[derive(Debug)]
+pub enum Pipeline {
+    /// CogVideoX: the public CogNVS pipeline.
+    CogVideoX(Box<CogNvsPipeline>),
+    /// Wan: [`crate::pipelines::pipeline_wan`] with the render and hole-mask conditioning.
+    Wan(Box<WanNvsPipeline>),
+}
+
+/// What [`Pipeline::sample`] produced for one conditioning.
+#[derive(Debug)]
+pub struct Sampled {
+    /// The user's frames (see [`finish_frames`]).
+    pub frames: Vec<RgbImage>,
+    /// The conditioning as the model took it.
+    pub condition: PreparedCondition,
+    /// Seconds of generation (encode, denoising, decode).
+    pub seconds: f64,
+    /// Seconds of each part.
+    pub timings: Timings,
+}
+
+impl Pipeline {
+    /// Checks every config and header (see [`Checked::read`]), then builds and loads the models.
+    pub fn load(paths: &ModelPaths, options: LoadOptions) -> Result<Self> {
+        Self::load_checked(paths, Checked::read(paths, options.device)?, options)
+    }
+
+    /// [`Self::load`] with the configs and small files read already.
+    pub fn load_checked(paths: &ModelPaths, checked: Checked, options: LoadOptions) -> Result<Self> {
+        Ok(match checked {
+            Checked::CogVideoX(c) => Self::CogVideoX(Box::new(CogNvsPipeline::load_checked(paths, *c, options)?)),
+            Checked::Wan(c) => {
+                let kind = options.precision.kind(options.device);
+                Self::Wan(Box::new(WanNvsPipeline::load_checked(paths, *c, options.device, kind)?))
+            }
+        })
+    }
+
+    /// Samples the conditioning at `path` (a `datagen render` folder, a frame folder or a video;
+    /// Wan needs the render folder's `holes/`) as `framing` says, on `device`, every draw from
+    /// tch's generator reseeded with `seed`; `progress` hears the denoising steps.
+    #[allow(clippy::too_many_arguments)]
+    pub fn sample(
+        &self,
+        path: &Path,
+        framing: &Framing,
+        steps: usize,
+        guidance: f64,
+        seed: u64,
+        device: Device,
+        progress: &mut dyn FnMut(usize, usize),
+    ) -> Result<Sampled> {
+        let (condition, started, (output, timings)) = match self {
+            Self::CogVideoX(pipeline) => {
+                let condition = prepare_condition(path, pipeline, framing)?;
+                let video = video_processor::frames_to_video(&condition.frames, pipeline.kind(), device)?;
+                let started = Instant::now();
+                let sampled = pipeline.generate_timed(&video, steps, guidance, seed, progress)?;
+                (condition, started, sampled)
+            }
+            Self::Wan(pipeline) => {
+                let size = pipeline.framing_size(framing.wan())?;
+                let condition = prepare_condition_at(path, size, pipeline.temporal_factor(), framing)?;
+                let mask = hole_mask(path, &condition, size, framing, device)?;
+                let video = video_processor::frames_to_video(&condition.frames, pipeline.kind(), device)?;
+                let started = Instant::now();
+                let (sampled, seconds) = pipeline.generate_timed(&video, &mask, steps, guidance, seed, progress)?;
+                // The Wan sampler is timed as a whole.
+                (condition, started, (sampled, Timings { denoise: seconds, ..Timings::default() }))
+            }
+        };
+        let seconds = started.elapsed().as_secs_f64();
+        let frames = finish_frames(&output, &condition, framing)?;
+        Ok(Sampled { frames, condition, seconds, timings })
+    }
+}
+
+/// The folder of a render's hole masks (`datagen render`'s `holes/%05d.png`, 255 a hole).
+pub const HOLES_DIR: &str = "holes";
+
+/// The known-pixel mask `[1, 1, F, H, W]` (f32, 1 known) of the render at `path` for the frames
+/// `condition` used, brought to the model's `size` as its frames were: a pixel is known only
+/// where no hole reaches it after the resize.
+pub fn hole_mask(
+    path: &Path,
+    condition: &PreparedCondition,
+    size: (u32, u32),
+    framing: &Framing,
+    device: Device,
+) -> Result<Tensor> {
+    let folder = path.join(HOLES_DIR);
+    if !folder.is_dir() {
+        return Err(Error::InvalidInput {
+            path: path.to_path_buf(),
+            what: "hole masks".to_string(),
+            reason: format!(
+                "a Wan model samples with the render's hole mask: no `{HOLES_DIR}/` folder here (pass a `datagen render` folder)"
+            ),
+        });
+    }
+    let holes = crate::eval::metrics::read_named_frames(&folder)?;
+    if holes.frames.len() < condition.used || holes.uniform_size()? != condition.source_size {
+        return Err(Error::InvalidInput {
+            path: folder,
+            what: "hole masks".to_string(),
+            reason: format!(
+                "{} masks of {:?} for {} frames of {:?}",
+                holes.frames.len(),
+                holes.uniform_size()?,
+                condition.used,
+                condition.source_size
+            ),
+        });
+    }
+    let (width, height) = size;
+    let mut known = Vec::with_capacity(condition.used * (width * height) as usize);
+    for frame in &holes.frames[..condition.used] {
+        let fitted = video_processor::fit(frame, width, height, framing.resize);
+        known.extend(fitted.pixels().map(|p| if p.0 == [0, 0, 0] { 1.0f32 } else { 0.0 }));
+    }
+    let shape = [1, 1, condition.used as i64, i64::from(height), i64::from(width)];
+    Ok(Tensor::from_slice(&known).f_view(shape)?.f_to_device(device)?)
 }
 
 /// What to sample with `trainer sample`.
@@ -651,19 +847,22 @@ pub fn sample(
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<SampleReport> {
     read_condition_named(&request.condition)?.uniform_size()?;
-    let checked = CheckedModels::read(paths, request.load.device)?;
+    let checked = Checked::read(paths, request.load.device)?;
     checked.check_sampling("steps", request.steps, request.guidance, &request.framing)?;
-    let pipeline = CogNvsPipeline::load_checked(paths, checked, request.load)?;
-    let condition = prepare_condition(&request.condition, &pipeline, &request.framing)?;
-    let video = video_processor::frames_to_video(&condition.frames, pipeline.kind(), request.load.device)?;
-    let started = Instant::now();
-    let (output, timings) = pipeline.generate_timed(&video, request.steps, request.guidance, request.seed, progress)?;
-    let seconds = started.elapsed().as_secs_f64();
+    let pipeline = Pipeline::load_checked(paths, checked, request.load)?;
+    let Sampled { frames: images, condition, seconds, timings } = pipeline.sample(
+        &request.condition,
+        &request.framing,
+        request.steps,
+        request.guidance,
+        request.seed,
+        request.load.device,
+        progress,
+    )?;
     let cuda_peaks = match request.load.device {
         Device::Cuda(index) => crate::distributed::cuda_memory_peaks(index, false),
         _ => None,
     };
-    let images = finish_frames(&output, &condition, &request.framing)?;
     write_frames(&request.out, &images, request.framing.fps)?;
     Ok(SampleReport {
         frames: images.len(),

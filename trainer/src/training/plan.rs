@@ -987,6 +987,22 @@ pub fn sampling_plan_for(
     )
 }
 
+/// Refuses a sample of the models `paths` names that does not fit its CUDA device: CogVideoX's
+/// sampling plan ([`sampling_plan_for`]) against the free memory; Wan has no sampling plan yet
+/// and is not checked.
+pub fn check_sampling_memory(
+    paths: &crate::loaders::ModelPaths,
+    options: crate::pipelines::sampling::LoadOptions,
+    framing: &crate::pipelines::sampling::Framing,
+) -> Result<()> {
+    match crate::models::family::ModelFamily::of_transformer(&paths.transformer)? {
+        crate::models::family::ModelFamily::CogVideoX => {
+            check_sampling_fits(&sampling_plan_for(paths, options, framing)?)
+        }
+        crate::models::family::ModelFamily::Wan => Ok(()),
+    }
+}
+
 /// Checks a sampling plan against the free memory of its CUDA device (nothing elsewhere).
 pub fn check_sampling_fits(plan: &SamplingPlan) -> Result<()> {
     let Device::Cuda(index) = plan.device else { return Ok(()) };

@@ -26,4 +26,5 @@ mod vae;
 mod validation;
 mod wan;
 mod wan_lora;
+mod wan_sampling;
 mod wan_training;

@@ -427,11 +427,11 @@ fn trainer_forward_runs_wan_configs() {
     );
 }
 
-/// The jobs that do not run Wan yet (sampling) pick the family from the folders' `_class_name`
-/// and refuse a Wan model by name, before anything is parsed as CogVideoX's; training refuses a
-/// mix of families.
+/// Sampling picks the family from the folders' `_class_name`: the CogVideoX pipeline's reader
+/// refuses a Wan model by name before anything is parsed as CogVideoX's, and sampling and
+/// training refuse a mix of families.
 #[test]
-fn sampling_and_training_refuse_wan_folders_by_family() {
+fn sampling_and_training_pick_wan_folders_by_family() {
     let root = tempfile::tempdir().unwrap();
     let folder = |name: &str, class: &str| {
         let dir = root.path().join(name);
@@ -451,8 +451,12 @@ fn sampling_and_training_refuse_wan_folders_by_family() {
         zero_text_embedding: false,
     };
     let e = trainer::pipelines::sampling::CheckedModels::read(&paths, Device::Cpu).unwrap_err().to_string();
-    assert!(e.contains("is a Wan model; sampling runs CogVideoX"), "{e}");
+    assert!(e.contains("is a Wan model; the CogVideoX pipeline reads CogVideoX"), "{e}");
     assert!(e.contains(&wan_transformer.display().to_string()), "{e}");
+    let cog_vae = folder("cog_vae", "AutoencoderKLCogVideoX");
+    let mixed = trainer::loaders::ModelPaths { vae: cog_vae, ..paths.clone() };
+    let e = trainer::pipelines::sampling::Checked::read(&mixed, Device::Cpu).unwrap_err().to_string();
+    assert!(e.contains("is a CogVideoX VAE; the transformer") && e.contains("is a Wan model"), "{e}");
     let model = trainer::training::ModelConfig {
         transformer: "tiny".to_string(),
         vae: wan_vae.display().to_string(),

@@ -45,7 +45,8 @@ fn wan_rectified_flow_loss_equals_the_reference() {
 }
 
 /// The tiny pretrain config on the tiny Wan models (`tiny-cognvs`, `tiny-wan`), `steps` steps,
-/// a checkpoint every 2, no validation (it samples CogVideoX only so far).
+/// a checkpoint every 2, no validation (it samples CogVideoX only so far; `trainer sample` and
+/// `nvs` sample Wan: `wan_sampling.rs`).
 fn wan_config(dir: &Path, steps: u64) -> PathBuf {
     let text = std::fs::read_to_string(repo_root().join("configs/pretrain_tiny.toml"))
         .unwrap()

@@ -233,9 +233,10 @@ config["loop"].update(steps=int(steps), checkpoint_every=1_000_000, validate_eve
 if tiny == "1":
     transformer = config["model"]["transformer"]
     if transformer.startswith("wan"):
-        # Wan's tiny structures; gpu_check_wan.py --tiny builds the same (Wan2.2's preset on
-        # Wan2.1's VAE structure: no tiny transformer takes the tiny Wan2.2 VAE's channels).
-        config["model"].update(transformer="tiny-i2v" if "-i2v-" in transformer else "tiny-t2v", vae="tiny")
+        # Wan's tiny structures (Wan2.2's preset on Wan2.1's VAE structure: no tiny transformer
+        # takes the tiny Wan2.2 VAE's channels); the text-to-video presets train CogNVS-widened
+        # models, as `tiny-cognvs` is.
+        config["model"].update(transformer="tiny-i2v" if "-i2v-" in transformer else "tiny-cognvs", vae="tiny")
     else:
         config["model"].update(transformer="tiny", vae="tiny")
     config["loop"]["precision"] = "fp32"

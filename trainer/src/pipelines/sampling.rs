@@ -130,15 +130,11 @@ impl CheckedModels {
     /// steps (flag `steps_flag`; 1 to the scheduler's training timesteps), a finite `guidance`,
     /// and the framing's frame count, size and frame rate (see [`check_framing`]).
     pub fn check_sampling(&self, steps_flag: &str, steps: usize, guidance: f64, framing: &Framing) -> Result<()> {
-        let timesteps = self.scheduler.num_train_timesteps;
-        if steps == 0 || steps as u64 > timesteps as u64 {
-            return Err(Error::InvalidArgument {
-                name: steps_flag.to_string(),
-                reason: format!(
-                    "{steps} denoising steps: must be in 1..={timesteps} (the scheduler's training timesteps)"
-                ),
-            });
-        }
+        crate::schedulers::scheduling_utils::check_inference_steps(
+            steps_flag,
+            steps,
+            self.scheduler.num_train_timesteps as u64,
+        )?;
         if !guidance.is_finite() {
             return Err(Error::InvalidArgument {
                 name: "guidance".to_string(),

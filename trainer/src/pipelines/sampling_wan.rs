@@ -100,15 +100,11 @@ impl WanCheckedModels {
     /// [`crate::pipelines::sampling::CheckedModels::check_sampling`] does for CogVideoX): the
     /// steps, the guidance and the framing (see [`check_framing`]).
     pub fn check_sampling(&self, steps_flag: &str, steps: usize, guidance: f64, framing: WanFraming) -> Result<()> {
-        let timesteps = self.scheduler.num_train_timesteps;
-        if steps == 0 || steps as u64 > timesteps as u64 {
-            return Err(Error::InvalidArgument {
-                name: steps_flag.to_string(),
-                reason: format!(
-                    "{steps} denoising steps: must be in 1..={timesteps} (the scheduler's training timesteps)"
-                ),
-            });
-        }
+        crate::schedulers::scheduling_utils::check_inference_steps(
+            steps_flag,
+            steps,
+            self.scheduler.num_train_timesteps as u64,
+        )?;
         if !guidance.is_finite() {
             return Err(Error::InvalidArgument {
                 name: "guidance".to_string(),

@@ -517,6 +517,20 @@ pub trait Scheduler: Sized {
     }
 }
 
+/// A sampling run's step count (flag `flag`): 1 to the scheduler's `num_train_timesteps`
+/// training timesteps, the range every scheduler's `set_timesteps` can spread.
+pub fn check_inference_steps(flag: &str, steps: usize, num_train_timesteps: u64) -> Result<()> {
+    if steps == 0 || steps as u64 > num_train_timesteps {
+        return Err(Error::InvalidArgument {
+            name: flag.to_string(),
+            reason: format!(
+                "{steps} denoising steps: must be in 1..={num_train_timesteps} (the scheduler's training timesteps)"
+            ),
+        });
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -381,18 +381,12 @@ fn cogvideox_counts(config: &PretrainConfig, options: &PlanOptions, kind: Kind) 
         ),
     };
     let text_bytes = shape.text_tokens * transformer.text_embed_dim as u64 * FP32_BYTES;
-    let frozen = vec![
-        PlanRow {
-            what: "VAE weights (frozen)".to_string(),
-            bytes: vae_parameters * working,
-            note: format!("{} parameters × {working} B, no gradients", human_count(vae_parameters)),
-        },
-        PlanRow {
-            what: "text embedding (frozen)".to_string(),
-            bytes: text_bytes,
-            note: format!("[{}, {}] fp32, no gradients", shape.text_tokens, transformer.text_embed_dim),
-        },
-    ];
+    let frozen = frozen_rows(
+        vae_parameters,
+        working,
+        text_bytes,
+        format!("[{}, {}] fp32, no gradients", shape.text_tokens, transformer.text_embed_dim),
+    );
 
     let activations = activation_plan(config.lora.as_ref(), &shape, working, config.train.gradient_checkpointing);
     let pixels = shape.frames * u64::from(d.height) * u64::from(d.width);
@@ -421,6 +415,19 @@ fn cogvideox_counts(config: &PretrainConfig, options: &PlanOptions, kind: Kind) 
         vae_encode_peak,
         vae_decode_peak,
     })
+}
+
+/// The rows of the frozen inputs every family has: the VAE's weights (`vae_parameters` of
+/// `working` bytes) and the text embedding (`text_bytes`, counted as `text_note` says).
+fn frozen_rows(vae_parameters: u64, working: u64, text_bytes: u64, text_note: String) -> Vec<PlanRow> {
+    vec![
+        PlanRow {
+            what: "VAE weights (frozen)".to_string(),
+            bytes: vae_parameters * working,
+            note: format!("{} parameters × {working} B, no gradients", human_count(vae_parameters)),
+        },
+        PlanRow { what: "text embedding (frozen)".to_string(), bytes: text_bytes, note: text_note },
+    ]
 }
 
 /// The rows and peaks every family shares around its `counts`: gradients, master weights and

@@ -189,18 +189,12 @@ pub(super) fn counts(
     };
     let text_bytes = TEXT_TOKENS * transformer.text_dim as u64 * FP32_BYTES;
     let image_bytes = image_tokens * transformer.image_dim.unwrap_or(0) as u64 * FP32_BYTES;
-    let mut frozen = vec![
-        PlanRow {
-            what: "VAE weights (frozen)".to_string(),
-            bytes: vae_parameters * working,
-            note: format!("{} parameters × {working} B, no gradients", human_count(vae_parameters)),
-        },
-        PlanRow {
-            what: "text embedding (frozen)".to_string(),
-            bytes: text_bytes,
-            note: format!("[{TEXT_TOKENS}, {}] fp32 umT5 tokens, no gradients", transformer.text_dim),
-        },
-    ];
+    let mut frozen = super::frozen_rows(
+        vae_parameters,
+        working,
+        text_bytes,
+        format!("[{TEXT_TOKENS}, {}] fp32 umT5 tokens, no gradients", transformer.text_dim),
+    );
     if image_bytes > 0 {
         frozen.push(PlanRow {
             what: "image embedding (frozen)".to_string(),
